@@ -1,0 +1,25 @@
+r"""tg_nebp: particle belief propagation and Neural Enhanced BP for
+cooperative localization, as PyTorch Geometric layers."""
+from tg_nebp import metrics
+from tg_nebp.data import Realization
+from tg_nebp.datasets import CooperativeLocalizationDataset, Scenario
+from tg_nebp.filters import (ParticleBP, multinomial_resample,
+                             systematic_resample)
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.nn import ParticleBPConv
+
+__version__ = '0.1.0'
+
+__all__ = [
+    'ParticleBPConv',
+    'ParticleBP',
+    'CooperativeLocalizationDataset',
+    'Scenario',
+    'Realization',
+    'ConstantVelocityDrag',
+    'GaussianRange',
+    'multinomial_resample',
+    'systematic_resample',
+    'metrics',
+    '__version__',
+]

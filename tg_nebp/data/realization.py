@@ -1,0 +1,108 @@
+r"""The data model of :mod:`tg_nebp`.
+
+**Snapshot** (one time step, what the convolutions consume) is a
+:class:`torch_geometric.data.Data` with
+
+* :obj:`edge_index` :obj:`[2, E]`: edge :obj:`j -> i` (:obj:`edge_index[0] = j`,
+  :obj:`edge_index[1] = i`) means that agent :obj:`i` measured its range to
+  node :obj:`j` (:obj:`j` may be an anchor; anchors never receive),
+* :obj:`edge_attr` :obj:`[E, 1]`: the measured ranges in metres,
+* :obj:`anchor` :obj:`[N]` bool: static nodes with perfectly known position,
+* :obj:`pos` :obj:`[N, 2]`: true positions (ground truth, for training and
+  metrics only; trackers never read it),
+* :obj:`batch` :obj:`[N]` when taken from a batch of realizations.
+
+The filter state lives on the nodes: :obj:`particles` :obj:`[N, K, 4]` and
+:obj:`log_weights` :obj:`[N, K]` (state :math:`[p_x, p_y, v_x, v_y]`).
+
+**Realization** (:math:`T` snapshots over the same :math:`N` nodes) is ONE
+:class:`Realization`, so that PyG's :class:`~torch_geometric.loader.DataLoader`
+batches realizations of different sizes into one disjoint graph:
+
+* :obj:`states` :obj:`[N, T, 4]`: true states at time steps :math:`1..T`,
+* :obj:`edge_index` :obj:`[2, E_total]`, :obj:`edge_attr` :obj:`[E_total, 1]`:
+  the edges of all time steps concatenated,
+* :obj:`edge_time` :obj:`[E_total]`: the time index :math:`t \in [0, T)` of
+  every edge (time step :math:`t + 1`),
+* :obj:`anchor` :obj:`[N]`, :obj:`prior_mean` :obj:`[N, 4]` and
+  :obj:`prior_cov` :obj:`[N, 4, 4]`: the prior at time 0 (an anchor's prior
+  mean is its known position with zero velocity and zero covariance),
+* :obj:`num_steps`: :math:`T` (a tensor :obj:`[B]` in a batch; all graphs of
+  a batch share :math:`T`).
+
+:meth:`Realization.snapshot` returns the snapshot at time :obj:`t` of a
+single or a batched realization.
+"""
+import torch
+from torch_geometric.data import Data
+
+__all__ = ['Realization', 'num_steps_of']
+
+
+def num_steps_of(data: Data) -> int:
+    r"""Returns the number of time steps :math:`T` of a single or batched
+    realization, checking that all graphs of a batch agree."""
+    steps = torch.as_tensor(data.num_steps).view(-1)
+    if steps.numel() == 0 or bool((steps != steps[0]).any()):
+        raise ValueError(f"'num_steps' must be equal across a batch, got "
+                         f"{steps.tolist()}")
+    return int(steps[0])
+
+
+class Realization(Data):
+    r"""One cooperative-localization sequence: :math:`T` time steps of range
+    measurements over :math:`N` nodes, stored as a single graph so that
+    :class:`~torch_geometric.loader.DataLoader` batches sequences of different
+    network sizes (see the module docstring for the fields).
+
+    Batching needs no override of :meth:`__inc__` or :meth:`__cat_dim__`:
+    :obj:`edge_index` is incremented by the number of nodes, every node and
+    edge field (:obj:`states`, :obj:`prior_cov`, :obj:`edge_time`, ...) is
+    concatenated along its first dimension, and the integer
+    :obj:`num_steps` is stacked to :obj:`[B]`.
+    """
+    @property
+    def steps(self) -> int:
+        r"""The number of time steps :math:`T`."""
+        return num_steps_of(self)
+
+    def snapshot(self, t: int) -> Data:
+        r"""Returns the snapshot at time index :obj:`t` (time step
+        :math:`t + 1`) as a :class:`~torch_geometric.data.Data` with
+        :obj:`edge_index`, :obj:`edge_attr`, :obj:`anchor`, :obj:`pos` (if
+        true states are stored) and :obj:`batch` (if batched).
+
+        Args:
+            t (int): Time index in :math:`[0, T)`.
+        """
+        steps = num_steps_of(self)
+        if not 0 <= t < steps:
+            raise ValueError(f"'t' = {t} is outside [0, {steps})")
+        mask = self.edge_time == t
+        snap = Data(edge_index=self.edge_index[:, mask],
+                    edge_attr=self.edge_attr[mask], anchor=self.anchor,
+                    num_nodes=self.num_nodes)
+        states = getattr(self, 'states', None)
+        if states is not None:
+            snap.pos = states[:, t, :2]
+        batch = getattr(self, 'batch', None)
+        if batch is not None:
+            snap.batch = batch
+            snap.ptr = self.ptr
+        return snap
+
+    def edges_by_step(self) -> list:
+        r"""Splits the edges by time step in one pass: a list of :math:`T`
+        :obj:`(edge_index, edge_attr)` pairs, each sorted by receiver (so that
+        aggregation can use a deterministic segment sum)."""
+        steps = num_steps_of(self)
+        # one sort by (time, receiver) instead of T boolean masks
+        key = self.edge_time * self.num_nodes + self.edge_index[1]
+        order = torch.argsort(key, stable=True)
+        counts = torch.bincount(self.edge_time, minlength=steps).tolist()
+        return list(zip(self.edge_index[:, order].split(counts, dim=1),
+                        self.edge_attr[order].split(counts, dim=0)))
+
+
+# datasets and checkpoints are read with torch.load(weights_only=True)
+torch.serialization.add_safe_globals([Realization])

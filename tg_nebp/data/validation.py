@@ -1,0 +1,196 @@
+r"""The one validation layer of :mod:`tg_nebp`.
+
+Every public entry point (datasets, convolutions, trackers, CLI) calls these
+checks, so bad input fails early with a :class:`ValueError` that names the
+field and the offending index instead of producing NaNs far downstream.
+"""
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.realization import num_steps_of
+
+__all__ = [
+    'check_graph',
+    'check_ranges',
+    'check_particles',
+    'check_prior',
+    'check_realization',
+    'check_anchor',
+]
+
+
+def _first(mask: Tensor) -> int:
+    return int(mask.nonzero()[0, 0])
+
+
+def check_graph(edge_index: Tensor, num_nodes: int,
+                name: str = 'edge_index') -> None:
+    r"""Checks that :obj:`edge_index` is a :obj:`[2, E]` integer tensor with
+    node indices in :obj:`[0, num_nodes)` and no self-loops."""
+    if num_nodes <= 0:
+        raise ValueError(f"'num_nodes' must be positive, got {num_nodes} "
+                         f"(empty graph)")
+    if not isinstance(edge_index, Tensor) or edge_index.dim() != 2 \
+            or edge_index.size(0) != 2:
+        shape = tuple(edge_index.shape) if isinstance(edge_index,
+                                                      Tensor) else None
+        raise ValueError(f"'{name}' must have shape [2, E], got {shape}")
+    if edge_index.dtype not in (torch.long, torch.int32):
+        raise ValueError(f"'{name}' must be an integer tensor, got "
+                         f"{edge_index.dtype}")
+    if edge_index.numel() == 0:
+        return
+    bad = (edge_index < 0) | (edge_index >= num_nodes)
+    if bool(bad.any()):
+        row, e = bad.nonzero()[0].tolist()
+        raise ValueError(f"'{name}[{row}, {e}]' = {int(edge_index[row, e])} "
+                         f"is out of range for {num_nodes} nodes")
+    loop = edge_index[0] == edge_index[1]
+    if bool(loop.any()):
+        e = _first(loop)
+        raise ValueError(f"'{name}[:, {e}]' is a self-loop on node "
+                         f"{int(edge_index[0, e])}")
+
+
+def check_ranges(ranges: Tensor, num_edges: int,
+                 name: str = 'edge_attr') -> None:
+    r"""Checks that the measured ranges are a finite, non-negative
+    :obj:`[E, 1]` tensor."""
+    if not isinstance(ranges, Tensor) or ranges.dim() != 2 \
+            or ranges.size(1) != 1 or ranges.size(0) != num_edges:
+        shape = tuple(ranges.shape) if isinstance(ranges, Tensor) else None
+        raise ValueError(f"'{name}' must have shape [{num_edges}, 1] (one "
+                         f"measured range per edge), got {shape}")
+    if not ranges.is_floating_point():
+        raise ValueError(f"'{name}' must be a floating point tensor, got "
+                         f"{ranges.dtype}")
+    bad = ~torch.isfinite(ranges[:, 0])
+    if bool(bad.any()):
+        e = _first(bad)
+        raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0])} is not "
+                         f"finite")
+    neg = ranges[:, 0] < 0
+    if bool(neg.any()):
+        e = _first(neg)
+        raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0])} is a "
+                         f"negative range")
+
+
+def check_particles(particles: Tensor, log_weights: Tensor,
+                    num_nodes: Optional[int] = None,
+                    state_dim: Optional[int] = None,
+                    weights_name: str = 'log_weights') -> None:
+    r"""Checks that :obj:`particles` :obj:`[N, K, D]` and :obj:`log_weights`
+    :obj:`[N, K]` agree with each other and with the model, and that the
+    particles are finite and no log-weight is NaN or :math:`+\infty`."""
+    if not isinstance(particles, Tensor) or particles.dim() != 3:
+        raise ValueError(f"'particles' must have shape [N, K, D], got "
+                         f"{tuple(particles.shape)}")
+    if num_nodes is not None and particles.size(0) != num_nodes:
+        raise ValueError(f"'particles' holds {particles.size(0)} nodes but "
+                         f"the graph has {num_nodes}")
+    if state_dim is not None and particles.size(2) != state_dim:
+        raise ValueError(f"'particles' has state size {particles.size(2)} "
+                         f"but the model expects {state_dim}")
+    if particles.size(2) < 2:
+        raise ValueError(f"'particles' must hold a 2-D position in its first "
+                         f"two state entries, got state size "
+                         f"{particles.size(2)}")
+    if particles.size(1) == 0:
+        raise ValueError("'particles' holds K = 0 particles per node")
+    if not isinstance(log_weights, Tensor) \
+            or log_weights.shape != particles.shape[:2]:
+        raise ValueError(f"'{weights_name}' must have shape "
+                         f"{list(particles.shape[:2])} to match 'particles' "
+                         f"(K = {particles.size(1)}), got "
+                         f"{list(getattr(log_weights, 'shape', []))}")
+    bad = ~torch.isfinite(particles).all(dim=-1).all(dim=-1)
+    if bool(bad.any()):
+        raise ValueError(f"'particles[{_first(bad)}]' holds a non-finite "
+                         f"value")
+    bad = (torch.isnan(log_weights) | (log_weights == float('inf'))).any(-1)
+    if bool(bad.any()):
+        raise ValueError(f"'{weights_name}[{_first(bad)}]' holds NaN or "
+                         f"+inf")
+
+
+def check_anchor(anchor: Tensor, num_nodes: int) -> None:
+    r"""Checks that :obj:`anchor` is a bool mask of shape :obj:`[N]`."""
+    if not isinstance(anchor, Tensor) or anchor.dtype != torch.bool \
+            or anchor.shape != (num_nodes, ):
+        raise ValueError(f"'anchor' must be a bool tensor of shape "
+                         f"[{num_nodes}], got "
+                         f"{getattr(anchor, 'dtype', type(anchor))} "
+                         f"{list(getattr(anchor, 'shape', []))}")
+
+
+def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
+                atol: float = 1e-6) -> None:
+    r"""Checks the prior: finite means (an anchor's mean is its known
+    position), symmetric positive semi-definite covariances."""
+    n, d = prior_mean.shape
+    if prior_cov.shape != (n, d, d):
+        raise ValueError(f"'prior_cov' must have shape [{n}, {d}, {d}], got "
+                         f"{list(prior_cov.shape)}")
+    bad = ~torch.isfinite(prior_mean).all(-1)
+    if bool(bad.any()):
+        i = _first(bad)
+        what = ('anchor without a known position' if bool(anchor[i]) else
+                'non-finite prior mean')
+        raise ValueError(f"'prior_mean[{i}]': {what}")
+    bad = ~torch.isfinite(prior_cov).flatten(1).all(-1)
+    if bool(bad.any()):
+        raise ValueError(f"'prior_cov[{_first(bad)}]' is not finite")
+    asym = (prior_cov - prior_cov.transpose(-1, -2)).abs().amax((-1, -2))
+    scale = prior_cov.abs().amax((-1, -2)).clamp_min(1.0)
+    bad = asym > atol * scale
+    if bool(bad.any()):
+        raise ValueError(f"'prior_cov[{_first(bad)}]' is not symmetric")
+    min_eig = torch.linalg.eigvalsh(prior_cov.double()).amin(-1)
+    bad = min_eig < -atol * scale.double()
+    if bool(bad.any()):
+        i = _first(bad)
+        raise ValueError(f"'prior_cov[{i}]' is not positive semi-definite "
+                         f"(smallest eigenvalue {float(min_eig[i]):.3g})")
+
+
+def check_realization(data) -> None:
+    r"""Checks a (possibly batched) :class:`~tg_nebp.data.Realization`."""
+    for key in ('edge_index', 'edge_attr', 'edge_time', 'anchor',
+                'prior_mean', 'prior_cov'):
+        if getattr(data, key, None) is None:
+            raise ValueError(f"realization is missing the field '{key}'")
+    n = data.num_nodes
+    anchor = data.anchor
+    check_anchor(anchor, n)
+    if bool(anchor.all()):
+        raise ValueError("'anchor': the graph has no agent to localize")
+    check_graph(data.edge_index, n)
+    check_ranges(data.edge_attr, data.edge_index.size(1))
+    into_anchor = anchor[data.edge_index[1]]
+    if bool(into_anchor.any()):
+        e = _first(into_anchor)
+        raise ValueError(f"'edge_index[:, {e}]' ends at anchor "
+                         f"{int(data.edge_index[1, e])}: anchors never "
+                         f"receive measurements")
+    t = data.edge_time
+    if t.shape != (data.edge_index.size(1), ):
+        raise ValueError(f"'edge_time' must have shape "
+                         f"[{data.edge_index.size(1)}], got {list(t.shape)}")
+    steps = num_steps_of(data)
+    bad = (t < 0) | (t >= steps)
+    if bool(bad.any()):
+        e = _first(bad)
+        raise ValueError(f"'edge_time[{e}]' = {int(t[e])} is outside "
+                         f"[0, {steps})")
+    if data.prior_mean.shape != (n, 4):
+        raise ValueError(f"'prior_mean' must have shape [{n}, 4], got "
+                         f"{list(data.prior_mean.shape)}")
+    check_prior(data.prior_mean, data.prior_cov, anchor)
+    states = getattr(data, 'states', None)
+    if states is not None and (states.dim() != 3 or states.size(0) != n
+                               or states.size(1) != steps):
+        raise ValueError(f"'states' must have shape [{n}, {steps}, D], got "
+                         f"{list(states.shape)}")

@@ -1,0 +1,183 @@
+import dataclasses
+import hashlib
+import json
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Optional, Tuple, Union
+
+import torch
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+
+__all__ = ['Scenario']
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    r"""The definition of a cooperative-localization network, from which
+    :meth:`generate` draws realizations. The paper's networks are JSON files
+    in the repository's top-level :obj:`datasets/` folder
+    (:obj:`"paper_train"`: 25 agents, 5 anchors; :obj:`"paper_test"`: 100
+    agents, 13 anchors), loaded with :meth:`load`.
+
+    Args:
+        name (str): Name (part of the processed file name).
+        num_agents (int): Mobile agents :math:`I`.
+        anchor_positions (tuple): Anchor positions :math:`(A, 2)` in metres.
+        agent_start_low (float): Agents start uniformly in
+            :math:`[\mathrm{low}, \mathrm{high}]^2`.
+        agent_start_high (float): See :obj:`agent_start_low`.
+        num_steps (int, optional): Time steps :math:`T`. (default: :obj:`50`)
+        dt (float, optional): Time step in seconds. (default: :obj:`1.0`)
+        sigma_a (float, optional): Driving noise std. (default: :obj:`0.05`)
+        drag (float, optional): Drag coefficient. (default: :obj:`0.06`)
+        sigma_v0 (float, optional): Std of the initial velocity.
+            (default: :obj:`0.1`)
+        sigma_r (float, optional): Range noise std. (default: :obj:`1.0`)
+        max_range (float, optional): Communication range.
+            (default: :obj:`20.0`)
+        prior_var (tuple, optional): Diagonal of the prior covariance
+            :math:`\boldsymbol{\Sigma}_0`.
+            (default: :obj:`(10.0, 10.0, 0.01, 0.01)`)
+        description (str, optional): Free text, not part of the
+            fingerprint. (default: :obj:`""`)
+    """
+    name: str
+    num_agents: int
+    anchor_positions: Tuple[Tuple[float, float], ...]
+    agent_start_low: float
+    agent_start_high: float
+    num_steps: int = 50
+    dt: float = 1.0
+    sigma_a: float = 0.05
+    drag: float = 0.06
+    sigma_v0: float = 0.1
+    sigma_r: float = 1.0
+    max_range: float = 20.0
+    prior_var: Tuple[float, ...] = (10.0, 10.0, 0.01, 0.01)
+    description: str = ''
+
+    def __post_init__(self):
+        fix = object.__setattr__  # frozen: normalize lists to tuples once
+        fix(self, 'anchor_positions',
+            tuple(tuple(float(c) for c in p) for p in self.anchor_positions))
+        fix(self, 'prior_var', tuple(float(v) for v in self.prior_var))
+        if not self.name or any(c in self.name for c in '/\\ '):
+            raise ValueError(f"'name' must be a non-empty file-name-safe "
+                             f"string, got {self.name!r}")
+        for key in ('num_agents', 'num_steps'):
+            if int(getattr(self, key)) < 1:
+                raise ValueError(f"'{key}' must be at least 1, got "
+                                 f"{getattr(self, key)}")
+        if any(len(p) != 2 for p in self.anchor_positions):
+            raise ValueError("'anchor_positions' must be a list of [x, y]")
+        if not self.agent_start_low < self.agent_start_high:
+            raise ValueError(f"'agent_start_low' ({self.agent_start_low}) "
+                             f"must be below 'agent_start_high' "
+                             f"({self.agent_start_high})")
+        if len(self.prior_var) != 4 or any(
+                not (math.isfinite(v) and v > 0) for v in self.prior_var):
+            raise ValueError(f"'prior_var' must hold 4 positive variances, "
+                             f"got {self.prior_var}")
+        if not self.sigma_v0 >= 0:
+            raise ValueError(f"'sigma_v0' must be non-negative, got "
+                             f"{self.sigma_v0}")
+        self.motion()  # the models validate their own parameters
+        self.measurement()
+
+    @classmethod
+    def load(cls, name_or_path: Union[str, Path]) -> 'Scenario':
+        r"""Loads a scenario by name (:obj:`"paper_train"`,
+        :obj:`"paper_test"`) or from a JSON file."""
+        path = Path(name_or_path)
+        if path.suffix != '.json':
+            folder = resources.files('tg_nebp.datasets') / 'scenarios'
+            path = folder / f'{name_or_path}.json'
+            if not path.is_file():
+                known = sorted(p.name[:-5] for p in folder.iterdir()
+                               if p.name.endswith('.json'))
+                raise ValueError(f"unknown scenario '{name_or_path}'; known: "
+                                 f"{known} or a path to a .json file")
+        with path.open() as f:
+            fields = json.load(f)
+        unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"scenario '{path}' has unknown fields "
+                             f"{sorted(unknown)}")
+        return cls(**fields)
+
+    def replace(self, **changes) -> 'Scenario':
+        r"""A copy with some parameters changed."""
+        return dataclasses.replace(self, **changes)
+
+    def fingerprint(self) -> str:
+        r"""A short hash of every generation parameter."""
+        params = dataclasses.asdict(self)
+        del params['description']
+        blob = json.dumps(params, sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:10]
+
+    @property
+    def num_anchors(self) -> int:
+        return len(self.anchor_positions)
+
+    def motion(self) -> ConstantVelocityDrag:
+        return ConstantVelocityDrag(self.sigma_a, self.drag, self.dt)
+
+    def measurement(self) -> GaussianRange:
+        return GaussianRange(self.sigma_r, self.max_range)
+
+    def generate(self, generator: Optional[torch.Generator] = None
+                 ) -> Realization:
+        r"""Draws one realization (agents first, then anchors): true tracks,
+        range measurements within :obj:`max_range` at every time step, and
+        the prior :math:`\boldsymbol{\mu}_{i,0} \sim
+        \mathcal{N}(\mathbf{x}_{i,0}, \boldsymbol{\Sigma}_0)`. Simulated in
+        float64 on the CPU, stored in float32."""
+        f64 = dict(dtype=torch.float64, generator=generator)
+        num_agents, num_anchors = self.num_agents, self.num_anchors
+        motion, measurement = self.motion(), self.measurement()
+        low, high = self.agent_start_low, self.agent_start_high
+
+        agent_pos = low + (high - low) * torch.rand(num_agents, 2, **f64)
+        agent_vel = self.sigma_v0 * torch.randn(num_agents, 2, **f64)
+        anchors = torch.tensor(self.anchor_positions,
+                               dtype=torch.float64).view(-1, 2)
+        initial = torch.cat([
+            torch.cat([agent_pos, agent_vel], dim=1),
+            torch.cat([anchors, torch.zeros_like(anchors)], dim=1),
+        ])
+        anchor = torch.arange(num_agents + num_anchors) >= num_agents
+
+        prior_std = torch.tensor(self.prior_var, dtype=torch.float64).sqrt()
+        prior_mean = initial + prior_std * torch.randn(initial.shape, **f64)
+        prior_mean[anchor] = initial[anchor]
+        prior_cov = torch.diag_embed(prior_std.square().expand_as(initial))
+        prior_cov[anchor] = 0.0
+
+        states, edge_index, edge_attr, edge_time = [], [], [], []
+        state = initial
+        for t in range(self.num_steps):
+            moved = motion.sample(state, generator=generator)
+            state = torch.where(anchor.view(-1, 1), state, moved)
+            edges = measurement.connect(state[:, :2], receiver=~anchor)
+            distances = (state[edges[0], :2] - state[edges[1], :2]).norm(
+                dim=-1)
+            states.append(state)
+            edge_index.append(edges)
+            edge_attr.append(measurement.sample(distances, generator))
+            edge_time.append(torch.full((edges.size(1), ), t))
+
+        return Realization(
+            states=torch.stack(states, dim=1).float(),
+            edge_index=torch.cat(edge_index, dim=1),
+            edge_attr=torch.cat(edge_attr).float().view(-1, 1),
+            edge_time=torch.cat(edge_time),
+            anchor=anchor,
+            prior_mean=prior_mean.float(),
+            prior_cov=prior_cov.float(),
+            num_steps=self.num_steps,
+            num_nodes=num_agents + num_anchors,
+        )

@@ -1,0 +1,184 @@
+import math
+from typing import Callable, Iterator, NamedTuple, Optional, Union
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_realization
+from tg_nebp.filters.resampling import RESAMPLERS
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.nn.conv import ParticleBPConv
+
+__all__ = ['ParticleBP', 'StepOutput', 'TrackOutput', 'weighted_moments']
+
+
+class StepOutput(NamedTuple):
+    r"""What the tracker yields at time index :obj:`t`: the MMSE estimate
+    :obj:`mean` :math:`(N, 4)`, its covariance :obj:`cov` :math:`(N, 4, 4)`
+    and the particle belief (:obj:`particles` :math:`(N, K, 4)`,
+    normalized :obj:`log_weights` :math:`(N, K)`) before resampling."""
+    t: int
+    mean: Tensor
+    cov: Tensor
+    particles: Tensor
+    log_weights: Tensor
+
+
+class TrackOutput(NamedTuple):
+    r"""Estimates :obj:`mean` :math:`(N, T, 4)` and covariances :obj:`cov`
+    :math:`(N, T, 4, 4)` of a whole sequence."""
+    mean: Tensor
+    cov: Tensor
+
+
+def weighted_moments(particles: Tensor, log_weights: Tensor):
+    r"""MMSE estimate :math:`\hat{\mathbf{x}}_i = \sum_k w_i^{(k)}
+    \mathbf{x}_i^{(k)}` and covariance :math:`\sum_k w_i^{(k)}
+    (\mathbf{x}_i^{(k)} - \hat{\mathbf{x}}_i)(\mathbf{x}_i^{(k)} -
+    \hat{\mathbf{x}}_i)^\top` of normalized log-weights :math:`(N, K)` and
+    particles :math:`(N, K, D)`."""
+    weights = log_weights.exp()
+    mean = torch.einsum('nk,nkd->nd', weights, particles)
+    centered = particles - mean.unsqueeze(1)
+    cov = (centered * weights.unsqueeze(-1)).transpose(1, 2) @ centered
+    return mean, cov
+
+
+class ParticleBP(torch.nn.Module):
+    r"""The particle-based BP tracker for cooperative localization, from the
+    `"Neural Enhanced Belief Propagation for Cooperative Localization"
+    <https://arxiv.org/abs/2105.12903>`_ paper. For a single or batched
+    :class:`~tg_nebp.data.Realization` it draws :math:`K` particles per agent
+    from the prior :math:`\mathcal{N}(\boldsymbol{\mu}_{i,0},
+    \boldsymbol{\Sigma}_{i,0})` (anchors: :math:`K` copies of their known
+    position), then at every time step
+
+    1. predicts :math:`\mathbf{x}_{i,n}^{(k)} \sim p(\mathbf{x}_{i,n} |
+       \mathbf{x}_{i,n-1}^{(k)})` (anchors are static),
+    2. runs :obj:`num_iterations` message passing iterations
+       (:meth:`update`, :class:`~tg_nebp.nn.conv.ParticleBPConv` here),
+    3. normalizes the log-weights and computes the MMSE estimate and its
+       covariance,
+    4. resamples (ancestor indices from :obj:`resampler`, gradient cut).
+
+    Subclasses change step 2 only (:class:`NEBP` overrides :meth:`update`):
+    the time loop (:meth:`steps`) is shared.
+
+    Args:
+        num_particles (int, optional): :math:`K`. (default: :obj:`1000`)
+        num_iterations (int, optional): Message passing iterations :math:`T`
+            per time step. (default: :obj:`1`)
+        motion (ConstantVelocityDrag, optional): Motion model.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (GaussianRange, optional): Measurement model.
+            (default: :obj:`GaussianRange()`)
+        resampler (str or callable, optional): :obj:`"multinomial"` (the
+            paper's), :obj:`"systematic"`, or a function of
+            :obj:`(log_weights, num_samples, generator)` returning indices.
+            (default: :obj:`"multinomial"`)
+        chunk_size (int, optional): Edge chunk of the convolution.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:** a :class:`~tg_nebp.data.Realization` with :math:`N`
+          nodes and :math:`T` steps
+        - **output:** :class:`TrackOutput` with mean :math:`(N, T, 4)` and
+          covariance :math:`(N, T, 4, 4)`
+    """
+    def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
+                 motion: Optional[ConstantVelocityDrag] = None,
+                 measurement: Optional[GaussianRange] = None,
+                 resampler: Union[str, Callable] = 'multinomial',
+                 chunk_size: Optional[int] = None):
+        super().__init__()
+        if num_particles < 1:
+            raise ValueError(f"'num_particles' must be positive, got "
+                             f"{num_particles}")
+        if num_iterations < 1:
+            raise ValueError(f"'num_iterations' must be positive, got "
+                             f"{num_iterations}")
+        if isinstance(resampler, str):
+            if resampler not in RESAMPLERS:
+                raise ValueError(f"'resampler' must be one of "
+                                 f"{sorted(RESAMPLERS)} or a callable, got "
+                                 f"'{resampler}'")
+            resampler = RESAMPLERS[resampler]
+        self.num_particles = num_particles
+        self.num_iterations = num_iterations
+        self.motion = motion or ConstantVelocityDrag()
+        self.measurement = measurement or GaussianRange()
+        self.resampler = resampler
+        self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size)
+
+    def sample_prior(self, data: Realization,
+                     generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""Draws :math:`K` particles :math:`(N, K, 4)` from the prior; a
+        zero covariance (anchors) gives :math:`K` copies of the mean."""
+        # a PSD square root (not Cholesky) also covers singular priors
+        eigvals, eigvecs = torch.linalg.eigh(data.prior_cov.double())
+        root = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
+        noise = torch.randn(
+            (data.num_nodes, self.num_particles, data.prior_mean.size(-1)),
+            dtype=data.prior_mean.dtype, device=data.prior_mean.device,
+            generator=generator)
+        offset = noise @ root.to(noise.dtype).transpose(-1, -2)
+        return data.prior_mean.unsqueeze(1) + offset
+
+    def predict(self, particles: Tensor, anchor: Tensor,
+                generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""The prediction step; anchors keep their particles."""
+        moved = self.motion.sample(particles, generator=generator)
+        return torch.where(anchor.view(-1, 1, 1), particles, moved)
+
+    def update(self, particles: Tensor, log_weights: Tensor,
+               edge_index: Tensor, edge_attr: Tensor, anchor: Tensor) -> Tensor:
+        r"""The update step: :obj:`num_iterations` BP iterations; returns
+        normalized log-weights."""
+        sender = log_weights
+        for _ in range(self.num_iterations):
+            belief, _ = self.conv(particles, log_weights, edge_index,
+                                  edge_attr, sender_log_weights=sender,
+                                  anchor=anchor, validate=False)
+            # normalizing scales each message by a per-node constant: the
+            # beliefs are unchanged and the log-weights stay bounded
+            sender = belief - belief.logsumexp(-1, keepdim=True)
+        return sender
+
+    def steps(self, data: Realization,
+              generator: Optional[torch.Generator] = None
+              ) -> Iterator[StepOutput]:
+        r"""Runs the time loop lazily, yielding a :class:`StepOutput` per
+        time step (training takes an optimizer step between them)."""
+        check_realization(data)
+        if not data.prior_mean.is_floating_point():
+            raise ValueError("'prior_mean' must be a floating point tensor")
+        anchor = data.anchor
+        particles = self.sample_prior(data, generator)
+        log_uniform = -math.log(self.num_particles)
+        log_weights = particles.new_full(particles.shape[:2], log_uniform)
+        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+            particles = self.predict(particles, anchor, generator)
+            log_weights = self.update(particles, log_weights, edge_index,
+                                      edge_attr, anchor)
+            mean, cov = weighted_moments(particles, log_weights)
+            yield StepOutput(t, mean, cov, particles, log_weights)
+            ancestors = self.resampler(log_weights.detach(),
+                                       self.num_particles, generator)
+            particles = particles.gather(
+                1, ancestors.unsqueeze(-1).expand(-1, -1, particles.size(-1)))
+            log_weights = particles.new_full(particles.shape[:2], log_uniform)
+
+    def forward(self, data: Realization,
+                generator: Optional[torch.Generator] = None) -> TrackOutput:
+        r"""Tracks a whole (batched) sequence."""
+        means, covs = [], []
+        for step in self.steps(data, generator):
+            means.append(step.mean)
+            covs.append(step.cov)
+        return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(num_particles='
+                f'{self.num_particles}, num_iterations={self.num_iterations}'
+                f', motion={self.motion}, measurement={self.measurement})')

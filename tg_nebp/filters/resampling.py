@@ -1,0 +1,84 @@
+r"""Resamplers: pure functions from log-weights :math:`(*, K)` to ancestor
+indices :math:`(*, M)`, as in filterpy. They never touch the particles, so
+any tracker (or user) applies them with :func:`torch.gather`."""
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+__all__ = ['multinomial_resample', 'systematic_resample', 'RESAMPLERS']
+
+
+def _probabilities(log_weights: Tensor) -> Tensor:
+    if log_weights.size(-1) == 0:
+        raise ValueError("'log_weights' holds K = 0 particles")
+    if bool(torch.isnan(log_weights).any()):
+        raise ValueError("'log_weights' holds NaN")
+    # softmax subtracts the maximum: finite for any finite log-weights
+    return torch.softmax(log_weights.detach().double(), dim=-1)
+
+
+def multinomial_resample(log_weights: Tensor,
+                         num_samples: Optional[int] = None,
+                         generator: Optional[torch.Generator] = None
+                         ) -> Tensor:
+    r"""Multinomial resampling (the paper's): :math:`M` independent draws
+    with probabilities :math:`w^{(k)} \propto \exp(\log w^{(k)})`.
+
+    Args:
+        log_weights (torch.Tensor): Unnormalized log-weights :math:`(*, K)`.
+        num_samples (int, optional): :math:`M`. (default: :obj:`K`)
+        generator (torch.Generator, optional): Source of randomness.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:** :math:`(*, K)`
+        - **output:** :math:`(*, M)` indices in :math:`[0, K)`
+    """
+    probs = _probabilities(log_weights)
+    num_samples = num_samples or probs.size(-1)
+    # inverse CDF at i.i.d. uniforms: exact multinomial draws, batched over
+    # all rows in one searchsorted (torch.multinomial loops over rows)
+    uniform = torch.rand(probs.shape[:-1] + (num_samples, ),
+                         dtype=probs.dtype, device=probs.device,
+                         generator=generator)
+    return _inverse_cdf(probs, uniform)
+
+
+def systematic_resample(log_weights: Tensor,
+                        num_samples: Optional[int] = None,
+                        generator: Optional[torch.Generator] = None
+                        ) -> Tensor:
+    r"""Systematic resampling: one uniform offset :math:`u \sim U[0, 1)`
+    per row and the points :math:`(m + u) / M`, :math:`m = 0, \dots, M-1`;
+    lower variance than multinomial resampling.
+
+    Args:
+        log_weights (torch.Tensor): Unnormalized log-weights :math:`(*, K)`.
+        num_samples (int, optional): :math:`M`. (default: :obj:`K`)
+        generator (torch.Generator, optional): Source of randomness.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:** :math:`(*, K)`
+        - **output:** :math:`(*, M)` indices in :math:`[0, K)`
+    """
+    probs = _probabilities(log_weights)
+    num_samples = num_samples or probs.size(-1)
+    offset = torch.rand(probs.shape[:-1] + (1, ), dtype=probs.dtype,
+                        device=probs.device, generator=generator)
+    grid = torch.arange(num_samples, dtype=probs.dtype, device=probs.device)
+    return _inverse_cdf(probs, (grid + offset) / num_samples)
+
+
+def _inverse_cdf(probs: Tensor, points: Tensor) -> Tensor:
+    cdf = probs.cumsum(-1)
+    cdf = cdf / cdf[..., -1:]  # the last bin ends exactly at 1
+    index = torch.searchsorted(cdf, points.contiguous(), right=True)
+    return index.clamp_(max=probs.size(-1) - 1)
+
+
+RESAMPLERS = {
+    'multinomial': multinomial_resample,
+    'systematic': systematic_resample,
+}

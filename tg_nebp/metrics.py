@@ -1,0 +1,92 @@
+r"""Accuracy and consistency metrics of position estimates, as in the
+`"Neural Enhanced Belief Propagation for Cooperative Localization"
+<https://arxiv.org/abs/2105.12903>`_ paper. Every function takes estimates
+and truths of any leading shape :math:`(*, 2)` (e.g. :math:`(N, T, 2)`) and
+an optional boolean :obj:`mask` :math:`(*)` selecting the entries to count
+(e.g. the agents, not the anchors)."""
+from typing import Optional, Sequence
+
+import torch
+from scipy.stats import chi2
+from torch import Tensor
+
+__all__ = [
+    'position_errors',
+    'rmse',
+    'outage_probability',
+    'nees',
+    'consistency_curve',
+]
+
+
+def _select(values: Tensor, mask: Optional[Tensor]) -> Tensor:
+    if mask is None:
+        return values.reshape(-1)
+    if mask.shape != values.shape[:mask.dim()]:
+        raise ValueError(f"'mask' of shape {list(mask.shape)} does not "
+                         f"match the leading shape {list(values.shape)}")
+    return values[mask.bool()].reshape(-1)
+
+
+def position_errors(est_pos: Tensor, true_pos: Tensor) -> Tensor:
+    r"""Euclidean errors :math:`\|\hat{\mathbf{p}} - \mathbf{p}\|`
+    :math:`(*)`."""
+    if est_pos.shape != true_pos.shape:
+        raise ValueError(f"'est_pos' {list(est_pos.shape)} and 'true_pos' "
+                         f"{list(true_pos.shape)} differ in shape")
+    return torch.linalg.vector_norm(est_pos - true_pos, dim=-1)
+
+
+def rmse(est_pos: Tensor, true_pos: Tensor,
+         mask: Optional[Tensor] = None) -> float:
+    r"""Root mean squared position error :math:`\sqrt{\mathbb{E}\|\hat{
+    \mathbf{p}} - \mathbf{p}\|^2}` over the selected entries."""
+    errors = _select(position_errors(est_pos, true_pos), mask)
+    return float(errors.double().square().mean().sqrt())
+
+
+def outage_probability(est_pos: Tensor, true_pos: Tensor,
+                       thresholds: Sequence[float],
+                       mask: Optional[Tensor] = None) -> Tensor:
+    r"""Outage probability :math:`P_{\mathrm{out}}(e_{\mathrm{th}}) =
+    \mathbb{P}(\|\hat{\mathbf{p}} - \mathbf{p}\| > e_{\mathrm{th}})` for
+    every threshold, as a tensor of the thresholds' shape."""
+    errors = _select(position_errors(est_pos, true_pos), mask).double()
+    thresholds = torch.as_tensor(thresholds, dtype=torch.float64,
+                                 device=errors.device)
+    return (errors.unsqueeze(-1) > thresholds.reshape(-1)).double().mean(
+        0).view(thresholds.shape)
+
+
+def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
+    r"""Position normalized estimation error squared
+    :math:`e = (\hat{\mathbf{p}} - \mathbf{p})^\top
+    \hat{\boldsymbol{\Sigma}}_{\mathbf{p}}^{-1} (\hat{\mathbf{p}} -
+    \mathbf{p})` for covariances :math:`(*, 2, 2)`. A singular covariance
+    gives :math:`+\infty` (or :math:`0` for a zero error), never NaN."""
+    err = (est_pos - true_pos).double().unsqueeze(-1)
+    cov = pos_cov.double()
+    solution, info = torch.linalg.solve_ex(cov, err)
+    value = (err * solution).sum((-1, -2))
+    singular = (info != 0) | ~torch.isfinite(value)
+    fallback = torch.where(err.abs().sum((-1, -2)) > 0, float('inf'), 0.0)
+    return torch.where(singular, fallback, value)
+
+
+def consistency_curve(nees_values: Tensor, confidence: Sequence[float],
+                      dof: int = 2, mask: Optional[Tensor] = None) -> Tensor:
+    r"""Two-sided chi-square consistency test: for each confidence level
+    :math:`1 - \alpha`, the fraction of NEES values in :math:`[r_1, r_2]`
+    with :math:`F_{\chi^2_d}(r_1) = \alpha / 2` and
+    :math:`F_{\chi^2_d}(r_2) = 1 - \alpha / 2`, i.e.
+    :math:`\mathbb{P}(\text{accept } H_0)`. A consistent estimator gives the
+    confidence level itself."""
+    values = _select(nees_values, mask).double()
+    confidence = torch.as_tensor(confidence, dtype=torch.float64)
+    if bool(((confidence <= 0) | (confidence >= 1)).any()):
+        raise ValueError("'confidence' levels must lie in (0, 1)")
+    alpha = (1 - confidence.reshape(-1)).numpy()
+    low = torch.as_tensor(chi2.ppf(alpha / 2, dof), device=values.device)
+    high = torch.as_tensor(chi2.ppf(1 - alpha / 2, dof), device=values.device)
+    inside = (values.unsqueeze(-1) >= low) & (values.unsqueeze(-1) <= high)
+    return inside.double().mean(0).view(confidence.shape).cpu()

@@ -1,0 +1,71 @@
+import math
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+__all__ = ['ConstantVelocityDrag']
+
+
+class ConstantVelocityDrag:
+    r"""Constant-velocity motion with drag and Gaussian driving noise, from
+    the `"Neural Enhanced Belief Propagation for Cooperative Localization"
+    <https://arxiv.org/abs/2105.12903>`_ paper
+
+    .. math::
+        \mathbf{x}_n = \mathbf{F} \mathbf{x}_{n-1}
+        + \mathbf{W} \left( -c \, \mathbf{v}_{n-1} \odot
+        |\mathbf{v}_{n-1}| + \mathbf{a}_n \right), \quad
+        \mathbf{a}_n \sim \mathcal{N}(\mathbf{0}, \sigma_a^2 \mathbf{I}_2)
+
+    with state :math:`\mathbf{x} = [\mathbf{p}^\top, \mathbf{v}^\top]^\top`,
+    :math:`\mathbf{F} = [[\mathbf{I}, \Delta \mathbf{I}], [\mathbf{0},
+    \mathbf{I}]]` and :math:`\mathbf{W} = [\Delta^2/2 \, \mathbf{I}; \Delta
+    \mathbf{I}]`.
+
+    Args:
+        sigma_a (float, optional): Standard deviation :math:`\sigma_a` of the
+            acceleration noise. (default: :obj:`0.05`)
+        drag (float, optional): Drag coefficient :math:`c`.
+            (default: :obj:`0.06`)
+        dt (float, optional): Time step :math:`\Delta` in seconds.
+            (default: :obj:`1.0`)
+
+    Shapes:
+        - **input:** states :math:`(*, 4)`
+        - **output:** states :math:`(*, 4)`
+    """
+    state_dim = 4
+
+    def __init__(self, sigma_a: float = 0.05, drag: float = 0.06,
+                 dt: float = 1.0):
+        for name, value in (('sigma_a', sigma_a), ('drag', drag), ('dt', dt)):
+            if not math.isfinite(value) or value < 0 or (name == 'dt'
+                                                         and value == 0):
+                raise ValueError(f"'{name}' must be a finite "
+                                 f"{'positive' if name == 'dt' else 'non-negative'}"
+                                 f" number, got {value}")
+        self.sigma_a = sigma_a
+        self.drag = drag
+        self.dt = dt
+
+    def propagate(self, states: Tensor, accel: Tensor) -> Tensor:
+        r"""Applies the transition with a given acceleration noise
+        :obj:`accel` :math:`(*, 2)`."""
+        pos, vel = states[..., :2], states[..., 2:]
+        accel = accel - self.drag * vel * vel.abs()
+        new_pos = pos + self.dt * vel + 0.5 * self.dt**2 * accel
+        new_vel = vel + self.dt * accel
+        return torch.cat([new_pos, new_vel], dim=-1)
+
+    def sample(self, states: Tensor,
+               generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""Draws :math:`\mathbf{x}_n \sim p(\mathbf{x}_n |
+        \mathbf{x}_{n-1})` for every state in :obj:`states`."""
+        accel = torch.randn(states.shape[:-1] + (2, ), dtype=states.dtype,
+                            device=states.device, generator=generator)
+        return self.propagate(states, self.sigma_a * accel)
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(sigma_a={self.sigma_a}, '
+                f'drag={self.drag}, dt={self.dt})')

@@ -1,0 +1,3 @@
+from .particle_bp_conv import ParticleBPConv
+
+__all__ = ['ParticleBPConv']

@@ -1,0 +1,158 @@
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor
+from torch_geometric.nn.conv import MessagePassing
+from torch_geometric.utils import segment
+
+from tg_nebp.data.validation import (check_anchor, check_graph,
+                                     check_particles, check_ranges)
+from tg_nebp.models import GaussianRange
+
+__all__ = ['ParticleBPConv']
+
+# Elements of one [chunk, K] temporary: bounds the peak memory of the per-edge
+# work independently of E (the GPU amortizes kernel launches over more work).
+CPU_CHUNK_ELEMENTS = 1 << 21
+CUDA_CHUNK_ELEMENTS = 1 << 25
+
+
+class ParticleBPConv(MessagePassing):
+    r"""One particle belief propagation iteration for cooperative
+    localization, from the `"Neural Enhanced Belief Propagation for
+    Cooperative Localization" <https://arxiv.org/abs/2105.12903>`_ paper
+    (equations (particleUpdate) and (bp_particle_weight_update)), in the log
+    domain
+
+    .. math::
+        \log \phi_{j \to i}^{(k)} &= \log p\big(z_{j \to i} \,\big|\,
+        \mathbf{x}_j^{(k)}, \mathbf{x}_i^{(k)}\big) +
+        \log \tilde{w}_j^{(k)}
+
+        \log \tilde{w}_i^{(k)} &\leftarrow \log w_i^{(k)} +
+        \sum_{j \in \mathcal{N}(i)} \log \phi_{j \to i}^{(k)}
+
+    where particle :math:`k` of the sender is paired with particle :math:`k`
+    of the receiver (the message multiplication scheme of Meyer et al.), so
+    the cost is :math:`O(|\mathcal{E}| K)`. The sum over incoming edges is a
+    scatter (or, for an :class:`~torch_geometric.EdgeIndex` sorted by
+    receiver, a deterministic segment) sum. Anchors send their known position
+    (all :math:`K` particles at it) and never receive: their log-weights are
+    returned unchanged.
+
+    Args:
+        measurement (GaussianRange, optional): The measurement model that
+            gives :math:`\log p(z_{j \to i} | \mathbf{x}_j, \mathbf{x}_i)`.
+            (default: :obj:`GaussianRange()`)
+        chunk_size (int, optional): Edges processed at once; bounds the
+            temporary memory to about :obj:`chunk_size * K` floats. If
+            :obj:`None`, chosen from :obj:`K` and the device.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:**
+          particles :math:`(|\mathcal{V}|, K, D)`,
+          log-weights :math:`(|\mathcal{V}|, K)`,
+          edge indices :math:`(2, |\mathcal{E}|)`,
+          measured ranges :math:`(|\mathcal{E}|, 1)`,
+          sender log-weights :math:`(|\mathcal{V}|, K)` *(optional)*,
+          anchor mask :math:`(|\mathcal{V}|)` *(optional)*
+        - **output:** updated log-weights :math:`(|\mathcal{V}|, K)` and
+          edge log-messages :math:`(|\mathcal{E}|, K)`
+    """
+    def __init__(self, measurement: Optional[GaussianRange] = None,
+                 chunk_size: Optional[int] = None):
+        super().__init__(aggr='add', node_dim=0)
+        if chunk_size is not None and chunk_size < 1:
+            raise ValueError(f"'chunk_size' must be positive, got "
+                             f"{chunk_size}")
+        self.measurement = measurement or GaussianRange()
+        self.chunk_size = chunk_size
+
+    def forward(
+        self,
+        particles: Tensor,
+        log_weights: Tensor,
+        edge_index: Tensor,
+        edge_attr: Tensor,
+        sender_log_weights: Optional[Tensor] = None,
+        anchor: Optional[Tensor] = None,
+        validate: bool = True,
+    ) -> Tuple[Tensor, Tensor]:
+        r"""Runs the forward pass.
+
+        Args:
+            particles (torch.Tensor): Particles :math:`\mathbf{x}_i^{(k)}`;
+                the first two state entries are the position.
+            log_weights (torch.Tensor): Log-weights :math:`\log w_i^{(k)}`
+                of the prediction message.
+            edge_index (torch.Tensor): Edges :math:`j \to i`.
+            edge_attr (torch.Tensor): Measured ranges :math:`z_{j \to i}`.
+            sender_log_weights (torch.Tensor, optional): Log-weights
+                :math:`\log \tilde{w}_j^{(t-1, k)}` of the beliefs that the
+                senders transmit; :obj:`log_weights` at the first iteration.
+                (default: :obj:`None`)
+            anchor (torch.Tensor, optional): Bool mask of anchors, whose
+                log-weights are kept. (default: :obj:`None`)
+            validate (bool, optional): Check the inputs (trackers check once
+                per sequence and pass :obj:`False`). (default: :obj:`True`)
+        """
+        if sender_log_weights is None:
+            sender_log_weights = log_weights
+        if validate:
+            check_particles(particles, log_weights)
+            check_particles(particles, sender_log_weights,
+                            weights_name='sender_log_weights')
+            check_graph(edge_index, particles.size(0))
+            check_ranges(edge_attr, edge_index.size(1))
+            if anchor is not None:
+                check_anchor(anchor, particles.size(0))
+        size = (particles.size(0), particles.size(0))
+        log_messages = self.edge_updater(
+            edge_index, pos=particles[..., :2],
+            sender_log_weights=sender_log_weights, ranges=edge_attr,
+            size=size)
+        out = self.propagate(edge_index, log_messages=log_messages,
+                             size=size)
+        if anchor is not None:
+            out = out.masked_fill(anchor.view(-1, 1), 0.0)
+        return log_weights + out, log_messages
+
+    def edge_update(self, pos: Tensor, sender_log_weights: Tensor,
+                    ranges: Tensor, edge_index_i: Tensor,
+                    edge_index_j: Tensor) -> Tensor:
+        num_edges, num_particles = edge_index_i.numel(), pos.size(1)
+        chunk = self.chunk_size or max(
+            1, (CUDA_CHUNK_ELEMENTS if pos.is_cuda else CPU_CHUNK_ELEMENTS) //
+            max(num_particles, 1))
+        if chunk >= num_edges:
+            return self._log_messages(pos, sender_log_weights, ranges,
+                                      edge_index_j, edge_index_i)
+        dtype = torch.result_type(pos, sender_log_weights)
+        out = pos.new_empty((num_edges, num_particles), dtype=dtype)
+        for start in range(0, num_edges, chunk):
+            part = slice(start, start + chunk)
+            out[part] = self._log_messages(pos, sender_log_weights,
+                                           ranges[part], edge_index_j[part],
+                                           edge_index_i[part])
+        return out
+
+    def _log_messages(self, pos: Tensor, sender_log_weights: Tensor,
+                      ranges: Tensor, src: Tensor, dst: Tensor) -> Tensor:
+        diff = pos.index_select(0, src) - pos.index_select(0, dst)
+        distances = torch.hypot(diff[..., 0], diff[..., 1])
+        return self.measurement.log_likelihood_of_distance(
+            ranges, distances) + sender_log_weights.index_select(0, src)
+
+    def message(self, log_messages: Tensor) -> Tensor:
+        return log_messages
+
+    def aggregate(self, inputs: Tensor, index: Tensor,
+                  ptr: Optional[Tensor] = None,
+                  dim_size: Optional[int] = None) -> Tensor:
+        if ptr is not None:  # receivers sorted: deterministic segment sum
+            return segment(inputs, ptr, reduce='sum')
+        return super().aggregate(inputs, index, ptr=None, dim_size=dim_size)
+
+    def __repr__(self) -> str:
+        return f'{self.__class__.__name__}({self.measurement})'
