@@ -35,6 +35,8 @@ single or a batched realization.
 """
 import torch
 from torch_geometric.data import Data
+from torch_geometric.data.data import DataEdgeAttr, DataTensorAttr
+from torch_geometric.data.storage import GlobalStorage
 
 __all__ = ['Realization', 'num_steps_of']
 
@@ -105,4 +107,5 @@ class Realization(Data):
 
 
 # datasets and checkpoints are read with torch.load(weights_only=True)
-torch.serialization.add_safe_globals([Realization])
+torch.serialization.add_safe_globals(
+    [Realization, DataEdgeAttr, DataTensorAttr, GlobalStorage])

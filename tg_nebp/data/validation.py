@@ -87,7 +87,7 @@ def check_particles(particles: Tensor, log_weights: Tensor,
     particles are finite and no log-weight is NaN or :math:`+\infty`."""
     if not isinstance(particles, Tensor) or particles.dim() != 3:
         raise ValueError(f"'particles' must have shape [N, K, D], got "
-                         f"{tuple(particles.shape)}")
+                         f"{tuple(getattr(particles, 'shape', ()))}")
     if num_nodes is not None and particles.size(0) != num_nodes:
         raise ValueError(f"'particles' holds {particles.size(0)} nodes but "
                          f"the graph has {num_nodes}")
@@ -159,10 +159,13 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
 def check_realization(data) -> None:
     r"""Checks a (possibly batched) :class:`~tg_nebp.data.Realization`."""
     for key in ('edge_index', 'edge_attr', 'edge_time', 'anchor',
-                'prior_mean', 'prior_cov'):
+                'prior_mean', 'prior_cov', 'num_steps'):
         if getattr(data, key, None) is None:
             raise ValueError(f"realization is missing the field '{key}'")
     n = data.num_nodes
+    if n is None or n <= 0:
+        raise ValueError(f"'num_nodes' must be positive, got {n} "
+                         f"(empty graph)")
     anchor = data.anchor
     check_anchor(anchor, n)
     if bool(anchor.all()):
@@ -179,6 +182,9 @@ def check_realization(data) -> None:
     if t.shape != (data.edge_index.size(1), ):
         raise ValueError(f"'edge_time' must have shape "
                          f"[{data.edge_index.size(1)}], got {list(t.shape)}")
+    if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+        raise ValueError(f"'edge_time' must be an integer tensor, got "
+                         f"{t.dtype}")
     steps = num_steps_of(data)
     bad = (t < 0) | (t >= steps)
     if bool(bad.any()):
@@ -188,9 +194,14 @@ def check_realization(data) -> None:
     if data.prior_mean.shape != (n, 4):
         raise ValueError(f"'prior_mean' must have shape [{n}, 4], got "
                          f"{list(data.prior_mean.shape)}")
+    if not data.prior_mean.is_floating_point():
+        raise ValueError(f"'prior_mean' must be a floating point tensor, got "
+                         f"{data.prior_mean.dtype}")
     check_prior(data.prior_mean, data.prior_cov, anchor)
     states = getattr(data, 'states', None)
     if states is not None and (states.dim() != 3 or states.size(0) != n
-                               or states.size(1) != steps):
-        raise ValueError(f"'states' must have shape [{n}, {steps}, D], got "
+                               or states.size(1) != steps
+                               or states.size(2) != data.prior_mean.size(1)):
+        raise ValueError(f"'states' must have shape [{n}, {steps}, "
+                         f"{data.prior_mean.size(1)}], got "
                          f"{list(states.shape)}")

@@ -7,6 +7,7 @@ from torch_geometric.data import InMemoryDataset
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_realization
 from tg_nebp.datasets.scenario import Scenario
+from tg_nebp.io import atomic_write
 
 __all__ = ['CooperativeLocalizationDataset']
 
@@ -117,11 +118,10 @@ class CooperativeLocalizationDataset(InMemoryDataset):
             if self.pre_transform is not None:
                 data = self.pre_transform(data)
             data_list.append(data)
-        # write then rename: a killed run never leaves a half-written file
-        final = self.processed_paths[0]
-        partial = f'{final}.{os.getpid()}.partial'
-        self.save(data_list, partial)
-        os.replace(partial, final)
+        # write then rename: a killed run never leaves a half-written file,
+        # a failed one no temporary file
+        atomic_write(self.processed_paths[0],
+                     lambda tmp: self.save(data_list, tmp))
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}({len(self)}, scenario='

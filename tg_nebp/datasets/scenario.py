@@ -84,6 +84,10 @@ class Scenario:
         if not self.sigma_v0 >= 0:
             raise ValueError(f"'sigma_v0' must be non-negative, got "
                              f"{self.sigma_v0}")
+        # the measurement model calls it 'sigma': name the scenario's field
+        if not (math.isfinite(self.sigma_r) and self.sigma_r > 0):
+            raise ValueError(f"'sigma_r' must be a finite positive number, "
+                             f"got {self.sigma_r}")
         self.motion()  # the models validate their own parameters
         self.measurement()
 

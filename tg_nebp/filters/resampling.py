@@ -14,6 +14,11 @@ def _probabilities(log_weights: Tensor) -> Tensor:
         raise ValueError("'log_weights' holds K = 0 particles")
     if bool(torch.isnan(log_weights).any()):
         raise ValueError("'log_weights' holds NaN")
+    if bool((log_weights == float('inf')).any()):
+        raise ValueError("'log_weights' holds +inf")
+    if bool((log_weights == float('-inf')).all(-1).any()):
+        raise ValueError("'log_weights' holds a row of zero weights (all "
+                         "-inf): nothing to resample from")
     # softmax subtracts the maximum: finite for any finite log-weights
     return torch.softmax(log_weights.detach().double(), dim=-1)
 
@@ -36,7 +41,7 @@ def multinomial_resample(log_weights: Tensor,
         - **output:** :math:`(*, M)` indices in :math:`[0, K)`
     """
     probs = _probabilities(log_weights)
-    num_samples = num_samples or probs.size(-1)
+    num_samples = _num_samples(num_samples, probs)
     # inverse CDF at i.i.d. uniforms: exact multinomial draws, batched over
     # all rows in one searchsorted (torch.multinomial loops over rows)
     uniform = torch.rand(probs.shape[:-1] + (num_samples, ),
@@ -64,11 +69,20 @@ def systematic_resample(log_weights: Tensor,
         - **output:** :math:`(*, M)` indices in :math:`[0, K)`
     """
     probs = _probabilities(log_weights)
-    num_samples = num_samples or probs.size(-1)
+    num_samples = _num_samples(num_samples, probs)
     offset = torch.rand(probs.shape[:-1] + (1, ), dtype=probs.dtype,
                         device=probs.device, generator=generator)
     grid = torch.arange(num_samples, dtype=probs.dtype, device=probs.device)
     return _inverse_cdf(probs, (grid + offset) / num_samples)
+
+
+def _num_samples(num_samples: Optional[int], probs: Tensor) -> int:
+    if num_samples is None:
+        return probs.size(-1)
+    if int(num_samples) < 0:
+        raise ValueError(f"'num_samples' must be non-negative, got "
+                         f"{num_samples}")
+    return int(num_samples)
 
 
 def _inverse_cdf(probs: Tensor, points: Tensor) -> Tensor:

@@ -48,13 +48,17 @@ class GaussianRange:
         self.sigma = sigma
         self.max_range = max_range
 
-    def log_likelihood_of_distance(self, ranges: Tensor,
-                                   distances: Tensor) -> Tensor:
+    def log_likelihood_of_distance(self, ranges: Tensor, distances: Tensor,
+                                   inplace: bool = False) -> Tensor:
         r"""The log-likelihood of the measured :obj:`ranges` :math:`(E, 1)`
-        given the particle distances :math:`(E, K)`."""
+        given the particle distances :math:`(E, K)`; :obj:`inplace`
+        overwrites :obj:`distances` (no autograd through it)."""
+        log_norm = math.log(math.sqrt(2 * math.pi) * self.sigma)
+        if inplace:
+            return distances.sub_(ranges).square_().mul_(
+                -0.5 / self.sigma**2).sub_(log_norm)
         scaled = (ranges - distances) / self.sigma
-        return -0.5 * scaled * scaled - math.log(
-            math.sqrt(2 * math.pi) * self.sigma)
+        return -0.5 * scaled * scaled - log_norm
 
     def log_likelihood(self, ranges: Tensor, sender_pos: Tensor,
                        receiver_pos: Tensor) -> Tensor:
@@ -82,7 +86,12 @@ class GaussianRange:
         from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
         j` within :obj:`max_range` of it, for positions :obj:`pos`
         :math:`(N, 2)`."""
-        within = torch.cdist(pos, pos) <= self.max_range
+        # the matrix-multiplication shortcut of cdist (taken for more than
+        # 25 nodes) cancels catastrophically: pairs at the boundary would
+        # flip, so compute every difference explicitly
+        within = torch.cdist(
+            pos, pos, compute_mode='donot_use_mm_for_euclid_dist'
+        ) <= self.max_range
         within &= receiver.view(1, -1)  # column i receives
         within.fill_diagonal_(False)
         src, dst = within.nonzero(as_tuple=True)

@@ -13,7 +13,7 @@ __all__ = ['ParticleBPConv']
 
 # Elements of one [chunk, K] temporary: bounds the peak memory of the per-edge
 # work independently of E (the GPU amortizes kernel launches over more work).
-CPU_CHUNK_ELEMENTS = 1 << 21
+CPU_CHUNK_ELEMENTS = 1 << 18
 CUDA_CHUNK_ELEMENTS = 1 << 25
 
 
@@ -107,42 +107,61 @@ class ParticleBPConv(MessagePassing):
             check_ranges(edge_attr, edge_index.size(1))
             if anchor is not None:
                 check_anchor(anchor, particles.size(0))
+        # one dtype for every operand lets the no-grad path work in place;
+        # contiguous coordinate planes make every gather a dense [E, K] copy
+        dtype = torch.promote_types(
+            torch.result_type(particles, sender_log_weights), edge_attr.dtype)
         size = (particles.size(0), particles.size(0))
         log_messages = self.edge_updater(
-            edge_index, pos=particles[..., :2],
-            sender_log_weights=sender_log_weights, ranges=edge_attr,
-            size=size)
+            edge_index, pos_x=particles[..., 0].to(dtype).contiguous(),
+            pos_y=particles[..., 1].to(dtype).contiguous(),
+            sender_log_weights=sender_log_weights.to(dtype),
+            ranges=edge_attr.to(dtype), size=size)
         out = self.propagate(edge_index, log_messages=log_messages,
                              size=size)
         if anchor is not None:
             out = out.masked_fill(anchor.view(-1, 1), 0.0)
         return log_weights + out, log_messages
 
-    def edge_update(self, pos: Tensor, sender_log_weights: Tensor,
-                    ranges: Tensor, edge_index_i: Tensor,
-                    edge_index_j: Tensor) -> Tensor:
-        num_edges, num_particles = edge_index_i.numel(), pos.size(1)
+    def edge_update(self, pos_x: Tensor, pos_y: Tensor,
+                    sender_log_weights: Tensor, ranges: Tensor,
+                    edge_index_i: Tensor, edge_index_j: Tensor) -> Tensor:
+        num_edges, num_particles = edge_index_i.numel(), pos_x.size(1)
         chunk = self.chunk_size or max(
-            1, (CUDA_CHUNK_ELEMENTS if pos.is_cuda else CPU_CHUNK_ELEMENTS) //
-            max(num_particles, 1))
+            1, (CUDA_CHUNK_ELEMENTS if pos_x.is_cuda else CPU_CHUNK_ELEMENTS)
+            // max(num_particles, 1))
         if chunk >= num_edges:
-            return self._log_messages(pos, sender_log_weights, ranges,
-                                      edge_index_j, edge_index_i)
-        dtype = torch.result_type(pos, sender_log_weights)
-        out = pos.new_empty((num_edges, num_particles), dtype=dtype)
+            return self._log_messages(pos_x, pos_y, sender_log_weights,
+                                      ranges, edge_index_j, edge_index_i)
+        out = pos_x.new_empty((num_edges, num_particles))
         for start in range(0, num_edges, chunk):
             part = slice(start, start + chunk)
-            out[part] = self._log_messages(pos, sender_log_weights,
+            out[part] = self._log_messages(pos_x, pos_y, sender_log_weights,
                                            ranges[part], edge_index_j[part],
                                            edge_index_i[part])
         return out
 
-    def _log_messages(self, pos: Tensor, sender_log_weights: Tensor,
-                      ranges: Tensor, src: Tensor, dst: Tensor) -> Tensor:
-        diff = pos.index_select(0, src) - pos.index_select(0, dst)
-        distances = torch.hypot(diff[..., 0], diff[..., 1])
-        return self.measurement.log_likelihood_of_distance(
-            ranges, distances) + sender_log_weights.index_select(0, src)
+    def _log_messages(self, pos_x: Tensor, pos_y: Tensor,
+                      sender_log_weights: Tensor, ranges: Tensor,
+                      src: Tensor, dst: Tensor) -> Tensor:
+        if torch.is_grad_enabled() and (pos_x.requires_grad
+                                        or pos_y.requires_grad
+                                        or ranges.requires_grad):
+            diff = torch.stack([
+                pos_x.index_select(0, src) - pos_x.index_select(0, dst),
+                pos_y.index_select(0, src) - pos_y.index_select(0, dst),
+            ], dim=-1)
+            distances = torch.linalg.vector_norm(diff, dim=-1)  # grad 0 at 0
+            log_lik = self.measurement.log_likelihood_of_distance(
+                ranges, distances)
+        else:  # in place on fresh temporaries: a third of the memory traffic
+            dx = pos_x.index_select(0, src).sub_(pos_x.index_select(0, dst))
+            dy = pos_y.index_select(0, src).sub_(pos_y.index_select(0, dst))
+            distances = dx.mul_(dx).addcmul_(dy, dy).sqrt_()
+            log_lik = self.measurement.log_likelihood_of_distance(
+                ranges, distances, inplace=True)
+        # in-place add stays differentiable in the sender log-weights
+        return log_lik.add_(sender_log_weights.index_select(0, src))
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages

@@ -1,0 +1,172 @@
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tg_nebp.data import Realization
+from tg_nebp.data.validation import check_realization
+from tg_nebp.datasets import Scenario
+
+PAPER_TRAIN_ANCHORS = ((10, 10), (50, 10), (10, 50), (50, 50), (30, 30))
+
+
+def test_load_paper_scenarios_match_the_paper():
+    train = Scenario.load('paper_train')
+    assert train.num_agents == 25 and train.num_anchors == 5
+    assert set(train.anchor_positions) == {
+        (float(x), float(y)) for x, y in PAPER_TRAIN_ANCHORS}
+    assert (train.agent_start_low, train.agent_start_high) == (15.0, 45.0)
+    test = Scenario.load('paper_test')
+    assert test.num_agents == 100 and test.num_anchors == 13
+    grid = {(float(x), float(y)) for x in (10, 50, 90) for y in (10, 50, 90)}
+    inner = {(float(x), float(y)) for x in (30, 70) for y in (30, 70)}
+    assert set(test.anchor_positions) == grid | inner
+    for s in (train, test):
+        assert s.num_steps == 50 and s.dt == 1.0
+        assert (s.sigma_a, s.drag, s.sigma_v0) == (0.05, 0.06, 0.1)
+        assert (s.sigma_r, s.max_range) == (1.0, 20.0)
+        assert s.prior_var == (10.0, 10.0, 0.01, 0.01)
+
+
+def test_load_from_json_path(tmp_path):
+    fields = dict(name='custom', num_agents=2,
+                  anchor_positions=[[0, 0], [5, 5]], agent_start_low=1,
+                  agent_start_high=4, num_steps=3)
+    path = tmp_path / 'custom.json'
+    path.write_text(json.dumps(fields))
+    s = Scenario.load(path)
+    assert s.name == 'custom' and s.anchor_positions == ((0.0, 0.0),
+                                                         (5.0, 5.0))
+    assert s == Scenario.load(str(path))
+    bad = tmp_path / 'bad.json'
+    bad.write_text(json.dumps(dict(fields, colour='red')))
+    with pytest.raises(ValueError, match='colour'):
+        Scenario.load(bad)
+
+
+def test_unknown_scenario_name():
+    with pytest.raises(ValueError, match='unknown scenario'):
+        Scenario.load('no_such_scenario')
+
+
+def test_fingerprint_covers_every_generation_parameter():
+    base = Scenario.load('paper_train')
+    changes = dict(num_agents=24, anchor_positions=((0, 0), ),
+                   agent_start_low=14.0, agent_start_high=46.0, num_steps=49,
+                   dt=0.5, sigma_a=0.04, drag=0.05, sigma_v0=0.2,
+                   sigma_r=2.0, max_range=19.0,
+                   prior_var=(9.0, 10.0, 0.01, 0.01), name='other')
+    assert set(changes) == {f.name for f in dataclasses.fields(Scenario)
+                            } - {'description'}
+    prints = {base.fingerprint()}
+    for key, value in changes.items():
+        prints.add(base.replace(**{key: value}).fingerprint())
+    assert len(prints) == len(changes) + 1
+    # the description is free text
+    assert base.replace(description='x').fingerprint() == base.fingerprint()
+    assert base.replace().fingerprint() == base.fingerprint()
+
+
+@pytest.mark.parametrize('key,value', [
+    ('name', ''), ('name', 'a/b'), ('name', 'a b'), ('num_agents', 0),
+    ('num_steps', 0), ('anchor_positions', ((1.0, 2.0, 3.0), )),
+    ('agent_start_low', 50.0), ('prior_var', (1.0, 1.0, 1.0)),
+    ('prior_var', (1.0, 1.0, 0.0, 1.0)), ('sigma_v0', -1.0),
+    ('sigma_a', -0.1), ('drag', -0.1), ('dt', 0.0), ('sigma_r', 0.0),
+    ('max_range', -1.0)
+])
+def test_invalid_parameters_raise(key, value):
+    with pytest.raises(ValueError, match=key):
+        Scenario.load('paper_train').replace(**{key: value})
+
+
+@pytest.fixture(scope='module')
+def realization():
+    scenario = Scenario.load('paper_train').replace(num_steps=8)
+    return scenario, scenario.generate(torch.Generator().manual_seed(0))
+
+
+def test_generate_layout(realization):
+    scenario, data = realization
+    assert isinstance(data, Realization)
+    check_realization(data)
+    n = scenario.num_agents + scenario.num_anchors
+    assert data.num_nodes == n and data.steps == 8
+    assert data.states.shape == (n, 8, 4)
+    assert data.states.dtype == torch.float32
+    assert data.anchor.tolist() == [False] * 25 + [True] * 5  # agents first
+    anchors = torch.tensor(scenario.anchor_positions)
+    # anchors are static at their positions, with zero velocity
+    assert torch.equal(data.states[25:, :, :2],
+                       anchors.view(5, 1, 2).expand(5, 8, 2))
+    assert bool((data.states[25:, :, 2:] == 0).all())
+    assert torch.equal(data.prior_mean[25:, :2], anchors)
+    assert bool((data.prior_mean[25:, 2:] == 0).all())
+    assert bool((data.prior_cov[25:] == 0).all())
+    assert torch.equal(data.prior_cov[:25],
+                       torch.diag(torch.tensor([10.0, 10.0, 0.01, 0.01]))
+                       .expand(25, 4, 4))
+
+
+def test_generate_edges_are_all_pairs_within_range(realization):
+    scenario, data = realization
+    pos = data.states[..., :2].double()
+    for t in range(data.steps):
+        mask = data.edge_time == t
+        got = set(map(tuple, data.edge_index[:, mask].t().tolist()))
+        expected = set()
+        for i in range(data.num_nodes):
+            if data.anchor[i]:
+                continue
+            for j in range(data.num_nodes):
+                if j != i and float((pos[j, t] - pos[i, t]).norm()) <= 20.0:
+                    expected.add((j, i))
+        # float32 storage may move a pair by ~1e-5 m across the boundary
+        near = {(j, i) for j, i in got ^ expected
+                if abs(float((pos[j, t] - pos[i, t]).norm()) - 20) > 1e-4}
+        assert not near
+        assert len(got) > 100
+
+
+def test_generate_follows_the_motion_model():
+    scenario = Scenario.load('paper_train').replace(num_steps=40)
+    data = scenario.generate(torch.Generator().manual_seed(1))
+    x = data.states[:25].double()
+    v, v_next = x[:, :-1, 2:], x[:, 1:, 2:]
+    c = scenario.drag
+    # v' = v - c v|v| + a, p' = p + v + (a - c v|v|) / 2 (dt = 1)
+    a = v_next - v + c * v * v.abs()
+    pos_pred = x[:, :-1, :2] + v + 0.5 * (a - c * v * v.abs())
+    assert (pos_pred - x[:, 1:, :2]).abs().max() < 1e-4
+    a = a.reshape(-1, 2).numpy()
+    n = a.shape[0]
+    sigma = scenario.sigma_a
+    assert np.all(np.abs(a.mean(0)) < 5 * sigma / math.sqrt(n))
+    assert np.all(np.abs(a.std(0) - sigma) < 5 * sigma / math.sqrt(2 * n))
+    # agents start uniformly in [15, 45]^2: after one step within the box
+    # up to a few velocity standard deviations
+    p0 = x[:, 0, :2]
+    assert bool(((p0 > 14.0) & (p0 < 46.0)).all())
+
+
+def test_generate_is_deterministic_in_the_generator():
+    scenario = Scenario.load('paper_train').replace(num_steps=3)
+    a = scenario.generate(torch.Generator().manual_seed(5))
+    b = scenario.generate(torch.Generator().manual_seed(5))
+    c = scenario.generate(torch.Generator().manual_seed(6))
+    for key in ('states', 'edge_index', 'edge_attr', 'edge_time',
+                'prior_mean'):
+        assert torch.equal(a[key], b[key])
+    assert not torch.equal(a.states, c.states)
+
+
+def test_generate_without_anchors_and_single_agent():
+    s = Scenario(name='solo', num_agents=1, anchor_positions=(),
+                 agent_start_low=0.0, agent_start_high=1.0, num_steps=4)
+    data = s.generate(torch.Generator().manual_seed(0))
+    assert data.num_nodes == 1 and data.edge_index.shape == (2, 0)
+    assert data.edge_attr.shape == (0, 1)
+    assert data.steps == 4 and len(data.edges_by_step()) == 4

@@ -1,0 +1,322 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import norm
+from torch_geometric.loader import DataLoader
+
+from tg_nebp import metrics
+from tg_nebp.data import Realization
+from tg_nebp.datasets import Scenario
+from tg_nebp.filters import ParticleBP, weighted_moments
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+
+PRIOR_VAR = torch.tensor([10.0, 10.0, 0.01, 0.01])
+
+
+def gen(seed):
+    return torch.Generator().manual_seed(seed)
+
+
+def custom_realization(states, anchor, edges_per_step, seed=0, sigma=1.0):
+    r"""A realization over true :obj:`states` [N, T, 4] with the given
+    edges (list of lists of (j, i)) and ranges drawn from the model."""
+    n, steps, _ = states.shape
+    g = gen(seed)
+    edge_index, edge_time = [], []
+    for t, edges in enumerate(edges_per_step):
+        for j, i in edges:
+            edge_index.append((j, i))
+            edge_time.append(t)
+    edge_index = torch.tensor(edge_index, dtype=torch.long).view(-1, 2).t()
+    edge_time = torch.tensor(edge_time, dtype=torch.long)
+    pos = states[..., :2]
+    dist = (pos[edge_index[0], edge_time] - pos[edge_index[1], edge_time]
+            ).norm(dim=-1)
+    ranges = GaussianRange(sigma).sample(dist.double(), g).float()
+    prior_mean = states[:, 0].clone()
+    prior_cov = torch.diag(PRIOR_VAR).repeat(n, 1, 1)
+    prior_mean[anchor, 2:] = 0
+    prior_cov[anchor] = 0
+    return Realization(states=states, edge_index=edge_index,
+                       edge_attr=ranges.view(-1, 1), edge_time=edge_time,
+                       anchor=anchor, prior_mean=prior_mean,
+                       prior_cov=prior_cov, num_steps=steps, num_nodes=n)
+
+
+def small_realization(seed=0, steps=5):
+    scenario = Scenario.load('paper_train').replace(num_steps=steps)
+    return scenario.generate(gen(seed))
+
+
+def tiny_scenario(steps=5):
+    return Scenario(name='tiny', num_agents=3,
+                    anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),
+                    agent_start_low=3.0, agent_start_high=10.0,
+                    num_steps=steps)
+
+
+# ---- accuracy ---------------------------------------------------------------
+
+def test_one_agent_three_anchors_localizes():
+    # three anchors at 120 degrees around the agent's start region; with the
+    # paper's sigma_r = 1 m a filter cannot get below ~0.63 m (linearized
+    # Kalman bound for this geometry), so this test uses sigma_r = 0.5 m
+    # (bound ~0.36 m)
+    anchors = tuple((30 + 10 * math.cos(a), 30 + 10 * math.sin(a))
+                    for a in (math.pi / 2, math.pi * 7 / 6, math.pi * 11 / 6))
+    scenario = Scenario(name='one', num_agents=1, anchor_positions=anchors,
+                        agent_start_low=28.0, agent_start_high=32.0,
+                        num_steps=20, sigma_r=0.5)
+    data = [scenario.generate(gen(seed)) for seed in range(4)]
+    for d in data:  # every anchor measured at every step
+        assert d.num_edges == 3 * 20
+    batch = next(iter(DataLoader(data, batch_size=4)))
+    tracker = ParticleBP(num_particles=2000, motion=scenario.motion(),
+                         measurement=scenario.measurement())
+    out = tracker(batch, generator=gen(10))
+    agents = ~batch.anchor
+    est, true = out.mean[agents, 9:20, :2], batch.states[agents, 9:20, :2]
+    rmse = metrics.rmse(est, true)
+    assert rmse < 0.5
+    # the prior alone (std sqrt(10) per axis) would be ~4.5 m off
+    prior_err = metrics.rmse(batch.prior_mean[agents, :2],
+                             batch.states[agents, 0, :2])
+    assert prior_err > 2.0
+
+
+# ---- the update against a loop reference ------------------------------------
+
+def reference_update(particles, edges, ranges, num_iterations, sigma):
+    r"""Particle BP in plain numpy: uniform prediction weights, messages
+    log p(z | x_j^(k), x_i^(k)) + log w~_j^(k), beliefs normalized after
+    every iteration, anchors untouched."""
+    n, k = particles.shape[:2]
+    base = np.full((n, k), -math.log(k))
+    sender = base.copy()
+    for _ in range(num_iterations):
+        belief = base.copy()
+        for (j, i), z in zip(edges, ranges):
+            d = np.linalg.norm(particles[j, :, :2] - particles[i, :, :2],
+                               axis=-1)
+            belief[i] += norm.logpdf(z, loc=d, scale=sigma) + sender[j]
+        m = belief.max(-1, keepdims=True)
+        sender = belief - (m + np.log(np.exp(belief - m).sum(-1,
+                                                             keepdims=True)))
+    return sender
+
+
+@pytest.mark.parametrize('num_iterations', [1, 2])
+def test_first_step_weights_match_loop_reference(num_iterations):
+    data = tiny_scenario(steps=2).generate(gen(1))
+    tracker = ParticleBP(num_particles=64, num_iterations=num_iterations)
+    steps = list(tracker.steps(data, generator=gen(2)))
+    assert [s.t for s in steps] == [0, 1]
+    for t, step in enumerate(steps):
+        mask = data.edge_time == t
+        edges = data.edge_index[:, mask].t().tolist()
+        ranges = data.edge_attr[mask, 0].double().numpy()
+        assert len(edges) > 0
+        ref = reference_update(step.particles.double().numpy(), edges,
+                               ranges, num_iterations, 1.0)
+        np.testing.assert_allclose(step.log_weights.double().numpy(), ref,
+                                   rtol=1e-4, atol=1e-4)
+        # the estimate is the weighted mean / covariance of the particles
+        w = np.exp(ref)
+        p = step.particles.double().numpy()
+        mean = np.einsum('nk,nkd->nd', w, p)
+        np.testing.assert_allclose(step.mean.numpy(), mean, rtol=1e-4,
+                                   atol=1e-4)
+        for i in range(data.num_nodes):
+            c = p[i] - mean[i]
+            cov = (w[i, :, None] * c).T @ c
+            np.testing.assert_allclose(step.cov[i].numpy(), cov, rtol=1e-3,
+                                       atol=1e-4)
+
+
+def test_weighted_moments_against_numpy():
+    g = gen(0)
+    particles = torch.randn(3, 50, 4, generator=g, dtype=torch.float64)
+    lw = torch.randn(3, 50, generator=g, dtype=torch.float64)
+    lw = lw - lw.logsumexp(-1, keepdim=True)
+    mean, cov = weighted_moments(particles, lw)
+    for i in range(3):
+        w = lw[i].exp().numpy()
+        p = particles[i].numpy()
+        m = (w[:, None] * p).sum(0)
+        np.testing.assert_allclose(mean[i].numpy(), m, rtol=1e-12)
+        np.testing.assert_allclose(cov[i].numpy(),
+                                   np.cov(p.T, aweights=w, bias=True),
+                                   rtol=1e-10, atol=1e-12)
+
+
+def test_sample_prior_statistics():
+    data = small_realization()
+    K = 20_000
+    particles = ParticleBP(num_particles=K).sample_prior(data, gen(0))
+    assert particles.shape == (30, K, 4)
+    agents = ~data.anchor
+    p = particles[agents].double()
+    mean = p.mean(1)
+    sd = PRIOR_VAR.double().sqrt()
+    assert bool(((mean - data.prior_mean[agents].double()).abs()
+                 < 5 * sd / math.sqrt(K)).all())
+    var = p.var(1)
+    assert bool(((var / PRIOR_VAR.double() - 1).abs()
+                 < 5 * math.sqrt(2 / K)).all())
+    anchors = particles[data.anchor]
+    assert torch.equal(anchors, data.prior_mean[data.anchor].unsqueeze(1)
+                       .expand_as(anchors))
+
+
+# ---- determinism ------------------------------------------------------------
+
+@pytest.mark.parametrize('resampler', ['multinomial', 'systematic'])
+def test_same_seed_same_output(resampler):
+    data = small_realization(seed=3)
+    tracker = ParticleBP(num_particles=100, resampler=resampler)
+    a = tracker(data, generator=gen(5))
+    b = tracker(data, generator=gen(5))
+    c = tracker(data, generator=gen(6))
+    assert torch.equal(a.mean, b.mean) and torch.equal(a.cov, b.cov)
+    agents = ~data.anchor
+    assert not torch.equal(a.mean[agents], c.mean[agents])
+    # the difference is Monte Carlo noise, not a different answer
+    assert metrics.rmse(a.mean[agents, :, :2], c.mean[agents, :, :2]) < 3.0
+
+
+# ---- missing measurements ---------------------------------------------
+
+def two_agents_three_anchors(steps):
+    anchor_pos = torch.tensor([[0.0, 0.0], [20.0, 0.0], [10.0, 17.0]])
+    agent = torch.tensor([[10.0, 6.0, 0.1, -0.05], [40.0, 40.0, 0.0, 0.1]])
+    motion = ConstantVelocityDrag()
+    traj, state = [], agent.double()
+    g = gen(7)
+    for _ in range(steps):
+        state = motion.sample(state, g)
+        traj.append(state)
+    agents = torch.stack(traj, 1).float()
+    anchors = torch.cat([anchor_pos, torch.zeros(3, 2)], 1)
+    states = torch.cat([agents, anchors.unsqueeze(1).expand(3, steps, 4)])
+    anchor = torch.tensor([False, False, True, True, True])
+    # agent 0 hears the anchors except at t = 2; agent 1 never hears anyone
+    edges = [[] if t == 2 else [(2, 0), (3, 0), (4, 0)] for t in range(steps)]
+    data = custom_realization(states, anchor, edges, seed=8)
+    # the prior of step 0 is centered at the true initial state
+    data.prior_mean[:2] = agent
+    return data
+
+
+def test_agent_without_edges_keeps_its_prediction():
+    steps, K = 5, 4000
+    data = two_agents_three_anchors(steps)
+    tracker = ParticleBP(num_particles=K)
+    outs = list(tracker.steps(data, generator=gen(9)))
+    motion = ConstantVelocityDrag()
+    for step in outs:
+        assert bool(torch.isfinite(step.mean).all())
+        assert bool(torch.isfinite(step.cov).all())
+        assert bool(torch.isfinite(step.log_weights).all())
+        # normalized beliefs
+        torch.testing.assert_close(step.log_weights.logsumexp(-1),
+                                   torch.zeros(5), atol=1e-4, rtol=0)
+    # agent 0 at t = 2, agent 1 always: uniform weights, estimate = plain
+    # mean of the predicted particles
+    for t, i in [(2, 0)] + [(t, 1) for t in range(steps)]:
+        step = outs[t]
+        torch.testing.assert_close(step.log_weights[i],
+                                   torch.full((K, ), -math.log(K)))
+        torch.testing.assert_close(step.mean[i],
+                                   step.particles[i].mean(0), atol=1e-4,
+                                   rtol=1e-5)
+    # the prediction of agent 0 at t = 2 is the propagated estimate of t = 1
+    prev, cur = outs[1], outs[2]
+    expected = motion.propagate(prev.mean[0].double(),
+                                torch.zeros(2, dtype=torch.float64))
+    sd = torch.diagonal(cur.cov[0]).double().sqrt()
+    # multinomial resampling and motion noise: MC std about sd * sqrt(2/K)
+    assert bool(((cur.mean[0].double() - expected).abs()
+                 < 5 * sd * math.sqrt(2 / K)).all())
+    # agent 1 (never measured) keeps the prior propagated by the motion
+    # model: mean and position variance of the prediction
+    mean = data.prior_mean[1].double()
+    pos_var = 10.0
+    for t in range(steps):
+        mean = motion.propagate(mean, torch.zeros(2, dtype=torch.float64))
+        # x_t = x_0 + (t + 1) v_0 + noise: var 10 + (t + 1)^2 0.01 + small
+        pos_var = 10.0 + (t + 1)**2 * 0.01
+        est = outs[t].mean[1].double()
+        mc_sd = math.sqrt(pos_var * (t + 2) / K)
+        assert bool(((est[:2] - mean[:2]).abs() < 5 * mc_sd).all())
+        var = torch.diagonal(outs[t].cov[1])[:2].double()
+        assert bool(((var / pos_var - 1).abs()
+                     < 5 * math.sqrt(2 * (t + 2) / K) + 0.01).all())
+
+
+def test_agent_without_edges_in_tracker_output():
+    data = two_agents_three_anchors(4)
+    out = ParticleBP(num_particles=500)(data, generator=gen(1))
+    assert bool(torch.isfinite(out.mean).all())
+    assert bool(torch.isfinite(out.cov).all())
+    # agent 0 is localized, agent 1 stays as uncertain as its prior
+    assert float(out.cov[0, -1, 0, 0]) < 2.0
+    assert float(out.cov[1, -1, 0, 0]) > 5.0
+
+
+# ---- batches ----------------------------------------------------------
+
+def test_batch_of_two_realizations():
+    T = 5
+    a = small_realization(seed=4, steps=T)
+    b = tiny_scenario(steps=T).generate(gen(5))
+    batch = next(iter(DataLoader([a, b], batch_size=2)))
+    N = a.num_nodes + b.num_nodes
+    out = ParticleBP(num_particles=300)(batch, generator=gen(0))
+    assert out.mean.shape == (N, T, 4)
+    assert out.cov.shape == (N, T, 4, 4)
+    assert bool(torch.isfinite(out.mean).all())
+    assert bool(torch.isfinite(out.cov).all())
+    # covariances symmetric positive semi-definite
+    torch.testing.assert_close(out.cov, out.cov.transpose(-1, -2))
+    cov = out.cov.double()
+    eig = torch.linalg.eigvalsh(cov)
+    scale = cov.abs().amax((-1, -2), keepdim=False).unsqueeze(-1)
+    assert bool((eig >= -1e-5 * scale.clamp_min(1.0)).all())
+    # anchors: their known position, zero velocity, zero covariance
+    known = batch.prior_mean[batch.anchor].unsqueeze(1).expand(-1, T, 4)
+    torch.testing.assert_close(out.mean[batch.anchor], known, atol=1e-4,
+                               rtol=1e-5)
+    assert float(out.cov[batch.anchor].abs().max()) < 1e-6
+    # the agents of both graphs are tracked to within a few metres
+    agents = ~batch.anchor
+    err = metrics.position_errors(out.mean[agents, :, :2],
+                                  batch.states[agents, :, :2])
+    assert float(err[:, -1].median()) < 3.0
+
+
+def test_invalid_arguments():
+    with pytest.raises(ValueError, match='num_particles'):
+        ParticleBP(num_particles=0)
+    with pytest.raises(ValueError, match='num_iterations'):
+        ParticleBP(num_iterations=0)
+    with pytest.raises(ValueError, match='resampler'):
+        ParticleBP(resampler='stratified-ish')
+
+
+def test_custom_resampler_is_used():
+    calls = []
+
+    def keep_first(log_weights, num_samples, generator):
+        calls.append(log_weights.shape)
+        return torch.zeros(log_weights.shape[:-1] + (num_samples, ),
+                           dtype=torch.long)
+
+    data = small_realization(steps=3)
+    tracker = ParticleBP(num_particles=20, resampler=keep_first)
+    outs = list(tracker.steps(data, generator=gen(0)))
+    assert calls == [(30, 20)] * 3
+    # after keeping particle 0 only, the spread at the next step is the
+    # motion noise alone: tiny compared with the prior
+    assert float(outs[1].cov[:25, 0, 0].max()) < 0.01

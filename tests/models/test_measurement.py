@@ -1,0 +1,147 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import norm
+
+from tg_nebp.models import GaussianRange
+
+
+@pytest.mark.parametrize('sigma', [1.0, 0.3, 2.5])
+def test_log_likelihood_matches_scipy(sigma):
+    g = torch.Generator().manual_seed(0)
+    E, K = 6, 9
+    ranges = 20 * torch.rand(E, 1, generator=g, dtype=torch.float64)
+    sender = 30 * torch.rand(E, K, 2, generator=g, dtype=torch.float64)
+    receiver = 30 * torch.rand(E, K, 2, generator=g, dtype=torch.float64)
+    model = GaussianRange(sigma=sigma)
+    out = model.log_likelihood(ranges, sender, receiver)
+    assert out.shape == (E, K)
+    ref = np.empty((E, K))
+    for e in range(E):
+        for k in range(K):
+            dist = np.linalg.norm(sender[e, k].numpy() -
+                                  receiver[e, k].numpy())
+            ref[e, k] = norm.logpdf(float(ranges[e, 0]), loc=dist, scale=sigma)
+    np.testing.assert_allclose(out.numpy(), ref, rtol=1e-12, atol=1e-12)
+
+
+def test_log_likelihood_of_distance_matches_scipy():
+    model = GaussianRange(sigma=0.7)
+    ranges = torch.tensor([[3.0], [10.0]], dtype=torch.float64)
+    dist = torch.tensor([[3.0, 4.5, 0.0], [9.0, 20.0, 10.0]],
+                        dtype=torch.float64)
+    out = model.log_likelihood_of_distance(ranges, dist)
+    ref = norm.logpdf(ranges.numpy(), loc=dist.numpy(), scale=0.7)
+    np.testing.assert_allclose(out.numpy(), ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize('sigma', [1.0, 0.5])
+def test_sample_noise_statistics_far_away(sigma):
+    n = 100_000
+    distances = torch.linspace(15.0, 60.0, n, dtype=torch.float64)
+    model = GaussianRange(sigma=sigma)
+    ranges = model.sample(distances,
+                          generator=torch.Generator().manual_seed(1))
+    noise = (ranges - distances).numpy()
+    # >= 15 sigma from zero: the redraw never triggers, noise is N(0, sigma^2)
+    assert abs(noise.mean()) < 5 * sigma / math.sqrt(n)
+    assert abs(noise.std() - sigma) < 5 * sigma / math.sqrt(2 * n)
+
+
+def test_sample_never_negative_for_tiny_distances():
+    n = 50_000
+    distances = torch.full((n, ), 1e-3, dtype=torch.float64)
+    distances[::2] = 0.0
+    ranges = GaussianRange(sigma=1.0).sample(
+        distances, generator=torch.Generator().manual_seed(2))
+    assert ranges.shape == distances.shape
+    assert bool((ranges >= 0).all())
+    assert bool(torch.isfinite(ranges).all())
+    # redrawing below zero gives the half-normal: mean sigma * sqrt(2/pi)
+    half = ranges[::2].numpy()
+    expected = math.sqrt(2 / math.pi)
+    sd = math.sqrt(1 - 2 / math.pi)
+    assert abs(half.mean() - expected) < 5 * sd / math.sqrt(half.size)
+
+
+def test_sample_is_reproducible():
+    model = GaussianRange()
+    d = torch.linspace(0.0, 5.0, 100)
+    a = model.sample(d, generator=torch.Generator().manual_seed(5))
+    b = model.sample(d, generator=torch.Generator().manual_seed(5))
+    c = model.sample(d, generator=torch.Generator().manual_seed(6))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def connect_reference(pos, receiver, max_range):
+    pos = pos.numpy()
+    pairs = set()
+    for i in range(len(pos)):
+        if not receiver[i]:
+            continue
+        for j in range(len(pos)):
+            if j == i:
+                continue
+            d = pos[j] - pos[i]
+            if math.sqrt(d[0] * d[0] + d[1] * d[1]) <= max_range:
+                pairs.add((j, i))
+    return pairs
+
+
+@pytest.mark.parametrize('max_range', [20.0, 7.5])
+def test_connect_matches_double_loop(max_range):
+    g = torch.Generator().manual_seed(3)
+    n = 60  # more than 25 nodes: cdist would take its matmul shortcut
+    pos = 80 * torch.rand(n, 2, generator=g, dtype=torch.float64)
+    receiver = torch.rand(n, generator=g) < 0.7
+    edges = GaussianRange(max_range=max_range).connect(pos, receiver)
+    assert edges.shape[0] == 2 and edges.dtype == torch.long
+    got = list(map(tuple, edges.t().tolist()))
+    assert len(got) == len(set(got))  # no duplicates
+    ref = connect_reference(pos, receiver, max_range)
+    assert len(ref) > 0
+    assert set(got) == ref
+
+
+def test_connect_includes_pairs_exactly_at_max_range():
+    # a chain with spacing exactly max_range along the x axis (exactly
+    # representable differences) plus random clutter: > 25 nodes
+    xs = 0.1 + 20.0 * torch.arange(30, dtype=torch.float64)
+    chain = torch.stack([xs, torch.full_like(xs, 7.3)], dim=1)
+    diffs = chain[1:, 0] - chain[:-1, 0]
+    g = torch.Generator().manual_seed(4)
+    clutter = torch.rand(10, 2, generator=g, dtype=torch.float64) * 600
+    clutter[:, 1] += 100.0  # far from the chain
+    pos = torch.cat([chain, clutter])
+    receiver = torch.ones(len(pos), dtype=torch.bool)
+    edges = GaussianRange(max_range=20.0).connect(pos, receiver)
+    got = set(map(tuple, edges.t().tolist()))
+    assert got == connect_reference(pos, receiver, 20.0)
+    for k in range(29):
+        if float(diffs[k]) <= 20.0:
+            assert (k, k + 1) in got and (k + 1, k) in got
+        else:
+            assert (k, k + 1) not in got
+
+
+def test_connect_never_ends_at_non_receivers():
+    pos = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    receiver = torch.tensor([True, False, False])
+    edges = GaussianRange().connect(pos, receiver)
+    assert set(map(tuple, edges.t().tolist())) == {(1, 0), (2, 0)}
+
+
+@pytest.mark.parametrize('name,kwargs', [
+    ('sigma', dict(sigma=0.0)),
+    ('sigma', dict(sigma=-1.0)),
+    ('sigma', dict(sigma=float('nan'))),
+    ('sigma', dict(sigma=float('inf'))),
+    ('max_range', dict(max_range=0.0)),
+    ('max_range', dict(max_range=-5.0)),
+    ('max_range', dict(max_range=float('nan'))),
+])
+def test_bad_parameters_raise(name, kwargs):
+    with pytest.raises(ValueError, match=f"'{name}'"):
+        GaussianRange(**kwargs)

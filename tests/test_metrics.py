@@ -1,0 +1,195 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import chi2
+
+from tg_nebp import metrics
+
+
+def random_problem(shape, seed):
+    g = torch.Generator().manual_seed(seed)
+    est = torch.randn(shape + (2, ), generator=g, dtype=torch.float64)
+    true = torch.randn(shape + (2, ), generator=g, dtype=torch.float64)
+    return est, true
+
+
+def test_position_errors_against_loop():
+    est, true = random_problem((4, 6), 0)
+    out = metrics.position_errors(est, true)
+    assert out.shape == (4, 6)
+    for i in range(4):
+        for t in range(6):
+            d = est[i, t].numpy() - true[i, t].numpy()
+            assert math.isclose(float(out[i, t]), math.sqrt(d @ d),
+                                rel_tol=1e-12)
+    with pytest.raises(ValueError):
+        metrics.position_errors(est, true[:, :3])
+
+
+def test_rmse_against_numpy_loop():
+    est, true = random_problem((5, 7), 1)
+    total, n = 0.0, 0
+    for i in range(5):
+        for t in range(7):
+            d = est[i, t].numpy() - true[i, t].numpy()
+            total += d @ d
+            n += 1
+    assert math.isclose(metrics.rmse(est, true), math.sqrt(total / n),
+                        rel_tol=1e-12)
+
+
+def test_rmse_mask():
+    est, true = random_problem((5, 7), 2)
+    mask = torch.tensor([True, False, True, True, False])
+    total, n = 0.0, 0
+    for i in range(5):
+        if not mask[i]:
+            continue
+        for t in range(7):
+            d = est[i, t].numpy() - true[i, t].numpy()
+            total += d @ d
+            n += 1
+    assert math.isclose(metrics.rmse(est, true, mask=mask),
+                        math.sqrt(total / n), rel_tol=1e-12)
+    # a mask of the full leading shape works as well
+    full = mask.view(5, 1).expand(5, 7)
+    assert math.isclose(metrics.rmse(est, true, mask=full),
+                        math.sqrt(total / n), rel_tol=1e-12)
+    # masked-out entries do not matter, however large
+    est2 = est.clone()
+    est2[~mask] = 1e6
+    assert math.isclose(metrics.rmse(est2, true, mask=mask),
+                        math.sqrt(total / n), rel_tol=1e-12)
+    with pytest.raises(ValueError, match='mask'):
+        metrics.rmse(est, true, mask=torch.ones(4, dtype=torch.bool))
+
+
+def test_outage_against_numpy_loop():
+    est, true = random_problem((6, 9), 3)
+    mask = torch.arange(6) % 3 != 0
+    thresholds = [0.25, 0.5, 1.0, 2.0, 4.0]
+    out = metrics.outage_probability(est, true, thresholds, mask=mask)
+    assert out.shape == (5, )
+    for q, th in enumerate(thresholds):
+        exceed, n = 0, 0
+        for i in range(6):
+            if not mask[i]:
+                continue
+            for t in range(9):
+                e = np.linalg.norm(est[i, t].numpy() - true[i, t].numpy())
+                exceed += e > th
+                n += 1
+        assert math.isclose(float(out[q]), exceed / n, rel_tol=1e-12)
+    # unmasked, 2-D thresholds keep their shape
+    out = metrics.outage_probability(est, true, [[0.5, 1.0], [2.0, 3.0]])
+    assert out.shape == (2, 2)
+    errors = np.linalg.norm((est - true).numpy(), axis=-1)
+    np.testing.assert_allclose(
+        out.numpy(), [[(errors > 0.5).mean(), (errors > 1.0).mean()],
+                      [(errors > 2.0).mean(), (errors > 3.0).mean()]])
+
+
+def test_outage_is_strict_and_monotone():
+    est = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
+    true = torch.zeros(3, 2)
+    out = metrics.outage_probability(est, true, [0.0, 1.0, 2.0, 3.0])
+    np.testing.assert_allclose(out.numpy(), [2 / 3, 1 / 3, 1 / 3, 0.0])
+
+
+def random_spd(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(n, 2, 2, generator=g, dtype=torch.float64)
+    return a @ a.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
+
+
+def test_nees_against_numpy_inv():
+    est, true = random_problem((3, 8), 4)
+    cov = random_spd(24, 5).view(3, 8, 2, 2)
+    out = metrics.nees(est, cov, true)
+    assert out.shape == (3, 8)
+    for i in range(3):
+        for t in range(8):
+            e = est[i, t].numpy() - true[i, t].numpy()
+            ref = e @ np.linalg.inv(cov[i, t].numpy()) @ e
+            assert math.isclose(float(out[i, t]), ref, rel_tol=1e-9)
+
+
+def test_nees_singular_covariance_gives_inf_not_nan():
+    est = torch.tensor([[1.0, 0.0], [0.5, 0.5], [0.0, 0.0], [1.0, 2.0]])
+    true = torch.zeros(4, 2)
+    cov = torch.stack([
+        torch.zeros(2, 2),                        # all zero
+        torch.tensor([[1.0, 1.0], [1.0, 1.0]]),   # rank one
+        torch.zeros(2, 2),                        # zero error
+        torch.eye(2),                             # regular
+    ])
+    out = metrics.nees(est, cov, true)
+    assert not bool(torch.isnan(out).any())
+    assert math.isinf(float(out[0])) and float(out[0]) > 0
+    assert math.isinf(float(out[1])) and float(out[1]) > 0
+    assert float(out[2]) == 0.0
+    assert math.isclose(float(out[3]), 5.0, rel_tol=1e-12)
+    # inf NEES is rejected by the consistency test, never accepted
+    curve = metrics.consistency_curve(out, [0.5, 0.99])
+    assert bool((curve <= 0.5).all())
+
+
+def consistency_reference(values, confidence, dof):
+    out = []
+    for c in confidence:
+        alpha = 1 - c
+        lo, hi = chi2.ppf(alpha / 2, dof), chi2.ppf(1 - alpha / 2, dof)
+        out.append(sum(lo <= v <= hi for v in values) / len(values))
+    return np.array(out)
+
+
+@pytest.mark.parametrize('dof', [2, 4])
+def test_consistency_curve_against_scipy_loop(dof):
+    g = torch.Generator().manual_seed(6)
+    values = 3 * torch.rand(500, generator=g, dtype=torch.float64) ** 2
+    confidence = [0.1, 0.5, 0.9, 0.95, 0.99]
+    out = metrics.consistency_curve(values, confidence, dof=dof)
+    np.testing.assert_allclose(
+        out.numpy(), consistency_reference(values.numpy(), confidence, dof),
+        rtol=0, atol=1e-12)
+
+
+def test_consistency_curve_mask():
+    g = torch.Generator().manual_seed(7)
+    values = 4 * torch.rand(10, 20, generator=g, dtype=torch.float64)
+    mask = torch.arange(10) < 4
+    values[~mask] = 1e9  # would be rejected if counted
+    confidence = [0.5, 0.95]
+    out = metrics.consistency_curve(values, confidence, mask=mask)
+    ref = consistency_reference(values[mask].reshape(-1).numpy(),
+                                confidence, 2)
+    np.testing.assert_allclose(out.numpy(), ref, atol=1e-12)
+
+
+@pytest.mark.parametrize('bad', [0.0, 1.0, -0.5, 1.5])
+def test_consistency_curve_bad_confidence(bad):
+    with pytest.raises(ValueError, match='confidence'):
+        metrics.consistency_curve(torch.ones(3), [0.5, bad])
+
+
+def test_consistent_gaussian_estimator_accepts_at_confidence_level():
+    n = 100_000
+    g = torch.Generator().manual_seed(8)
+    # a different true covariance per sample
+    cov = random_spd(n, 9)
+    chol = torch.linalg.cholesky(cov)
+    true = 10 * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    noise = (chol @ torch.randn(n, 2, 1, generator=g,
+                                dtype=torch.float64)).squeeze(-1)
+    est = true + noise
+    values = metrics.nees(est, cov, true)
+    confidence = [0.5, 0.9, 0.95, 0.99]
+    curve = metrics.consistency_curve(values, confidence).numpy()
+    for c, p in zip(confidence, curve):
+        assert abs(p - c) < 5 * math.sqrt(c * (1 - c) / n)
+    # an overconfident estimator (covariance 4x too small) fails
+    bad = metrics.consistency_curve(metrics.nees(est, cov / 4, true),
+                                    confidence).numpy()
+    assert np.all(bad < np.array(confidence) - 0.1)

@@ -1,0 +1,81 @@
+r"""Running a tracker over a dataset and summarizing its accuracy and
+consistency, shared by the CLI, the notebooks and the benchmarks."""
+from typing import Callable, Dict, Iterable, Optional, Sequence
+
+import torch
+from torch_geometric.loader import DataLoader
+
+from tg_nebp import metrics
+from tg_nebp.filters import ParticleBP
+
+__all__ = ['track_dataset', 'summarize', 'OUTAGE_THRESHOLDS', 'CONFIDENCE']
+
+OUTAGE_THRESHOLDS = (0.5, 1.0, 2.0)
+CONFIDENCE = (0.50, 0.95, 0.99)
+
+
+def track_dataset(tracker: ParticleBP, dataset: Iterable,
+                  batch_size: int = 1, device: str = 'cpu', seed: int = 0,
+                  progress: Optional[Callable] = None) -> Dict[str, torch.Tensor]:
+    r"""Tracks every realization of :obj:`dataset` and returns the agents'
+    position errors and NEES values, flattened over agents, time steps and
+    realizations (:obj:`"errors"`, :obj:`"nees"`), plus the estimates of the
+    first realization (:obj:`"first_mean"`, :obj:`"first_states"`,
+    :obj:`"first_anchor"`) for plots.
+
+    Batch :math:`b` draws its particles from a generator seeded with
+    :obj:`seed + b`, so two trackers run with the same :obj:`seed` and
+    :obj:`batch_size` see the same prior particle draws.
+
+    Args:
+        tracker (ParticleBP): The tracker (BP or NEBP).
+        dataset (iterable): Realizations with true :obj:`states`.
+        batch_size (int, optional): Realizations tracked together as one
+            disjoint graph. (default: :obj:`1`)
+        device (str, optional): Device. (default: :obj:`"cpu"`)
+        seed (int, optional): Seed of the particle draws. (default: :obj:`0`)
+        progress (callable, optional): Called with the number of time steps
+            done after each time step. (default: :obj:`None`)
+    """
+    errors, nees, first = [], [], {}
+    with torch.no_grad():
+        for b, batch in enumerate(DataLoader(dataset, batch_size=batch_size)):
+            batch = batch.to(device)
+            generator = torch.Generator(device).manual_seed(seed + b)
+            agents = ~batch.anchor
+            means = []
+            for step in tracker.steps(batch, generator):
+                truth = batch.states[:, step.t, :2]
+                est = step.mean[:, :2]
+                errors.append(metrics.position_errors(est, truth)[agents])
+                nees.append(
+                    metrics.nees(est, step.cov[:, :2, :2], truth)[agents])
+                if b == 0:
+                    means.append(step.mean)
+                if progress is not None:
+                    progress(1)
+            if b == 0:
+                ptr = batch.ptr
+                first = {
+                    'first_mean': torch.stack(means, 1)[:ptr[1]].cpu(),
+                    'first_states': batch.states[:ptr[1]].cpu(),
+                    'first_anchor': batch.anchor[:ptr[1]].cpu(),
+                }
+    return dict(errors=torch.cat(errors).cpu(), nees=torch.cat(nees).cpu(),
+                **first)
+
+
+def summarize(errors: torch.Tensor, nees: torch.Tensor,
+              thresholds: Sequence[float] = OUTAGE_THRESHOLDS,
+              confidence: Sequence[float] = CONFIDENCE) -> dict:
+    r"""The :obj:`metrics.json` entry of a method: RMSE, outage
+    probabilities keyed by threshold (:obj:`"0.5"`, ...) and
+    :math:`\mathbb{P}(\text{accept } H_0)` keyed by confidence level
+    (:obj:`"0.95"`, ...)."""
+    outage = metrics.outage_from_errors(errors, thresholds)
+    accept = metrics.consistency_curve(nees, confidence)
+    return {
+        'rmse': metrics.rmse_from_errors(errors),
+        'outage': {f'{t:.1f}': float(p) for t, p in zip(thresholds, outage)},
+        'accept': {f'{c:.2f}': float(p) for c, p in zip(confidence, accept)},
+    }

@@ -1,0 +1,44 @@
+r"""File writing shared by the CLI: every file is written to a temporary
+name in the same folder and renamed, so a killed run never leaves a
+half-written result."""
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Union
+
+__all__ = ['atomic_write', 'write_json', 'read_json']
+
+
+def atomic_write(path: Union[str, Path], write: Callable[[str], None]):
+    r"""Calls :obj:`write(tmp_path)` and renames the result to :obj:`path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.',
+                               suffix='.partial')
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def write_json(path: Union[str, Path], obj: Any):
+    def write(tmp):
+        with open(tmp, 'w') as f:
+            json.dump(obj, f, indent=2, sort_keys=True)
+            f.write('\n')
+
+    atomic_write(path, write)
+
+
+def read_json(path: Union[str, Path]) -> Any:
+    r"""Reads a JSON file; a file that is not valid JSON gets a clear
+    error."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"'{path}' is not a valid JSON file: {e}") from e
