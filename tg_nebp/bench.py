@@ -1,8 +1,9 @@
 r"""Benchmarks behind :obj:`tg-nebp bench`: :class:`ParticleBPConv` on one
-time step of the paper's test network (ms per iteration, edge-particles per
-second, peak memory beyond the inputs) next to a naive eager
-gather-likelihood-scatter, and the whole :class:`ParticleBP` tracker
-(seconds per time step, peak memory). Each particle count runs in a fresh
+time step of the paper's test network (:obj:`--batch` realizations as one
+graph): ms per iteration as the tracker calls it (no messages returned),
+edge-particles per second and peak memory beyond the inputs, the same with
+the edge messages returned, a naive eager gather-likelihood-scatter, and the
+whole :class:`ParticleBP` tracker (seconds per time step, peak memory). Each particle count runs in a fresh
 process so that peak memory is its own."""
 import json
 import math
@@ -24,6 +25,9 @@ def add_arguments(parser):
                         help='timed iterations per K (default: 10)')
     parser.add_argument('--steps', type=int, default=5,
                         help='tracker time steps per K (default: 5)')
+    parser.add_argument('--batch', type=int, default=1,
+                        help='test realizations batched into one graph '
+                        '(default: 1)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--json', action='store_true',
                         help='print one JSON object per K')
@@ -62,14 +66,18 @@ def _naive(particles, log_weights, edge_index, ranges, sigma):
 
 
 def measure(num_particles, device='cpu', repeats=10, steps=5, seed=0,
-            root='datasets'):
+            root='datasets', batch=1):
     r"""Measures one particle count :math:`K` in this process; returns a
     dict of figures."""
+    from torch_geometric import EdgeIndex
+    from torch_geometric.data import Batch
+
     from tg_nebp.datasets import CooperativeLocalizationDataset
     from tg_nebp.filters import ParticleBP
 
-    data = CooperativeLocalizationDataset(root, 'paper_test', 1, seed,
-                                          log=False)[0].to(device)
+    dataset = CooperativeLocalizationDataset(root, 'paper_test', batch, seed,
+                                             log=False)
+    data = Batch.from_data_list(list(dataset)).to(device)
     tracker = ParticleBP(num_particles).to(device)
     generator = torch.Generator(device).manual_seed(seed)
     particles = tracker.sample_prior(data, generator)
@@ -78,12 +86,22 @@ def measure(num_particles, device='cpu', repeats=10, steps=5, seed=0,
     edge_index, ranges = data.edges_by_step()[0]
     num_edges = edge_index.size(1)
     conv = tracker.conv
+    # as the tracker calls it: no messages returned; on CUDA receiver-sorted
+    # edges take the fused kernel
+    tracker_edges = EdgeIndex(edge_index, sparse_size=(data.num_nodes, ) * 2,
+                              sort_order='col') if device.startswith(
+                                  'cuda') else edge_index
 
     def conv_step():
+        return conv(particles, log_weights, tracker_edges, ranges,
+                    anchor=data.anchor, validate=False, return_messages=False)
+
+    def conv_with_messages():
         return conv(particles, log_weights, edge_index, ranges,
                     anchor=data.anchor, validate=False)
 
-    figures = dict(particles=num_particles, edges=num_edges, device=device)
+    figures = dict(particles=num_particles, edges=num_edges, device=device,
+                   batch=batch)
     with torch.no_grad():
         # peak memory of one iteration beyond its inputs
         if device.startswith('cuda'):
@@ -98,6 +116,7 @@ def measure(num_particles, device='cpu', repeats=10, steps=5, seed=0,
             conv_step()
             peak = max(_rss_peak_bytes() - base, 0)
         seconds = _timed(conv_step, repeats, device)
+        with_messages = _timed(conv_with_messages, repeats, device)
         naive = _timed(
             lambda: _naive(particles, log_weights, edge_index, ranges,
                            tracker.measurement.sigma), repeats, device)
@@ -105,6 +124,7 @@ def measure(num_particles, device='cpu', repeats=10, steps=5, seed=0,
         figures.update(
             ms_per_iteration=seconds * 1e3,
             edge_particles_per_s=edge_particles / seconds,
+            with_messages_ms_per_iteration=with_messages * 1e3,
             naive_ms_per_iteration=naive * 1e3,
             speedup_vs_naive=naive / seconds,
             peak_mb=peak / 2**20,
@@ -137,18 +157,18 @@ def run_bench(args) -> int:
     context = multiprocessing.get_context('spawn')
     # generate the test network once, before the children read it
     from tg_nebp.datasets import CooperativeLocalizationDataset
-    CooperativeLocalizationDataset(args.root, 'paper_test', 1, args.seed,
-                                   log=False)
+    CooperativeLocalizationDataset(args.root, 'paper_test', args.batch,
+                                   args.seed, log=False)
     if not args.json:
         print(f"{'K':>7} {'E':>6} {'ms/iter':>9} {'edge-part/s':>12} "
-              f"{'naive ms':>9} {'speedup':>8} {'peak MB':>9} "
+              f"{'+msgs ms':>9} {'naive ms':>9} {'speedup':>8} {'peak MB':>9} "
               f"{'peak/EK':>8} {'s/step':>8} {'tracker MB':>11}")
     for num_particles in args.particles:
         queue = context.Queue()
         child = context.Process(
             target=_child, args=(queue, num_particles, args.device,
                                  args.repeats, args.steps, args.seed,
-                                 args.root))
+                                 args.root, args.batch))
         child.start()
         figures = queue.get()
         child.join()
@@ -159,6 +179,7 @@ def run_bench(args) -> int:
             print(f"{f['particles']:>7} {f['edges']:>6} "
                   f"{f['ms_per_iteration']:>9.2f} "
                   f"{f['edge_particles_per_s']:>12.3e} "
+                  f"{f['with_messages_ms_per_iteration']:>9.2f} "
                   f"{f['naive_ms_per_iteration']:>9.2f} "
                   f"{f['speedup_vs_naive']:>8.2f} {f['peak_mb']:>9.1f} "
                   f"{f['peak_in_ek_floats']:>8.2f} "

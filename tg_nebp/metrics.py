@@ -13,7 +13,9 @@ from torch import Tensor
 __all__ = [
     'position_errors',
     'rmse',
+    'rmse_from_errors',
     'outage_probability',
+    'outage_from_errors',
     'nees',
     'consistency_curve',
 ]
@@ -41,7 +43,11 @@ def rmse(est_pos: Tensor, true_pos: Tensor,
          mask: Optional[Tensor] = None) -> float:
     r"""Root mean squared position error :math:`\sqrt{\mathbb{E}\|\hat{
     \mathbf{p}} - \mathbf{p}\|^2}` over the selected entries."""
-    errors = _select(position_errors(est_pos, true_pos), mask)
+    return rmse_from_errors(_select(position_errors(est_pos, true_pos), mask))
+
+
+def rmse_from_errors(errors: Tensor) -> float:
+    r"""RMSE of precomputed position errors :math:`(*)`."""
     return float(errors.double().square().mean().sqrt())
 
 
@@ -51,7 +57,13 @@ def outage_probability(est_pos: Tensor, true_pos: Tensor,
     r"""Outage probability :math:`P_{\mathrm{out}}(e_{\mathrm{th}}) =
     \mathbb{P}(\|\hat{\mathbf{p}} - \mathbf{p}\| > e_{\mathrm{th}})` for
     every threshold, as a tensor of the thresholds' shape."""
-    errors = _select(position_errors(est_pos, true_pos), mask).double()
+    return outage_from_errors(
+        _select(position_errors(est_pos, true_pos), mask), thresholds)
+
+
+def outage_from_errors(errors: Tensor, thresholds: Sequence[float]) -> Tensor:
+    r"""Outage probabilities of precomputed position errors :math:`(*)`."""
+    errors = errors.reshape(-1).double()
     thresholds = torch.as_tensor(thresholds, dtype=torch.float64,
                                  device=errors.device)
     return (errors.unsqueeze(-1) > thresholds.reshape(-1)).double().mean(

@@ -3,6 +3,7 @@ from typing import Callable, Iterator, NamedTuple, Optional, Union
 
 import torch
 from torch import Tensor
+from torch_geometric import EdgeIndex
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_realization
@@ -135,11 +136,18 @@ class ParticleBP(torch.nn.Module):
                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor) -> Tensor:
         r"""The update step: :obj:`num_iterations` BP iterations; returns
         normalized log-weights."""
+        if edge_index.is_cuda:
+            # CUDA's scatter-add sums in a run-dependent order; edges sorted by
+            # receiver (edges_by_step) take the deterministic fused kernel
+            n = particles.size(0)
+            edge_index = EdgeIndex(edge_index, sparse_size=(n, n),
+                                   sort_order='col')
         sender = log_weights
         for _ in range(self.num_iterations):
             belief, _ = self.conv(particles, log_weights, edge_index,
                                   edge_attr, sender_log_weights=sender,
-                                  anchor=anchor, validate=False)
+                                  anchor=anchor, validate=False,
+                                  return_messages=False)
             # normalizing scales each message by a per-node constant: the
             # beliefs are unchanged and the log-weights stay bounded
             sender = belief - belief.logsumexp(-1, keepdim=True)

@@ -499,3 +499,27 @@ def test_gradient_finite_when_paired_particles_coincide():
     out, _ = ParticleBPConv()(particles, lw, ei, ea)
     out.sum().backward()
     assert bool(torch.isfinite(particles.grad).all())
+
+
+def test_sorted_edge_index_without_messages_equals_plain_path():
+    gen = torch.Generator().manual_seed(11)
+    num_nodes, num_particles = 12, 64
+    particles = 10 * torch.randn(num_nodes, num_particles, 4, generator=gen)
+    log_weights = torch.randn(num_nodes, num_particles, generator=gen)
+    src = torch.randint(0, num_nodes, (40, ), generator=gen)
+    dst = (src + torch.randint(1, num_nodes, (40, ), generator=gen)) % num_nodes
+    order = torch.argsort(dst, stable=True)
+    edge_index = torch.stack([src[order], dst[order]])
+    ranges = 10 * torch.rand(40, 1, generator=gen)
+    conv = ParticleBPConv()
+    reference, reference_messages = conv(particles, log_weights, edge_index,
+                                         ranges)
+    sorted_edges = EdgeIndex(edge_index, sparse_size=(num_nodes, num_nodes),
+                             sort_order='col')
+    out, messages = conv(particles, log_weights, sorted_edges, ranges,
+                         return_messages=False)
+    assert messages is None
+    torch.testing.assert_close(out, reference, rtol=1e-6, atol=1e-4)
+    out, messages = conv(particles, log_weights, sorted_edges, ranges)
+    torch.testing.assert_close(out, reference, rtol=1e-6, atol=1e-4)
+    torch.testing.assert_close(messages, reference_messages)

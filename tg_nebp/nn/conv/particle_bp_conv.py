@@ -2,12 +2,14 @@ from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
+from torch_geometric import EdgeIndex
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
 
 from tg_nebp.data.validation import (check_anchor, check_graph,
                                      check_particles, check_ranges)
 from tg_nebp.models import GaussianRange
+from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
 
 __all__ = ['ParticleBPConv']
 
@@ -60,6 +62,8 @@ class ParticleBPConv(MessagePassing):
         - **output:** updated log-weights :math:`(|\mathcal{V}|, K)` and
           edge log-messages :math:`(|\mathcal{E}|, K)`
     """
+    SUPPORTS_FUSED_EDGE_INDEX = True
+
     def __init__(self, measurement: Optional[GaussianRange] = None,
                  chunk_size: Optional[int] = None):
         super().__init__(aggr='add', node_dim=0)
@@ -78,7 +82,8 @@ class ParticleBPConv(MessagePassing):
         sender_log_weights: Optional[Tensor] = None,
         anchor: Optional[Tensor] = None,
         validate: bool = True,
-    ) -> Tuple[Tensor, Tensor]:
+        return_messages: bool = True,
+    ) -> Tuple[Tensor, Optional[Tensor]]:
         r"""Runs the forward pass.
 
         Args:
@@ -96,6 +101,12 @@ class ParticleBPConv(MessagePassing):
                 log-weights are kept. (default: :obj:`None`)
             validate (bool, optional): Check the inputs (trackers check once
                 per sequence and pass :obj:`False`). (default: :obj:`True`)
+            return_messages (bool, optional): Also return the edge
+                log-messages. If :obj:`False` and :obj:`edge_index` is an
+                :class:`~torch_geometric.EdgeIndex` sorted by receiver, the
+                messages are never materialized: on CUDA a fused Triton
+                kernel computes and sums them in one deterministic pass.
+                (default: :obj:`True`)
         """
         if sender_log_weights is None:
             sender_log_weights = log_weights
@@ -112,13 +123,16 @@ class ParticleBPConv(MessagePassing):
         dtype = torch.promote_types(
             torch.result_type(particles, sender_log_weights), edge_attr.dtype)
         size = (particles.size(0), particles.size(0))
-        log_messages = self.edge_updater(
-            edge_index, pos_x=particles[..., 0].to(dtype).contiguous(),
-            pos_y=particles[..., 1].to(dtype).contiguous(),
-            sender_log_weights=sender_log_weights.to(dtype),
-            ranges=edge_attr.to(dtype), size=size)
+        node_args = dict(pos_x=particles[..., 0].to(dtype).contiguous(),
+                         pos_y=particles[..., 1].to(dtype).contiguous(),
+                         sender_log_weights=sender_log_weights.to(dtype),
+                         ranges=edge_attr.to(dtype))
+        fused = (not return_messages and isinstance(edge_index, EdgeIndex)
+                 and edge_index.is_sorted_by_col)
+        log_messages = None if fused else self.edge_updater(
+            edge_index, size=size, **node_args)
         out = self.propagate(edge_index, log_messages=log_messages,
-                             size=size)
+                             size=size, **node_args)
         if anchor is not None:
             out = out.masked_fill(anchor.view(-1, 1), 0.0)
         return log_weights + out, log_messages
@@ -166,12 +180,26 @@ class ParticleBPConv(MessagePassing):
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages
 
-    def aggregate(self, inputs: Tensor, index: Tensor,
-                  ptr: Optional[Tensor] = None,
-                  dim_size: Optional[int] = None) -> Tensor:
-        if ptr is not None:  # receivers sorted: deterministic segment sum
-            return segment(inputs, ptr, reduce='sum')
-        return super().aggregate(inputs, index, ptr=None, dim_size=dim_size)
+    def message_and_aggregate(self, edge_index: EdgeIndex, pos_x: Tensor,
+                              pos_y: Tensor, sender_log_weights: Tensor,
+                              ranges: Tensor,
+                              log_messages: Optional[Tensor]) -> Tensor:
+        # edges sorted by receiver: a deterministic segment sum (PyG calls
+        # this for an EdgeIndex sorted by column)
+        (ptr, src), _ = edge_index.get_csc()
+        if log_messages is None:
+            if (fused_bp_available(pos_x) and pos_x.dtype == torch.float32
+                    and type(self.measurement) is GaussianRange
+                    and not (torch.is_grad_enabled() and
+                             (pos_x.requires_grad or
+                              sender_log_weights.requires_grad))):
+                return fused_bp_segment_sum(pos_x, pos_y, sender_log_weights,
+                                            ranges, src.as_tensor(), ptr,
+                                            self.measurement.sigma)
+            log_messages = self.edge_update(pos_x, pos_y, sender_log_weights,
+                                            ranges, edge_index[1],
+                                            edge_index[0])
+        return segment(log_messages, ptr, reduce='sum')
 
     def __repr__(self) -> str:
         return f'{self.__class__.__name__}({self.measurement})'

@@ -1,0 +1,3 @@
+from .fused_bp import fused_bp_available, fused_bp_segment_sum
+
+__all__ = ['fused_bp_available', 'fused_bp_segment_sum']
