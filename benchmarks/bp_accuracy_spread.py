@@ -44,7 +44,7 @@ def main():
     for c, name in enumerate(names):
         col = table[:, c]
         print(f'  {name:<12} mean {col.mean():.3f}  std/realization '
-              f'{col.std():.3f}  std of 1-real {col.std():.3f}, 2-real mean '
+              f'{col.std():.3f}  std of a 2-realization mean '
               f'{col.std() / math.sqrt(2):.3f}  min {col.min():.3f} max '
               f'{col.max():.3f}')
 
