@@ -8,6 +8,7 @@ process so that peak memory is its own."""
 import json
 import math
 import multiprocessing
+import queue as queue_module
 import resource
 import statistics
 import time
@@ -153,6 +154,17 @@ def _child(queue, *args):
     queue.put(measure(*args))
 
 
+def _result(queue, child):
+    # a child that dies (error, out of memory) must not leave us waiting
+    while True:
+        try:
+            return queue.get(timeout=1.0)
+        except queue_module.Empty:
+            if not child.is_alive():
+                raise RuntimeError(f'the benchmark process failed (exit '
+                                   f'code {child.exitcode})') from None
+
+
 def run_bench(args) -> int:
     context = multiprocessing.get_context('spawn')
     # generate the test network once, before the children read it
@@ -170,8 +182,7 @@ def run_bench(args) -> int:
                                  args.repeats, args.steps, args.seed,
                                  args.root, args.batch))
         child.start()
-        figures = queue.get()
-        child.join()
+        figures = _result(queue, child)
         if args.json:
             print(json.dumps(figures))
         else:

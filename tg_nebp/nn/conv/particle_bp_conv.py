@@ -194,7 +194,7 @@ class ParticleBPConv(MessagePassing):
                              (pos_x.requires_grad or
                               sender_log_weights.requires_grad))):
                 return fused_bp_segment_sum(pos_x, pos_y, sender_log_weights,
-                                            ranges, src.as_tensor(), ptr,
+                                            ranges, src.as_subclass(Tensor), ptr,
                                             self.measurement.sigma)
             log_messages = self.edge_update(pos_x, pos_y, sender_log_weights,
                                             ranges, edge_index[1],
