@@ -3,16 +3,18 @@ cooperative localization, as PyTorch Geometric layers."""
 from tg_nebp import metrics
 from tg_nebp.data import Realization
 from tg_nebp.datasets import CooperativeLocalizationDataset, Scenario
-from tg_nebp.filters import (ParticleBP, multinomial_resample,
+from tg_nebp.filters import (NEBP, ParticleBP, multinomial_resample,
                              systematic_resample)
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
-from tg_nebp.nn import ParticleBPConv
+from tg_nebp.nn import NEBPConv, ParticleBPConv
 
 __version__ = '0.1.0'
 
 __all__ = [
     'ParticleBPConv',
+    'NEBPConv',
     'ParticleBP',
+    'NEBP',
     'CooperativeLocalizationDataset',
     'Scenario',
     'Realization',

@@ -1,7 +1,7 @@
-r"""The :obj:`tg-nebp` command line: :obj:`evaluate` and :obj:`bench`."""
+r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
+:obj:`reproduce` and :obj:`bench`."""
 import argparse
 import sys
-import time
 from pathlib import Path
 from typing import List, Optional
 
@@ -9,9 +9,9 @@ import torch
 from tqdm import tqdm
 
 from tg_nebp.datasets import CooperativeLocalizationDataset
-from tg_nebp.evaluation import summarize, track_dataset
-from tg_nebp.filters import ParticleBP
-from tg_nebp.io import read_json, write_json
+from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.reproduce import PRESETS, evaluate_method, reproduce
+from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
 
 __all__ = ['main']
 
@@ -46,34 +46,75 @@ def _add_common(parser: argparse.ArgumentParser):
                         help='dataset root (default: datasets)')
 
 
+def _bar(total: int, desc: str, quiet: bool = False):
+    return tqdm(total=total, desc=desc, unit='step', disable=quiet)
+
+
 def _evaluate(args) -> int:
     dataset = CooperativeLocalizationDataset(
         args.root, scenario=args.scenario,
         num_realizations=args.realizations, seed=args.seed, log=False)
-    tracker = ParticleBP(args.particles, args.iterations,
-                         motion=dataset.scenario.motion(),
-                         measurement=dataset.scenario.measurement(),
-                         resampler=args.resampler).to(args.device)
-    total = len(dataset) * dataset.scenario.num_steps
-    start = time.perf_counter()
-    with tqdm(total=total, desc=f'{args.method} K={args.particles}',
-              unit='step', disable=args.quiet) as bar:
-        result = track_dataset(tracker, dataset, args.batch_size,
-                               args.device, args.seed, progress=bar.update)
-    seconds = time.perf_counter() - start
-    entry = summarize(result['errors'], result['nees'])
-    entry.update(particles=args.particles, realizations=len(dataset),
-                 seconds=round(seconds, 3), device=args.device,
-                 seed=args.seed, iterations=args.iterations,
-                 scenario=dataset.scenario.name)
-    path = Path(args.out) / 'metrics.json'
-    # keep the other methods' entries: BP and NEBP share one file
-    everything = read_json(path) if path.exists() else {}
-    everything[args.method] = entry
-    write_json(path, everything)
+    models = dict(motion=dataset.scenario.motion(),
+                  measurement=dataset.scenario.measurement())
+    if args.method == 'nebp':
+        if args.checkpoint is None:
+            raise ValueError("--method nebp needs --checkpoint PATH")
+        tracker = nebp_from_checkpoint(args.checkpoint, args.particles)
+    else:
+        tracker = ParticleBP(args.particles or 1000, args.iterations,
+                             resampler=args.resampler, **models)
+    with _bar(len(dataset) * dataset.scenario.num_steps,
+              f'{args.method} K={tracker.num_particles}', args.quiet) as bar:
+        result = evaluate_method(args.method, tracker.to(args.device).eval(),
+                                 dataset, args.batch_size, args.device,
+                                 args.seed, Path(args.out),
+                                 progress=bar.update)
+    entry = result['entry']
     print(f"{args.method}: RMSE {entry['rmse']:.3f} m, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
-          f"{seconds:.1f} s -> {path}")
+          f"{entry['seconds']:.1f} s -> {Path(args.out) / 'metrics.json'}")
+    return 0
+
+
+def _train(args) -> int:
+    train_set = CooperativeLocalizationDataset(
+        args.root, 'paper_train', args.realizations, args.seed, log=False)
+    val_set = CooperativeLocalizationDataset(
+        args.root, 'paper_train', args.val_realizations, args.seed + 1,
+        log=False)
+    scenario = train_set.scenario
+    model = NEBP(args.particles, args.iterations, motion=scenario.motion(),
+                 measurement=scenario.measurement())
+    checkpoint = Path(args.out) / 'nebp.pt'
+    steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
+    with _bar(steps * args.epochs, 'train', args.quiet) as bar:
+
+        def progress(info):
+            bar.set_postfix(epoch=info['epoch'], loss=f"{info['loss']:.4f}")
+            bar.update(1)
+
+        if args.resume and checkpoint.exists():
+            done = len(load_checkpoint(checkpoint)['progress'].get(
+                'history', []))
+            bar.update(min(done, args.epochs) * steps)
+        history = train(model, train_set, val_set, args.epochs,
+                        args.batch_size, args.lr, args.seed, args.device,
+                        checkpoint, args.resume, progress)
+    for h in history:
+        print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
+              f"validation loss {h['val_loss']:.4f} (m^2 per agent-step)")
+    print(f'checkpoint -> {checkpoint}')
+    return 0
+
+
+def _reproduce(args) -> int:
+    metrics = reproduce(args.preset, args.device, args.out, args.root,
+                        progress_factory=lambda total, desc: _bar(
+                            total, desc, args.quiet))
+    print(f"report -> {Path(args.out) / 'report.md'}")
+    for method, entry in metrics.items():
+        print(f"{method}: outage {entry['outage']}, P(accept) "
+              f"{entry['accept']}")
     return 0
 
 
@@ -86,9 +127,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser('evaluate', help='run a tracker on the test network '
                         'and write DIR/metrics.json')
-    ev.add_argument('--method', choices=['bp'], default='bp')
-    ev.add_argument('--particles', type=_positive, default=1000,
-                    help='particles K per agent (default: 1000)')
+    ev.add_argument('--method', choices=['bp', 'nebp'], default='bp')
+    ev.add_argument('--checkpoint', default=None,
+                    help='NEBP checkpoint (with --method nebp)')
+    ev.add_argument('--particles', type=_positive, default=None,
+                    help='particles K per agent (default: 1000 for BP, the '
+                    "checkpoint's K for NEBP)")
     ev.add_argument('--realizations', type=_positive, default=10,
                     help='test realizations R (default: 10)')
     ev.add_argument('--seed', type=_non_negative, default=0,
@@ -106,6 +150,37 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
     ev.set_defaults(run=_evaluate)
+
+    tr = sub.add_parser('train', help='train NEBP on the paper\'s training '
+                        'network; writes DIR/nebp.pt')
+    tr.add_argument('--particles', type=_positive, default=1000,
+                    help='particles K (default: 1000; the paper: 50000)')
+    tr.add_argument('--realizations', type=_positive, default=100,
+                    help='training realizations (default: 100)')
+    tr.add_argument('--val-realizations', type=_positive, default=10,
+                    help='validation realizations (default: 10)')
+    tr.add_argument('--epochs', type=_positive, default=10)
+    tr.add_argument('--batch-size', type=_positive, default=2)
+    tr.add_argument('--lr', type=float, default=1e-4)
+    tr.add_argument('--iterations', type=_positive, default=1,
+                    help='NEBP iterations per step (default: 1)')
+    tr.add_argument('--seed', type=_non_negative, default=1,
+                    help='seed of data (validation: seed + 1), shuffling '
+                    'and particles (default: 1)')
+    tr.add_argument('--out', default='results/train')
+    tr.add_argument('--resume', action='store_true',
+                    help='continue from DIR/nebp.pt')
+    tr.add_argument('--quiet', action='store_true')
+    _add_common(tr)
+    tr.set_defaults(run=_train)
+
+    rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
+                        'training, BP and NEBP evaluation, report, figures')
+    rp.add_argument('--preset', choices=sorted(PRESETS), default='quick')
+    rp.add_argument('--out', default='results/reproduce')
+    rp.add_argument('--quiet', action='store_true')
+    _add_common(rp)
+    rp.set_defaults(run=_reproduce)
 
     from tg_nebp.bench import add_arguments, run_bench
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '

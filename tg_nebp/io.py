@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Union
 
-__all__ = ['atomic_write', 'write_json', 'read_json']
+__all__ = ['atomic_write', 'write_json', 'write_text', 'read_json']
 
 
 def atomic_write(path: Union[str, Path], write: Callable[[str], None]):
@@ -26,10 +26,13 @@ def atomic_write(path: Union[str, Path], write: Callable[[str], None]):
 
 
 def write_json(path: Union[str, Path], obj: Any):
+    write_text(path, json.dumps(obj, indent=2, sort_keys=True) + '\n')
+
+
+def write_text(path: Union[str, Path], text: str):
     def write(tmp):
         with open(tmp, 'w') as f:
-            json.dump(obj, f, indent=2, sort_keys=True)
-            f.write('\n')
+            f.write(text)
 
     atomic_write(path, write)
 

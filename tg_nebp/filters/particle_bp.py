@@ -10,6 +10,7 @@ from tg_nebp.data.validation import check_realization
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 from tg_nebp.nn.conv import ParticleBPConv
+from tg_nebp.utils import weighted_moments
 
 __all__ = ['ParticleBP', 'StepOutput', 'TrackOutput', 'weighted_moments']
 
@@ -31,19 +32,6 @@ class TrackOutput(NamedTuple):
     :math:`(N, T, 4, 4)` of a whole sequence."""
     mean: Tensor
     cov: Tensor
-
-
-def weighted_moments(particles: Tensor, log_weights: Tensor):
-    r"""MMSE estimate :math:`\hat{\mathbf{x}}_i = \sum_k w_i^{(k)}
-    \mathbf{x}_i^{(k)}` and covariance :math:`\sum_k w_i^{(k)}
-    (\mathbf{x}_i^{(k)} - \hat{\mathbf{x}}_i)(\mathbf{x}_i^{(k)} -
-    \hat{\mathbf{x}}_i)^\top` of normalized log-weights :math:`(N, K)` and
-    particles :math:`(N, K, D)`."""
-    weights = log_weights.exp()
-    mean = torch.einsum('nk,nkd->nd', weights, particles)
-    centered = particles - mean.unsqueeze(1)
-    cov = (centered * weights.unsqueeze(-1)).transpose(1, 2) @ centered
-    return mean, cov
 
 
 class ParticleBP(torch.nn.Module):
@@ -134,24 +122,34 @@ class ParticleBP(torch.nn.Module):
 
     def update(self, particles: Tensor, log_weights: Tensor,
                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor) -> Tensor:
-        r"""The update step: :obj:`num_iterations` BP iterations; returns
-        normalized log-weights."""
+        r"""The update step: :obj:`num_iterations` message passing
+        iterations (:meth:`iterate`); returns normalized log-weights."""
         if edge_index.is_cuda:
             # CUDA's scatter-add sums in a run-dependent order; edges sorted by
             # receiver (edges_by_step) take the deterministic fused kernel
             n = particles.size(0)
             edge_index = EdgeIndex(edge_index, sparse_size=(n, n),
                                    sort_order='col')
-        sender = log_weights
+        sender, state = log_weights, None
         for _ in range(self.num_iterations):
-            belief, _ = self.conv(particles, log_weights, edge_index,
-                                  edge_attr, sender_log_weights=sender,
-                                  anchor=anchor, validate=False,
-                                  return_messages=False)
+            belief, state = self.iterate(particles, log_weights, edge_index,
+                                         edge_attr, anchor, sender, state)
             # normalizing scales each message by a per-node constant: the
             # beliefs are unchanged and the log-weights stay bounded
             sender = belief - belief.logsumexp(-1, keepdim=True)
         return sender
+
+    def iterate(self, particles: Tensor, log_weights: Tensor,
+                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                sender_log_weights: Tensor, state=None):
+        r"""One message passing iteration: returns the unnormalized belief
+        log-weights and a state carried to the next iteration (none for
+        BP; NEBP's node embeddings)."""
+        belief, _ = self.conv(particles, log_weights, edge_index, edge_attr,
+                              sender_log_weights=sender_log_weights,
+                              anchor=anchor, validate=False,
+                              return_messages=False)
+        return belief, None
 
     def steps(self, data: Realization,
               generator: Optional[torch.Generator] = None

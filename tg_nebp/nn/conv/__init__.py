@@ -1,3 +1,4 @@
 from .particle_bp_conv import ParticleBPConv
+from .nebp_conv import NEBPConv
 
-__all__ = ['ParticleBPConv']
+__all__ = ['ParticleBPConv', 'NEBPConv']

@@ -1,0 +1,94 @@
+from typing import Callable, Optional, Union
+
+from torch import Tensor
+
+from tg_nebp.filters.particle_bp import ParticleBP
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.nn.conv import NEBPConv
+
+__all__ = ['NEBP']
+
+
+class NEBP(ParticleBP):
+    r"""The Neural Enhanced BP tracker for cooperative localization, from the
+    `"Neural Enhanced Belief Propagation for Cooperative Localization"
+    <https://arxiv.org/abs/2105.12903>`_ paper: the time loop of
+    :class:`ParticleBP` (prior, prediction, update, estimate, resampling;
+    shared, not copied) with :class:`~tg_nebp.nn.conv.NEBPConv` in place of
+    :class:`~tg_nebp.nn.conv.ParticleBPConv`. Its learnable parameters are
+    those of :obj:`self.nebp`; train it with :func:`tg_nebp.training.train`
+    (the loss :math:`\sum_i \|\hat{\mathbf{p}}_i - \mathbf{p}_i\|^2` at every
+    time step; resampling cuts the gradient).
+
+    Args:
+        num_particles (int, optional): :math:`K`. (default: :obj:`1000`)
+        num_iterations (int, optional): NEBP iterations per time step; more
+            than one builds the node update :math:`g_n`. (default: :obj:`1`)
+        motion (ConstantVelocityDrag, optional): Motion model.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (GaussianRange, optional): Measurement model.
+            (default: :obj:`GaussianRange()`)
+        resampler (str or callable, optional): See :class:`ParticleBP`.
+            (default: :obj:`"multinomial"`)
+        message_dim (int, optional): GNN message size. (default: :obj:`32`)
+        hidden_dim (int, optional): MLP hidden size. (default: :obj:`64`)
+        correct_anchor_edges (bool, optional): Correct the anchors' messages
+            too. (default: :obj:`False`)
+        chunk_size (int, optional): Edge chunk of the BP messages.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:** a :class:`~tg_nebp.data.Realization`
+        - **output:** :class:`TrackOutput` with mean :math:`(N, T, 4)` and
+          covariance :math:`(N, T, 4, 4)`
+    """
+    def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
+                 motion: Optional[ConstantVelocityDrag] = None,
+                 measurement: Optional[GaussianRange] = None,
+                 resampler: Union[str, Callable] = 'multinomial',
+                 message_dim: int = 32, hidden_dim: int = 64,
+                 correct_anchor_edges: bool = False,
+                 chunk_size: Optional[int] = None):
+        super().__init__(num_particles, num_iterations, motion, measurement,
+                         resampler, chunk_size)
+        self.resampler_name = resampler if isinstance(resampler,
+                                                      str) else None
+        self.nebp = NEBPConv(num_particles, message_dim, hidden_dim,
+                             correct_anchor_edges,
+                             node_update=num_iterations > 1,
+                             measurement=self.measurement,
+                             chunk_size=chunk_size)
+        self.message_dim = message_dim
+        self.hidden_dim = hidden_dim
+        self.correct_anchor_edges = correct_anchor_edges
+
+    def iterate(self, particles: Tensor, log_weights: Tensor,
+                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                sender_log_weights: Tensor, state=None):
+        return self.nebp(particles, log_weights, edge_index, edge_attr,
+                         anchor, sender_log_weights=sender_log_weights,
+                         embedding=state, validate=False)
+
+    def config(self) -> dict:
+        r"""Everything needed to rebuild this tracker (saved in
+        checkpoints)."""
+        if self.resampler_name is None:
+            raise ValueError("a tracker with a custom 'resampler' callable "
+                             "cannot be saved; pass its name")
+        motion, measurement = self.motion, self.measurement
+        return dict(num_particles=self.num_particles,
+                    num_iterations=self.num_iterations,
+                    message_dim=self.message_dim, hidden_dim=self.hidden_dim,
+                    correct_anchor_edges=self.correct_anchor_edges,
+                    resampler=self.resampler_name,
+                    motion=dict(sigma_a=motion.sigma_a, drag=motion.drag,
+                                dt=motion.dt),
+                    measurement=dict(sigma=measurement.sigma,
+                                     max_range=measurement.max_range))
+
+    @classmethod
+    def from_config(cls, config: dict) -> 'NEBP':
+        config = dict(config)
+        motion = ConstantVelocityDrag(**config.pop('motion'))
+        measurement = GaussianRange(**config.pop('measurement'))
+        return cls(motion=motion, measurement=measurement, **config)

@@ -1,0 +1,103 @@
+r"""Figures of the paper's Fig. 2: tracks, outage and consistency curves,
+with the paper's digitized curves for comparison. Needs matplotlib
+(:obj:`pip install tg_nebp[plot]`)."""
+from pathlib import Path
+from typing import Dict, Union
+
+import torch
+
+from tg_nebp import metrics
+from tg_nebp.io import atomic_write
+from tg_nebp.reference import paper_curves
+
+__all__ = ['plot_tracks', 'plot_outage', 'plot_consistency']
+
+COLORS = {'bp': 'tab:blue', 'nebp': 'tab:red'}
+PAPER_SERIES = {'bp': 'BP', 'nebp': 'NEBP'}
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig, path):
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format='png', dpi=130,
+                                               bbox_inches='tight'))
+    _pyplot().close(fig)
+
+
+def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
+                anchor: torch.Tensor, path: Union[str, Path]):
+    r"""True (black) and estimated agent tracks :math:`(N, T, \ge 2)` of one
+    realization, dots at the final positions, anchors as triangles."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 6))
+    agents = (~anchor).nonzero().view(-1).tolist()
+    for i in agents:
+        ax.plot(states[i, :, 0], states[i, :, 1], color='black', lw=1)
+        ax.plot(*states[i, -1, :2], 'o', color='black', ms=3)
+        for name, mean in means.items():
+            ax.plot(mean[i, :, 0], mean[i, :, 1], color=COLORS.get(name),
+                    lw=0.8, ls='--')
+            ax.plot(*mean[i, -1, :2], 'o', color=COLORS.get(name), ms=2)
+    anchors = states[anchor, 0, :2]
+    ax.plot(anchors[:, 0], anchors[:, 1], '^', color='tab:green', ms=8,
+            label='anchors')
+    ax.plot([], [], color='black', label='truth')
+    for name in means:
+        ax.plot([], [], color=COLORS.get(name), ls='--', label=name.upper())
+    ax.set_xlabel('x [m]')
+    ax.set_ylabel('y [m]')
+    ax.set_aspect('equal')
+    ax.legend(loc='upper right', fontsize=8)
+    _save(fig, path)
+
+
+def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
+                max_threshold: float = 3.0):
+    r"""Outage probability versus error threshold per method, with the
+    paper's curves dashed."""
+    plt = _pyplot()
+    thresholds = torch.linspace(0, max_threshold, 121)
+    reference = paper_curves()
+    fig, ax = plt.subplots(figsize=(5, 4))
+    for name, err in errors.items():
+        ax.plot(thresholds, metrics.outage_from_errors(err, thresholds),
+                color=COLORS.get(name), label=f'{name.upper()} (this run)')
+        x, y = reference[('outage', PAPER_SERIES[name])]
+        ax.plot(x, y, color=COLORS.get(name), ls='--',
+                label=f'{name.upper()} (paper)')
+    ax.set_xlabel('error threshold $e_{th}$ [m]')
+    ax.set_ylabel('outage probability')
+    ax.set_xlim(0, max_threshold)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path]):
+    r"""P(accept H0) of the two-sided chi-square NEES test versus confidence
+    level per method, the ideal diagonal, and the paper's curves dashed."""
+    plt = _pyplot()
+    levels = torch.linspace(0.01, 0.99, 99)
+    reference = paper_curves()
+    fig, ax = plt.subplots(figsize=(5, 4))
+    ax.plot([0, 1], [0, 1], color='black', lw=0.8, ls=':', label='ideal')
+    for name, values in nees.items():
+        ax.plot(levels, metrics.consistency_curve(values, levels),
+                color=COLORS.get(name), label=f'{name.upper()} (this run)')
+        x, y = reference[('consistency', PAPER_SERIES[name])]
+        ax.plot(x, y, color=COLORS.get(name), ls='--',
+                label=f'{name.upper()} (paper)')
+    ax.axvline(0.95, color='gray', ls=':', lw=0.8)
+    ax.set_xlabel('confidence level $1 - \\alpha$')
+    ax.set_ylabel('P(accept $H_0$)')
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    _save(fig, path)
