@@ -28,7 +28,7 @@ PRESETS = {
     # the paper's configuration (K from the authors' code)
     'paper': dict(particles=50_000, train_realizations=100,
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
-                  test_realizations=400, eval_batch_size=20),
+                  test_realizations=400, eval_batch_size=4),
 }
 
 
