@@ -6,8 +6,6 @@ the training progress and a format version. It is read with
 :obj:`torch.load(weights_only=True)`, so loading never executes code from the
 file; a corrupt, foreign or mismatched file gets a :class:`ValueError`."""
 import math
-import pickle
-import zipfile
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Union
 
@@ -59,8 +57,7 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
         state = torch.load(path, map_location='cpu', weights_only=True)
     except FileNotFoundError:
         raise ValueError(f"checkpoint '{path}' does not exist") from None
-    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile,
-            AttributeError, TypeError, ValueError) as e:
+    except Exception as e:  # the unpickler raises many kinds on bad input
         raise ValueError(f"'{path}' is not a readable tg_nebp checkpoint "
                          f"(corrupt, foreign, or holding objects other than "
                          f"tensors and primitives): {e}") from None
@@ -90,7 +87,7 @@ def nebp_from_checkpoint(path: Union[str, Path],
     try:
         model = NEBP.from_config(state['config'])
         model.load_state_dict(state['model'])
-    except (TypeError, RuntimeError) as e:
+    except (TypeError, RuntimeError, KeyError) as e:
         raise ValueError(f"checkpoint '{path}' does not match the NEBP "
                          f"model: {e}") from None
     return model
@@ -175,6 +172,14 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
         if state['config'] != model.config():
             raise ValueError(f"checkpoint '{checkpoint}' was written for "
                              f"another configuration: {state['config']}")
+        saved = state['progress']
+        for key, value in (('seed', seed), ('batch_size', batch_size),
+                           ('lr', lr)):
+            if saved.get(key) != value:
+                raise ValueError(f"checkpoint '{checkpoint}' was trained "
+                                 f"with {key} = {saved.get(key)}, not "
+                                 f"{value}: resuming would not continue "
+                                 f"the same run")
         model.load_state_dict(state['model'])
         optimizer.load_state_dict(state['optimizer'])
         history = list(state['progress'].get('history', []))

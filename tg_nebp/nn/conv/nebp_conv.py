@@ -198,9 +198,14 @@ class NEBPConv(MessagePassing):
 
         # 2. GNN messages and 3. corrected messages, per edge
         message = self.edge_updater(edge_index, h=embedding, log_phi=log_phi)
-        log_corrected = torch.logaddexp(
-            torch.nn.functional.logsigmoid(self.g_s(message)) + log_phi,
-            _log_relu(self.g_v(message)))
+        log_scaled = torch.nn.functional.logsigmoid(
+            self.g_s(message)) + log_phi
+        log_offset = _log_relu(self.g_v(message))
+        # logaddexp(-inf, -inf) has a NaN gradient: keep such entries out
+        dead = torch.isneginf(log_scaled) & torch.isneginf(log_offset)
+        log_corrected = torch.logaddexp(log_scaled.masked_fill(dead, 0.0),
+                                        log_offset).masked_fill(
+                                            dead, float('-inf'))
         if not self.correct_anchor_edges:
             from_anchor = anchor[edge_index[0]].view(-1, 1)
             log_corrected = torch.where(from_anchor, log_phi, log_corrected)
