@@ -19,6 +19,7 @@ __all__ = ['add_arguments', 'run_bench', 'measure']
 
 
 def add_arguments(parser):
+    r"""Adds the :obj:`tg-nebp bench` options to :obj:`parser`."""
     parser.add_argument('--particles', type=int, nargs='+',
                         default=[1000, 5000],
                         help='particle counts K (default: 1000 5000)')
@@ -166,6 +167,8 @@ def _result(queue, child):
 
 
 def run_bench(args) -> int:
+    r"""Runs :func:`measure` for every :math:`K` of :obj:`args.particles`,
+    each in a fresh process, and prints a table (or JSON lines)."""
     context = multiprocessing.get_context('spawn')
     # generate the test network once, before the children read it
     from tg_nebp.datasets import CooperativeLocalizationDataset

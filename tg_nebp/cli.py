@@ -192,6 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    r"""The :obj:`tg-nebp` entry point; bad input exits with status 2 and a
+    one-line message."""
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)

@@ -33,10 +33,12 @@ def _umask() -> int:
 
 
 def write_json(path: Union[str, Path], obj: Any):
+    r"""Writes :obj:`obj` as indented JSON, atomically."""
     write_text(path, json.dumps(obj, indent=2, sort_keys=True) + '\n')
 
 
 def write_text(path: Union[str, Path], text: str):
+    r"""Writes :obj:`text`, atomically."""
     def write(tmp):
         with open(tmp, 'w') as f:
             f.write(text)

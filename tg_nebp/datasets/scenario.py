@@ -128,9 +128,11 @@ class Scenario:
         return len(self.anchor_positions)
 
     def motion(self) -> ConstantVelocityDrag:
+        r"""The scenario's motion model."""
         return ConstantVelocityDrag(self.sigma_a, self.drag, self.dt)
 
     def measurement(self) -> GaussianRange:
+        r"""The scenario's measurement model."""
         return GaussianRange(self.sigma_r, self.max_range)
 
     def generate(self, generator: Optional[torch.Generator] = None
