@@ -7,6 +7,7 @@ from tg_nebp.filters import (NEBP, ParticleBP, multinomial_resample,
                              systematic_resample)
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 from tg_nebp.nn import NEBPConv, ParticleBPConv
+from tg_nebp.utils import weighted_moments
 
 __version__ = '0.1.0'
 
@@ -22,6 +23,7 @@ __all__ = [
     'GaussianRange',
     'multinomial_resample',
     'systematic_resample',
+    'weighted_moments',
     'metrics',
     '__version__',
 ]

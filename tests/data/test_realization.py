@@ -146,3 +146,22 @@ def test_batch_num_steps_mismatch_raises(pair):
         batch.edges_by_step()
     with pytest.raises(ValueError, match='num_steps'):
         num_steps_of(batch)
+
+
+def test_generated_loaded_and_sliced_realizations_batch_together(tmp_path):
+    from torch_geometric.loader import DataLoader
+
+    from tg_nebp import CooperativeLocalizationDataset, Scenario
+    scenario = Scenario.load('paper_train').replace(num_steps=3)
+    single = CooperativeLocalizationDataset(str(tmp_path), scenario, 1, 0,
+                                            log=False)
+    several = CooperativeLocalizationDataset(str(tmp_path), scenario, 2, 1,
+                                             log=False)
+    generated = scenario.generate(torch.Generator().manual_seed(5))
+    batch = next(iter(DataLoader([single[0], generated, several[1]],
+                                 batch_size=3)))
+    assert batch.num_steps.tolist() == [3, 3, 3]
+    assert batch.num_nodes == 3 * 30
+    assert batch.snapshot(2).edge_index.size(1) == sum(
+        int((r.edge_time == 2).sum()) for r in (single[0], generated,
+                                                several[1]))

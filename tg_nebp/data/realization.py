@@ -33,6 +33,8 @@ batches realizations of different sizes into one disjoint graph:
 :meth:`Realization.snapshot` returns the snapshot at time :obj:`t` of a
 single or a batched realization.
 """
+import numbers
+
 import torch
 from torch_geometric.data import Data
 from torch_geometric.data.data import DataEdgeAttr, DataTensorAttr
@@ -63,6 +65,14 @@ class Realization(Data):
     concatenated along its first dimension, and the integer
     :obj:`num_steps` is stacked to :obj:`[B]`.
     """
+    def __setattr__(self, key, value):
+        # one type everywhere (a [1] tensor, as collation and slicing give),
+        # so generated, loaded and hand-built realizations batch together
+        if key == 'num_steps' and isinstance(value, numbers.Integral) \
+                and not isinstance(value, bool):
+            value = torch.tensor([int(value)])
+        super().__setattr__(key, value)
+
     @property
     def steps(self) -> int:
         r"""The number of time steps :math:`T`."""

@@ -12,7 +12,7 @@ from tg_nebp.io import atomic_write
 __all__ = ['CooperativeLocalizationDataset']
 
 # bump when the generator changes, so old processed files are not reused
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class CooperativeLocalizationDataset(InMemoryDataset):
