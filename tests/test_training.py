@@ -24,17 +24,6 @@ def gen(seed):
     return torch.Generator().manual_seed(seed)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    r"""Tiny tensors: intra-op threads only add overhead, and spin-waiting
-    OpenMP threads slow these tests down by an order of magnitude when
-    other processes keep the CPUs busy."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def tiny_scenario(steps):
     return Scenario(name='tiny', num_agents=3,
                     anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),

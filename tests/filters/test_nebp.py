@@ -18,17 +18,6 @@ def gen(seed):
     return torch.Generator().manual_seed(seed)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    r"""Tiny tensors: intra-op threads only add overhead, and spin-waiting
-    OpenMP threads slow these tests down by an order of magnitude when
-    other processes keep the CPUs busy."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def small_realization(seed=0, steps=2):
     scenario = Scenario.load('paper_train').replace(num_steps=steps)
     return scenario.generate(gen(seed))

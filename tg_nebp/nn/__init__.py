@@ -1,4 +1,3 @@
-from .conv import *  # noqa: F401,F403
-from .conv import __all__ as conv_all
+from .conv import NEBPConv, ParticleBPConv
 
-__all__ = list(conv_all)
+__all__ = ['ParticleBPConv', 'NEBPConv']

@@ -22,17 +22,6 @@ def gen(seed):
     return torch.Generator().manual_seed(seed)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    r"""Tiny tensors: intra-op threads only add overhead, and spin-waiting
-    OpenMP threads slow these tests down by an order of magnitude when
-    other processes keep the CPUs busy."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def random_graph(generator, num_agents, num_anchors, num_particles,
                  edge_prob=0.6, spread=2.0, area=15.0, into_anchor=False):
     r"""A random float64 snapshot: agents first, then anchors (K copies of
