@@ -83,6 +83,7 @@ def _train(args) -> int:
         args.root, 'paper_train', args.val_realizations, args.seed + 1,
         log=False)
     scenario = train_set.scenario
+    torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion(),
                  measurement=scenario.measurement())
     checkpoint = Path(args.out) / 'nebp.pt'

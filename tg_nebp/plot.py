@@ -16,25 +16,23 @@ COLORS = {'bp': 'tab:blue', 'nebp': 'tab:red'}
 PAPER_SERIES = {'bp': 'BP', 'nebp': 'NEBP'}
 
 
-def _pyplot():
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    return plt
+def _figure(figsize):
+    # a bare Figure, not pyplot: leaves a notebook's backend untouched
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots()
 
 
 def _save(fig, path):
     atomic_write(path, lambda tmp: fig.savefig(tmp, format='png', dpi=130,
                                                bbox_inches='tight'))
-    _pyplot().close(fig)
 
 
 def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
                 anchor: torch.Tensor, path: Union[str, Path]):
     r"""True (black) and estimated agent tracks :math:`(N, T, \ge 2)` of one
     realization, dots at the final positions, anchors as triangles."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 6))
+    fig, ax = _figure((6, 6))
     agents = (~anchor).nonzero().view(-1).tolist()
     for i in agents:
         ax.plot(states[i, :, 0], states[i, :, 1], color='black', lw=1)
@@ -52,7 +50,7 @@ def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
     ax.set_xlabel('x [m]')
     ax.set_ylabel('y [m]')
     ax.set_aspect('equal')
-    ax.legend(loc='upper right', fontsize=8)
+    ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1), fontsize=8)
     _save(fig, path)
 
 
@@ -60,10 +58,9 @@ def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
                 max_threshold: float = 3.0):
     r"""Outage probability versus error threshold per method, with the
     paper's curves dashed."""
-    plt = _pyplot()
     thresholds = torch.linspace(0, max_threshold, 121)
     reference = paper_curves()
-    fig, ax = plt.subplots(figsize=(5, 4))
+    fig, ax = _figure((5, 4))
     for name, err in errors.items():
         ax.plot(thresholds, metrics.outage_from_errors(err, thresholds),
                 color=COLORS.get(name), label=f'{name.upper()} (this run)')
@@ -82,10 +79,9 @@ def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
 def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path]):
     r"""P(accept H0) of the two-sided chi-square NEES test versus confidence
     level per method, the ideal diagonal, and the paper's curves dashed."""
-    plt = _pyplot()
     levels = torch.linspace(0.01, 0.99, 99)
     reference = paper_curves()
-    fig, ax = plt.subplots(figsize=(5, 4))
+    fig, ax = _figure((5, 4))
     ax.plot([0, 1], [0, 1], color='black', lw=0.8, ls=':', label='ideal')
     for name, values in nees.items():
         ax.plot(levels, metrics.consistency_curve(values, levels),

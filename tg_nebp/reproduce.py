@@ -6,6 +6,8 @@ import time
 from pathlib import Path
 from typing import Callable, Optional
 
+import torch
+
 from tg_nebp.datasets import CooperativeLocalizationDataset
 from tg_nebp.evaluation import summarize, track_dataset
 from tg_nebp.filters import NEBP, ParticleBP
@@ -45,7 +47,8 @@ def evaluate_method(method: str, tracker: ParticleBP, dataset,
                  seconds=round(time.perf_counter() - start, 3),
                  device=device, seed=seed,
                  iterations=tracker.num_iterations,
-                 scenario=dataset.scenario.name)
+                 scenario=getattr(getattr(dataset, 'scenario', None), 'name',
+                                  None))
     path = out / 'metrics.json'
     everything = read_json(path) if path.exists() else {}
     everything[method] = entry  # BP and NEBP share one file
@@ -118,6 +121,7 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
 
     log(f'training NEBP (K={k}, {len(train_set)} realizations, '
         f"{config['epochs']} epochs)")
+    torch.manual_seed(TRAIN_SEED)  # the GNN's initial weights
     nebp = NEBP(k, **models)
     bar = progress_factory(config['epochs'] * len(train_set) // max(
         config['batch_size'], 1) * scenario.num_steps, 'train') \

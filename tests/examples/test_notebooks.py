@@ -27,7 +27,10 @@ def test_notebook_stored_without_outputs(path):
 
 
 @pytest.mark.parametrize('path', NOTEBOOKS, ids=lambda p: p.name)
-def test_notebook_runs(path):
+def test_notebook_runs(path, monkeypatch):
+    # the kernel inherits it: on a busy 2-core machine spin-waiting OpenMP
+    # threads made NEBP training ~30x slower than one thread
+    monkeypatch.setenv('OMP_NUM_THREADS', '1')
     nb = nbformat.read(path, as_version=4)
     # the kernel's working directory is the repository root, so that relative
     # paths such as 'datasets' resolve as in the README
