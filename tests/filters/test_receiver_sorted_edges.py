@@ -44,3 +44,22 @@ def test_nebp_tracker_same_with_receiver_sorted_edges():
     for name, param in tracker.named_parameters():
         assert param.grad is not None and bool(
             torch.isfinite(param.grad).all()), name
+
+
+def test_update_sorts_edges_given_in_any_order():
+    data = _data()
+    tracker = ParticleBP(64)
+    particles = tracker.sample_prior(data, torch.Generator().manual_seed(1))
+    log_weights = torch.full(particles.shape[:2], -6.0)
+    edge_index, ranges = data.edges_by_step()[0]
+    shuffle = torch.randperm(edge_index.size(1),
+                             generator=torch.Generator().manual_seed(2))
+    in_order = tracker.update(particles, log_weights, edge_index, ranges,
+                              data.anchor)
+    shuffled = tracker.update(particles, log_weights, edge_index[:, shuffle],
+                              ranges[shuffle], data.anchor)
+    torch.testing.assert_close(shuffled, in_order, rtol=0, atol=1e-5)
+    # ranges must travel with their edges: pairing them wrongly changes it
+    wrong = tracker.update(particles, log_weights, edge_index[:, shuffle],
+                           ranges, data.anchor)
+    assert not torch.allclose(wrong, in_order, atol=1e-2)

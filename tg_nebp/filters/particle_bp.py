@@ -124,12 +124,17 @@ class ParticleBP(torch.nn.Module):
                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor) -> Tensor:
         r"""The update step: :obj:`num_iterations` message passing
         iterations (:meth:`iterate`); returns normalized log-weights."""
-        if edge_index.is_cuda:
-            # CUDA's scatter-add sums in a run-dependent order; edges sorted by
-            # receiver (edges_by_step) take the deterministic fused kernel
-            n = particles.size(0)
+        # edges sorted by receiver (edges_by_step gives them so): the convs
+        # sum each receiver's segment (deterministic, unlike CUDA's
+        # scatter-add) and BP never materializes its [E, K] messages
+        if not isinstance(edge_index, EdgeIndex):
+            n, receivers = particles.size(0), edge_index[1]
+            in_order = bool((receivers[1:] >= receivers[:-1]).all())
             edge_index = EdgeIndex(edge_index, sparse_size=(n, n),
-                                   sort_order='col')
+                                   sort_order='col' if in_order else None)
+        if not edge_index.is_sorted_by_col:
+            edge_index, perm = edge_index.sort_by('col', stable=True)
+            edge_attr = edge_attr[perm]
         sender, state = log_weights, None
         for _ in range(self.num_iterations):
             belief, state = self.iterate(particles, log_weights, edge_index,

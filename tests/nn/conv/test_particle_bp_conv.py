@@ -523,3 +523,78 @@ def test_sorted_edge_index_without_messages_equals_plain_path():
     out, messages = conv(particles, log_weights, sorted_edges, ranges)
     torch.testing.assert_close(out, reference, rtol=1e-6, atol=1e-4)
     torch.testing.assert_close(messages, reference_messages)
+
+
+# --------------------------------------------------------------------------
+# 8. summing without materializing the messages (bounded memory)
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('chunk', [None, 1, 3, 10_000])
+@pytest.mark.parametrize('as_edge_index', [False, True])
+def test_without_messages_matches_reference(chunk, as_edge_index):
+    g = gen(80)
+    particles, lw, ei, ea, anchor = random_graph(g, 9, 3, 5, edge_prob=0.6)
+    sender = torch.randn(lw.shape, generator=g, dtype=torch.float64)
+    n = lw.size(0)
+    if as_edge_index:  # sorted by receiver, as the trackers pass them
+        order = torch.argsort(ei[1], stable=True)
+        ei, ea = ei[:, order], ea[order]
+        edges = EdgeIndex(ei, sparse_size=(n, n), sort_order='col')
+    else:  # random order: the conv sorts them itself
+        order = torch.randperm(ei.size(1), generator=g)
+        ei, ea = ei[:, order], ea[order]
+        edges = ei
+    conv = ParticleBPConv(GaussianRange(sigma=0.8), chunk_size=chunk)
+    out, messages = conv(particles, lw, edges, ea, sender, anchor,
+                         return_messages=False)
+    ref_out, _ = reference(particles, lw, ei, ea, 0.8, sender, anchor)
+    assert messages is None
+    torch.testing.assert_close(out, ref_out, atol=1e-9, rtol=0)
+
+
+def test_without_messages_works_block_by_block(monkeypatch):
+    # every edge is computed exactly once, in blocks of whole receivers that
+    # hold at most chunk + (edges of the block's first receiver) edges
+    g = gen(81)
+    particles, lw, ei, ea, anchor = random_graph(g, 14, 3, 4, edge_prob=0.7)
+    chunk = 5
+    blocks = []
+    original = ParticleBPConv._log_messages
+
+    def spy(self, pos_x, pos_y, sender, ranges, src, dst):
+        blocks.append((src.clone(), dst.clone()))
+        return original(self, pos_x, pos_y, sender, ranges, src, dst)
+
+    monkeypatch.setattr(ParticleBPConv, '_log_messages', spy)
+    conv = ParticleBPConv(chunk_size=chunk)
+    out, _ = conv(particles, lw, ei, ea, anchor=anchor, return_messages=False)
+    assert len(blocks) > 3
+    degree = torch.bincount(ei[1], minlength=lw.size(0))
+    seen = torch.cat([torch.stack(b) for b in blocks], dim=1)
+    order = torch.argsort(ei[1], stable=True)
+    assert torch.equal(seen, ei[:, order])  # each edge once, none left out
+    receivers_so_far = set()
+    for _, dst in blocks:
+        receivers = set(dst.tolist())
+        assert not receivers & receivers_so_far  # whole receivers per block
+        receivers_so_far |= receivers
+        first = int(dst.min())
+        assert dst.numel() <= chunk + int(degree[first])
+    ref_out, _ = reference(particles, lw, ei, ea, anchor=anchor)
+    torch.testing.assert_close(out, ref_out, atol=1e-9, rtol=0)
+
+
+@given(degrees=st.lists(st.integers(0, 12), min_size=1, max_size=40),
+       chunk=st.integers(1, 30))
+@settings(max_examples=200, deadline=None)
+def test_property_receiver_blocks_partition_the_nodes(degrees, chunk):
+    ptr = torch.tensor([0] + degrees).cumsum(0)
+    bounds = ParticleBPConv._receiver_blocks(ptr, chunk)
+    assert bounds[0] == 0 and bounds[-1] == len(degrees)
+    assert all(a < b for a, b in zip(bounds, bounds[1:]))
+    for first, last in zip(bounds[:-1], bounds[1:]):
+        edges = int(ptr[last] - ptr[first])
+        # a block holds about one chunk: at most the edges of its first
+        # receiver beyond it
+        assert edges <= chunk + degrees[first]

@@ -1,4 +1,4 @@
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -47,8 +47,9 @@ class ParticleBPConv(MessagePassing):
             gives :math:`\log p(z_{j \to i} | \mathbf{x}_j, \mathbf{x}_i)`.
             (default: :obj:`GaussianRange()`)
         chunk_size (int, optional): Edges processed at once; bounds the
-            temporary memory to about :obj:`chunk_size * K` floats. If
-            :obj:`None`, chosen from :obj:`K` and the device.
+            temporary memory to about :obj:`chunk_size * K` floats whatever
+            :math:`|\mathcal{E}|`. If :obj:`None`, :math:`2^{18} / K` on the
+            CPU (cache-sized blocks) and :math:`2^{25} / K` on CUDA.
             (default: :obj:`None`)
 
     Shapes:
@@ -102,11 +103,14 @@ class ParticleBPConv(MessagePassing):
             validate (bool, optional): Check the inputs (trackers check once
                 per sequence and pass :obj:`False`). (default: :obj:`True`)
             return_messages (bool, optional): Also return the edge
-                log-messages. If :obj:`False` and :obj:`edge_index` is an
-                :class:`~torch_geometric.EdgeIndex` sorted by receiver, the
-                messages are never materialized: on CUDA a fused Triton
-                kernel computes and sums them in one deterministic pass.
-                (default: :obj:`True`)
+                log-messages :math:`(|\mathcal{E}|, K)`. If :obj:`False`,
+                they are never materialized: the edges are sorted by
+                receiver (free for an :class:`~torch_geometric.EdgeIndex`
+                sorted by column, as the trackers pass) and summed block by
+                block of whole receivers, so the memory beyond inputs and
+                output stays about :obj:`chunk_size * K` floats; on CUDA a
+                fused Triton kernel computes and sums them in one pass.
+                Either way the sum is deterministic. (default: :obj:`True`)
         """
         if sender_log_weights is None:
             sender_log_weights = log_weights
@@ -127,10 +131,20 @@ class ParticleBPConv(MessagePassing):
                          pos_y=particles[..., 1].to(dtype).contiguous(),
                          sender_log_weights=sender_log_weights.to(dtype),
                          ranges=edge_attr.to(dtype))
-        fused = (not return_messages and isinstance(edge_index, EdgeIndex)
-                 and edge_index.is_sorted_by_col)
-        log_messages = None if fused else self.edge_updater(
-            edge_index, size=size, **node_args)
+        if return_messages:
+            log_messages = self.edge_updater(edge_index, size=size,
+                                             **node_args)
+        else:
+            # receiver-sorted edges let message_and_aggregate sum chunk by
+            # chunk: no [E, K] tensor is ever allocated
+            log_messages = None
+            if not (isinstance(edge_index, EdgeIndex)
+                    and edge_index.is_sorted_by_col):
+                # stable: each receiver's edges keep their order, and with it
+                # the summation order of a scatter over the input edges
+                edge_index, perm = EdgeIndex(
+                    edge_index, sparse_size=size).sort_by('col', stable=True)
+                node_args['ranges'] = node_args['ranges'][perm]
         out = self.propagate(edge_index, log_messages=log_messages,
                              size=size, **node_args)
         if anchor is not None:
@@ -140,14 +154,13 @@ class ParticleBPConv(MessagePassing):
     def edge_update(self, pos_x: Tensor, pos_y: Tensor,
                     sender_log_weights: Tensor, ranges: Tensor,
                     edge_index_i: Tensor, edge_index_j: Tensor) -> Tensor:
-        num_edges, num_particles = edge_index_i.numel(), pos_x.size(1)
-        chunk = self.chunk_size or max(
-            1, (CUDA_CHUNK_ELEMENTS if pos_x.is_cuda else CPU_CHUNK_ELEMENTS)
-            // max(num_particles, 1))
-        if chunk >= num_edges:
+        num_edges = edge_index_i.numel()
+        chunk = self._chunk_edges(pos_x)
+        if chunk >= num_edges or torch.compiler.is_compiling():
+            # a compiled graph fuses the chain without temporaries
             return self._log_messages(pos_x, pos_y, sender_log_weights,
                                       ranges, edge_index_j, edge_index_i)
-        out = pos_x.new_empty((num_edges, num_particles))
+        out = pos_x.new_empty((num_edges, pos_x.size(1)))
         for start in range(0, num_edges, chunk):
             part = slice(start, start + chunk)
             out[part] = self._log_messages(pos_x, pos_y, sender_log_weights,
@@ -187,19 +200,48 @@ class ParticleBPConv(MessagePassing):
         # edges sorted by receiver: a deterministic segment sum (PyG calls
         # this for an EdgeIndex sorted by column)
         (ptr, src), _ = edge_index.get_csc()
-        if log_messages is None:
-            if (fused_bp_available(pos_x) and pos_x.dtype == torch.float32
-                    and type(self.measurement) is GaussianRange
-                    and not (torch.is_grad_enabled() and
-                             (pos_x.requires_grad or
-                              sender_log_weights.requires_grad))):
-                return fused_bp_segment_sum(pos_x, pos_y, sender_log_weights,
-                                            ranges, src.as_subclass(Tensor), ptr,
-                                            self.measurement.sigma)
-            log_messages = self.edge_update(pos_x, pos_y, sender_log_weights,
-                                            ranges, edge_index[1],
-                                            edge_index[0])
-        return segment(log_messages, ptr, reduce='sum')
+        if log_messages is not None:
+            return segment(log_messages, ptr, reduce='sum')
+        src = src.as_subclass(Tensor)
+        if (fused_bp_available(pos_x) and pos_x.dtype == torch.float32
+                and type(self.measurement) is GaussianRange
+                and not (torch.is_grad_enabled() and
+                         (pos_x.requires_grad or pos_y.requires_grad
+                          or sender_log_weights.requires_grad))):
+            return fused_bp_segment_sum(pos_x, pos_y, sender_log_weights,
+                                        ranges, src, ptr,
+                                        self.measurement.sigma)
+        # blocks of whole receivers holding about one chunk of edges each:
+        # the peak temporary memory is one chunk, whatever E
+        dst = edge_index[1].as_subclass(Tensor)
+        sums = []
+        bounds = self._receiver_blocks(ptr, self._chunk_edges(pos_x))
+        for first, last in zip(bounds[:-1], bounds[1:]):
+            begin, end = int(ptr[first]), int(ptr[last])
+            part = slice(begin, end)
+            block = self._log_messages(pos_x, pos_y, sender_log_weights,
+                                       ranges[part], src[part], dst[part])
+            sums.append(segment(block, ptr[first:last + 1] - begin,
+                                reduce='sum'))
+        return sums[0] if len(sums) == 1 else torch.cat(sums)
+
+    def _chunk_edges(self, pos_x: Tensor) -> int:
+        if self.chunk_size is not None:
+            return self.chunk_size
+        elements = CUDA_CHUNK_ELEMENTS if pos_x.is_cuda else CPU_CHUNK_ELEMENTS
+        return max(1, elements // max(pos_x.size(1), 1))
+
+    @staticmethod
+    def _receiver_blocks(ptr: Tensor, chunk: int) -> List[int]:
+        # node boundaries at (about) every chunk-th edge; a receiver with more
+        # than a chunk of edges forms a block of its own
+        num_nodes, num_edges = ptr.numel() - 1, int(ptr[-1])
+        if num_edges <= chunk or num_nodes <= 1:
+            return [0, num_nodes]
+        marks = torch.arange(chunk, num_edges, chunk, device=ptr.device)
+        cuts = torch.searchsorted(ptr, marks, right=True) - 1
+        inner = torch.unique(cuts[(cuts > 0) & (cuts < num_nodes)]).tolist()
+        return [0] + inner + [num_nodes]
 
     def __repr__(self) -> str:
         return f'{self.__class__.__name__}({self.measurement})'
