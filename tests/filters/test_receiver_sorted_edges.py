@@ -58,8 +58,9 @@ def test_update_sorts_edges_given_in_any_order():
                               data.anchor)
     shuffled = tracker.update(particles, log_weights, edge_index[:, shuffle],
                               ranges[shuffle], data.anchor)
-    torch.testing.assert_close(shuffled, in_order, rtol=0, atol=1e-5)
+    # only the summation order differs (log-weights of order 10-100)
+    torch.testing.assert_close(shuffled, in_order, rtol=1e-4, atol=1e-4)
     # ranges must travel with their edges: pairing them wrongly changes it
     wrong = tracker.update(particles, log_weights, edge_index[:, shuffle],
                            ranges, data.anchor)
-    assert not torch.allclose(wrong, in_order, atol=1e-2)
+    assert float((wrong - in_order).abs().max()) > 1.0
