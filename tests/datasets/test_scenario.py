@@ -170,3 +170,35 @@ def test_generate_without_anchors_and_single_agent():
     assert data.num_nodes == 1 and data.edge_index.shape == (2, 0)
     assert data.edge_attr.shape == (0, 1)
     assert data.steps == 4 and len(data.edges_by_step()) == 4
+
+
+@pytest.mark.parametrize('name,num_agents', [('paper_test', 900),
+                                             ('paper_test', 250),
+                                             ('paper_train', 100)])
+def test_grown_keeps_the_density(name, num_agents):
+    base = Scenario.load(name)
+    grown = base.grown(num_agents)
+    scale = math.sqrt(num_agents / base.num_agents)
+    side = base.agent_start_low + base.agent_start_high
+    assert grown.num_agents == num_agents
+    agent_square = grown.agent_start_high - grown.agent_start_low
+    base_square = base.agent_start_high - base.agent_start_low
+    assert math.isclose(num_agents / agent_square**2,
+                        base.num_agents / base_square**2)
+    # the anchors: the base layout tiled, all inside the grown area
+    anchors = torch.tensor(grown.anchor_positions)
+    assert bool((anchors >= 0).all() and (anchors <= side * scale).all())
+    assert len(set(grown.anchor_positions)) == grown.num_anchors
+    for x, y in grown.anchor_positions:
+        assert (x % side, y % side) in set(base.anchor_positions)
+    expected = base.num_anchors * scale**2  # same density up to the border
+    assert abs(grown.num_anchors - expected) <= 0.5 * expected
+    # every other generation parameter is kept, and growing is a no-op at I
+    assert grown.sigma_r == base.sigma_r and grown.max_range == base.max_range
+    same = base.grown(base.num_agents)
+    assert same.replace(name=base.name, description=base.description) == base
+
+
+def test_grown_rejects_no_agents():
+    with pytest.raises(ValueError, match="'num_agents'"):
+        Scenario.load('paper_test').grown(0)

@@ -90,16 +90,19 @@ def connect_reference(pos, receiver, max_range):
     return pairs
 
 
+@pytest.mark.parametrize('block_size', [2048, 7, 1])
 @pytest.mark.parametrize('max_range', [20.0, 7.5])
-def test_connect_matches_double_loop(max_range):
+def test_connect_matches_double_loop(max_range, block_size):
     g = torch.Generator().manual_seed(3)
     n = 60  # more than 25 nodes: cdist would take its matmul shortcut
     pos = 80 * torch.rand(n, 2, generator=g, dtype=torch.float64)
     receiver = torch.rand(n, generator=g) < 0.7
-    edges = GaussianRange(max_range=max_range).connect(pos, receiver)
+    edges = GaussianRange(max_range=max_range).connect(pos, receiver,
+                                                       block_size=block_size)
     assert edges.shape[0] == 2 and edges.dtype == torch.long
     got = list(map(tuple, edges.t().tolist()))
     assert len(got) == len(set(got))  # no duplicates
+    assert got == sorted(got)  # ordered by sender, then receiver
     ref = connect_reference(pos, receiver, max_range)
     assert len(ref) > 0
     assert set(got) == ref

@@ -116,6 +116,33 @@ class Scenario:
         r"""A copy with some parameters changed."""
         return dataclasses.replace(self, **changes)
 
+    def grown(self, num_agents: int) -> 'Scenario':
+        r"""This network scaled to :obj:`num_agents` agents at the same
+        density of agents and anchors: with :math:`s =
+        \sqrt{\mathrm{num\_agents} / I}`, the agents' start square scales by
+        :math:`s` and the anchor layout is tiled over the grown area, taken
+        as :math:`[0, \mathrm{low} + \mathrm{high}]^2` (the agents' square
+        centred in it, as in both paper networks). For benchmarks of large
+        networks: :obj:`grown(10_000)` of :obj:`"paper_test"` spans
+        :math:`[0, 1000]^2` with 1,300 anchors."""
+        if int(num_agents) < 1:
+            raise ValueError(f"'num_agents' must be at least 1, got "
+                             f"{num_agents}")
+        scale = math.sqrt(num_agents / self.num_agents)
+        side = self.agent_start_low + self.agent_start_high
+        tiles = math.ceil(scale - 1e-9)
+        limit = side * scale
+        anchors = tuple((x + a * side, y + b * side) for a in range(tiles)
+                        for b in range(tiles)
+                        for x, y in self.anchor_positions
+                        if x + a * side <= limit and y + b * side <= limit)
+        return self.replace(
+            name=f'{self.name}-{num_agents}agents', num_agents=num_agents,
+            anchor_positions=anchors,
+            agent_start_low=self.agent_start_low * scale,
+            agent_start_high=self.agent_start_high * scale,
+            description=f'{self.name} grown to {num_agents} agents')
+
     def fingerprint(self) -> str:
         r"""A short hash of every generation parameter."""
         params = dataclasses.asdict(self)

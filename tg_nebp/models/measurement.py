@@ -81,21 +81,32 @@ class GaussianRange:
             todo = ranges < 0
         return ranges
 
-    def connect(self, pos: Tensor, receiver: Tensor) -> Tensor:
+    def connect(self, pos: Tensor, receiver: Tensor,
+                block_size: int = 2048) -> Tensor:
         r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
         from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
         j` within :obj:`max_range` of it, for positions :obj:`pos`
-        :math:`(N, 2)`."""
-        # the matrix-multiplication shortcut of cdist (taken for more than
-        # 25 nodes) cancels catastrophically: pairs at the boundary would
-        # flip, so compute every difference explicitly
-        within = torch.cdist(
-            pos, pos, compute_mode='donot_use_mm_for_euclid_dist'
-        ) <= self.max_range
-        within &= receiver.view(1, -1)  # column i receives
-        within.fill_diagonal_(False)
-        src, dst = within.nonzero(as_tuple=True)
-        return torch.stack([src, dst])
+        :math:`(N, 2)`, ordered by sender, then receiver. Senders are handled
+        :obj:`block_size` at a time, so memory stays :math:`O(N)` per
+        block."""
+        num_nodes = pos.size(0)
+        blocks = []
+        for start in range(0, num_nodes, block_size):
+            senders = pos[start:start + block_size]
+            # the matrix-multiplication shortcut of cdist cancels
+            # catastrophically: pairs at the boundary would flip, so compute
+            # every difference explicitly
+            within = torch.cdist(
+                senders, pos, compute_mode='donot_use_mm_for_euclid_dist'
+            ) <= self.max_range
+            within &= receiver.view(1, -1)  # column i receives
+            rows = torch.arange(senders.size(0), device=pos.device)
+            within[rows, rows + start] = False  # no self-edges
+            src, dst = within.nonzero(as_tuple=True)
+            blocks.append(torch.stack([src + start, dst]))
+        if not blocks:
+            return torch.empty(2, 0, dtype=torch.long, device=pos.device)
+        return torch.cat(blocks, dim=1)
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}(sigma={self.sigma}, '
