@@ -2,6 +2,7 @@ from typing import List, Optional, Tuple
 
 import torch
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 from torch_geometric import EdgeIndex
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
@@ -214,16 +215,27 @@ class ParticleBPConv(MessagePassing):
         # blocks of whole receivers holding about one chunk of edges each:
         # the peak temporary memory is one chunk, whatever E
         dst = edge_index[1].as_subclass(Tensor)
-        sums = []
         bounds = self._receiver_blocks(ptr, self._chunk_edges(pos_x))
+        # with several blocks under autograd, each block is recomputed in the
+        # backward pass instead of saving its [chunk, K] intermediates
+        recompute = len(bounds) > 2 and torch.is_grad_enabled() and any(
+            t.requires_grad
+            for t in (pos_x, pos_y, sender_log_weights, ranges))
+        sums = []
         for first, last in zip(bounds[:-1], bounds[1:]):
             begin, end = int(ptr[first]), int(ptr[last])
             part = slice(begin, end)
-            block = self._log_messages(pos_x, pos_y, sender_log_weights,
-                                       ranges[part], src[part], dst[part])
-            sums.append(segment(block, ptr[first:last + 1] - begin,
-                                reduce='sum'))
+            args = (pos_x, pos_y, sender_log_weights, ranges[part], src[part],
+                    dst[part], ptr[first:last + 1] - begin)
+            sums.append(checkpoint(self._block_sum, *args, use_reentrant=False)
+                        if recompute else self._block_sum(*args))
         return sums[0] if len(sums) == 1 else torch.cat(sums)
+
+    def _block_sum(self, pos_x: Tensor, pos_y: Tensor,
+                   sender_log_weights: Tensor, ranges: Tensor, src: Tensor,
+                   dst: Tensor, ptr: Tensor) -> Tensor:
+        return segment(self._log_messages(pos_x, pos_y, sender_log_weights,
+                                          ranges, src, dst), ptr, reduce='sum')
 
     def _chunk_edges(self, pos_x: Tensor) -> int:
         if self.chunk_size is not None:
