@@ -1,10 +1,23 @@
-r"""Benchmarks behind :obj:`tg-nebp bench`: :class:`ParticleBPConv` on one
-time step of the paper's test network (:obj:`--batch` realizations as one
-graph): ms per iteration as the tracker calls it (no messages returned),
-edge-particles per second and peak memory beyond the inputs, the same with
-the edge messages returned, a naive eager gather-likelihood-scatter, and the
-whole :class:`ParticleBP` tracker (seconds per time step, peak memory). Each particle count runs in a fresh
-process so that peak memory is its own."""
+r"""Benchmarks behind :obj:`tg-nebp bench`.
+
+For every number of agents :math:`I` (the paper's test network,
+:meth:`~tg_nebp.datasets.Scenario.grown` to :math:`I` agents at the same
+density) and particle count :math:`K`, on the first time step of
+:obj:`--batch` realizations batched into one graph, each measurement runs in
+a fresh process (so that its peak memory is its own) and reports the median
+ms per call, edge-particles per second, and the peak memory beyond the
+inputs:
+
+* :obj:`bp`: :class:`ParticleBPConv` as the trackers call it (receiver-sorted
+  edges, no messages returned), forward and forward + backward (gradient of a
+  position loss w.r.t. the particles and sender log-weights),
+* :obj:`naive`: a plain eager gather-likelihood-scatter (the baseline),
+* :obj:`nebp`: :class:`NEBPConv`, forward and forward + backward (gradient of
+  the training loss w.r.t. its parameters),
+* :obj:`tracker`: :class:`ParticleBP`, seconds per time step end to end.
+
+A measurement whose estimated memory exceeds what the device has free is
+skipped and says so."""
 import json
 import math
 import multiprocessing
@@ -12,27 +25,44 @@ import queue as queue_module
 import resource
 import statistics
 import time
+from typing import Callable, Optional
 
 import torch
 
-__all__ = ['add_arguments', 'run_bench', 'measure']
+__all__ = ['add_arguments', 'run_bench', 'measure', 'OPERATIONS']
+
+OPERATIONS = ('bp', 'naive', 'nebp', 'tracker')
+
+# floats per edge-particle that a measurement keeps alive at its peak
+# (measured on the test network): beyond this the run is skipped, not killed
+_FLOATS_PER_EDGE_PARTICLE = dict(naive=6.0, nebp=16.0)
+_FLOATS_PER_NODE_PARTICLE = dict(bp=12.0, naive=12.0, nebp=16.0, tracker=24.0)
 
 
 def add_arguments(parser):
     r"""Adds the :obj:`tg-nebp bench` options to :obj:`parser`."""
+    parser.add_argument('--agents', type=int, nargs='+', default=[100],
+                        help='agents I; 100 is the paper\'s test network, '
+                        'others grow it at the same density (default: 100)')
     parser.add_argument('--particles', type=int, nargs='+',
                         default=[1000, 5000],
                         help='particle counts K (default: 1000 5000)')
-    parser.add_argument('--repeats', type=int, default=10,
-                        help='timed iterations per K (default: 10)')
-    parser.add_argument('--steps', type=int, default=5,
-                        help='tracker time steps per K (default: 5)')
+    parser.add_argument('--ops', nargs='+', choices=OPERATIONS,
+                        default=list(OPERATIONS),
+                        help='what to measure (default: all)')
     parser.add_argument('--batch', type=int, default=1,
-                        help='test realizations batched into one graph '
+                        help='realizations batched into one graph '
                         '(default: 1)')
+    parser.add_argument('--repeats', type=int, default=10,
+                        help='timed calls per measurement (default: 10)')
+    parser.add_argument('--steps', type=int, default=5,
+                        help='timed tracker steps (default: 5)')
+    parser.add_argument('--chunk-size', type=int, default=None,
+                        help='edge chunk of ParticleBPConv (default: '
+                        'automatic)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--json', action='store_true',
-                        help='print one JSON object per K')
+                        help='print one JSON object per measurement')
 
 
 def _sync(device):
@@ -40,7 +70,7 @@ def _sync(device):
         torch.cuda.synchronize()
 
 
-def _timed(fn, repeats, device):
+def _timed(fn: Callable, repeats: int, device: str) -> float:
     fn()  # warm-up
     times = []
     for _ in range(repeats):
@@ -56,6 +86,38 @@ def _rss_peak_bytes():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
+class _Peak:
+    r"""Peak memory beyond what is allocated when it starts: the CUDA
+    allocator's peak, or the process's peak resident set on the CPU (which
+    only grows, so measure the smaller workload first)."""
+    def __init__(self, device):
+        self.cuda = device.startswith('cuda')
+        if self.cuda:
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+            self.base = torch.cuda.memory_allocated()
+        else:
+            self.base = _rss_peak_bytes()
+
+    def megabytes(self) -> float:
+        if self.cuda:
+            torch.cuda.synchronize()
+            peak = torch.cuda.max_memory_allocated()
+        else:
+            peak = _rss_peak_bytes()
+        return max(peak - self.base, 0) / 2**20
+
+
+def _free_bytes(device: str) -> int:
+    if device.startswith('cuda'):
+        return torch.cuda.mem_get_info()[0]
+    with open('/proc/meminfo') as f:
+        for line in f:
+            if line.startswith('MemAvailable:'):
+                return int(line.split()[1]) * 1024
+    return 2**62  # pragma: no cover - not Linux
+
+
 def _naive(particles, log_weights, edge_index, ranges, sigma):
     # the plain eager baseline: gather [E, K, 2], likelihood, scatter-add
     src, dst = edge_index
@@ -67,87 +129,135 @@ def _naive(particles, log_weights, edge_index, ranges, sigma):
     return log_weights + out
 
 
-def measure(num_particles, device='cpu', repeats=10, steps=5, seed=0,
-            root='datasets', batch=1):
-    r"""Measures one particle count :math:`K` in this process; returns a
-    dict of figures."""
-    from torch_geometric import EdgeIndex
+def network(num_agents: int, batch: int, num_steps: int, seed: int):
+    r"""The benchmark graph: :obj:`batch` realizations of the paper's test
+    network grown to :obj:`num_agents` agents, :obj:`num_steps` steps each
+    (realization :math:`r` drawn as the dataset draws it, with seed
+    :obj:`seed * 1_000_003 + r`)."""
     from torch_geometric.data import Batch
 
-    from tg_nebp.datasets import CooperativeLocalizationDataset
-    from tg_nebp.filters import ParticleBP
+    from tg_nebp.datasets import Scenario
 
-    dataset = CooperativeLocalizationDataset(root, 'paper_test', batch, seed,
-                                             log=False)
-    data = Batch.from_data_list(list(dataset)).to(device)
-    tracker = ParticleBP(num_particles).to(device)
+    scenario = Scenario.load('paper_test')
+    if num_agents != scenario.num_agents:
+        scenario = scenario.grown(num_agents)
+    scenario = scenario.replace(num_steps=num_steps)
+    return Batch.from_data_list([
+        scenario.generate(torch.Generator().manual_seed(seed * 1_000_003 + r))
+        for r in range(batch)
+    ])
+
+
+def measure(operation: str, num_agents: int, num_particles: int,
+            device: str = 'cpu', batch: int = 1, repeats: int = 10,
+            steps: int = 5, seed: int = 0, chunk_size: Optional[int] = None,
+            compile: bool = False) -> dict:
+    r"""Runs one measurement in this process; returns a dict of figures."""
+    from torch_geometric import EdgeIndex
+
+    from tg_nebp.filters import ParticleBP
+    from tg_nebp.nn.conv import NEBPConv
+    from tg_nebp.training import position_loss
+    from tg_nebp.utils import weighted_moments
+
+    data = network(num_agents, batch, steps + 2, seed).to(device)
+    edge_index, ranges = data.edges_by_step()[0]
+    num_nodes, num_edges = data.num_nodes, edge_index.size(1)
+    edge_particles = num_edges * num_particles
+    figures = dict(operation=operation, agents=num_agents, batch=batch,
+                   nodes=num_nodes, edges=num_edges, particles=num_particles,
+                   edge_particles=edge_particles, device=device,
+                   compile=compile)
+    need = 4 * (_FLOATS_PER_EDGE_PARTICLE.get(operation, 0.0) *
+                edge_particles + _FLOATS_PER_NODE_PARTICLE[operation] *
+                num_nodes * num_particles)
+    if need > 0.9 * _free_bytes(device):
+        figures['skipped'] = (f'needs about {need / 2**30:.1f} GiB, '
+                              f'{_free_bytes(device) / 2**30:.1f} GiB free')
+        return figures
+
+    tracker = ParticleBP(num_particles, chunk_size=chunk_size,
+                         compile=compile).to(device)
     generator = torch.Generator(device).manual_seed(seed)
-    particles = tracker.sample_prior(data, generator)
+    if operation == 'tracker':
+        peak = _Peak(device)
+        stamps = []
+        with torch.no_grad():
+            _sync(device)
+            for _ in tracker.steps(data, generator):
+                _sync(device)
+                stamps.append(time.perf_counter())
+                if len(stamps) > steps:
+                    break
+        figures.update(
+            s_per_step=statistics.median(  # the first step is a warm-up
+                b - a for a, b in zip(stamps, stamps[1:])),
+            peak_mb=peak.megabytes())
+        return figures
+
+    particles = tracker.predict(tracker.sample_prior(data, generator),
+                                data.anchor, generator)
     log_weights = torch.full(particles.shape[:2], -math.log(num_particles),
                              device=device)
-    edge_index, ranges = data.edges_by_step()[0]
-    num_edges = edge_index.size(1)
-    conv = tracker.conv
-    # as the tracker calls it: no messages returned; on CUDA receiver-sorted
-    # edges take the fused kernel
-    tracker_edges = EdgeIndex(edge_index, sparse_size=(data.num_nodes, ) * 2,
-                              sort_order='col') if device.startswith(
-                                  'cuda') else edge_index
+    sorted_edges = EdgeIndex(edge_index, sparse_size=(num_nodes, ) * 2,
+                             sort_order='col')
 
-    def conv_step():
-        return conv(particles, log_weights, tracker_edges, ranges,
-                    anchor=data.anchor, validate=False, return_messages=False)
+    def loss_of(log_belief, points):
+        mean, _ = weighted_moments(points, log_belief.log_softmax(-1))
+        return position_loss(mean, data.states, 0, data.anchor)
 
-    def conv_with_messages():
-        return conv(particles, log_weights, edge_index, ranges,
-                    anchor=data.anchor, validate=False)
+    if operation == 'naive':
+        sigma = tracker.measurement.sigma
 
-    figures = dict(particles=num_particles, edges=num_edges, device=device,
-                   batch=batch)
+        def forward():
+            return _naive(particles, log_weights, edge_index, ranges, sigma)
+
+        backward = None
+    elif operation == 'bp':
+
+        def forward(points=particles, sender=log_weights):
+            return tracker.conv(points, log_weights, sorted_edges, ranges,
+                                sender_log_weights=sender, anchor=data.anchor,
+                                validate=False, return_messages=False)[0]
+
+        def backward():
+            points = particles.detach().requires_grad_()
+            sender = log_weights.detach().requires_grad_()
+            loss_of(forward(points, sender), points).backward()
+    else:  # nebp
+        torch.manual_seed(seed)
+        conv = NEBPConv(num_particles, chunk_size=chunk_size,
+                        compile=compile).to(device)
+
+        def forward():
+            return conv(particles, log_weights, sorted_edges, ranges,
+                        data.anchor, validate=False)[0]
+
+        def backward():
+            conv.zero_grad(set_to_none=True)
+            loss_of(forward(), particles).backward()
+
     with torch.no_grad():
-        # peak memory of one iteration beyond its inputs
-        if device.startswith('cuda'):
-            torch.cuda.synchronize()
-            torch.cuda.reset_peak_memory_stats()
-            base = torch.cuda.memory_allocated()
-            conv_step()
-            torch.cuda.synchronize()
-            peak = torch.cuda.max_memory_allocated() - base
-        else:
-            base = _rss_peak_bytes()
-            conv_step()
-            peak = max(_rss_peak_bytes() - base, 0)
-        seconds = _timed(conv_step, repeats, device)
-        with_messages = _timed(conv_with_messages, repeats, device)
-        naive = _timed(
-            lambda: _naive(particles, log_weights, edge_index, ranges,
-                           tracker.measurement.sigma), repeats, device)
-        edge_particles = num_edges * num_particles
+        if compile:
+            forward()  # compiles: not part of the peak
+        peak = _Peak(device)
+        forward()
+        figures['forward_peak_mb'] = peak.megabytes()
+        seconds = _timed(forward, repeats, device)
+    figures.update(forward_ms=seconds * 1e3,
+                   forward_edge_particles_per_s=edge_particles / seconds,
+                   forward_peak_in_ek_floats=figures['forward_peak_mb'] *
+                   2**20 / (4 * edge_particles))
+    if backward is not None:
+        if compile:
+            backward()
+        peak = _Peak(device)
+        backward()
+        figures['backward_peak_mb'] = peak.megabytes()
+        seconds = _timed(backward, repeats, device)
         figures.update(
-            ms_per_iteration=seconds * 1e3,
-            edge_particles_per_s=edge_particles / seconds,
-            with_messages_ms_per_iteration=with_messages * 1e3,
-            naive_ms_per_iteration=naive * 1e3,
-            speedup_vs_naive=naive / seconds,
-            peak_mb=peak / 2**20,
-            peak_in_ek_floats=peak / (4 * edge_particles),
-        )
-
-        # the whole tracker: seconds per time step (first step is warm-up)
-        if device.startswith('cuda'):
-            torch.cuda.reset_peak_memory_stats()
-        stamps = []
-        _sync(device)
-        for step in tracker.steps(data, generator):
-            _sync(device)
-            stamps.append(time.perf_counter())
-            if len(stamps) > steps:
-                break
-        per_step = [b - a for a, b in zip(stamps, stamps[1:])]
-        figures['tracker_s_per_step'] = statistics.median(per_step)
-        figures['tracker_peak_mb'] = (
-            torch.cuda.max_memory_allocated() / 2**20 if device.startswith(
-                'cuda') else _rss_peak_bytes() / 2**20)
+            forward_backward_ms=seconds * 1e3,
+            forward_backward_edge_particles_per_s=edge_particles / seconds)
     return figures
 
 
@@ -155,48 +265,70 @@ def _child(queue, *args):
     queue.put(measure(*args))
 
 
-def _result(queue, child):
-    # a child that dies (error, out of memory) must not leave us waiting
+def _result(queue, child) -> dict:
+    # a child that dies (error, killed for memory) must not leave us waiting
     while True:
         try:
             return queue.get(timeout=1.0)
         except queue_module.Empty:
             if not child.is_alive():
-                raise RuntimeError(f'the benchmark process failed (exit '
-                                   f'code {child.exitcode})') from None
+                return dict(failed=f'the benchmark process exited with code '
+                            f'{child.exitcode}')
+
+
+def _row(f: dict) -> str:
+    def num(key, fmt):
+        width = int(fmt.split('.')[0])
+        return format(f[key], fmt) if key in f else '-'.rjust(width)
+
+    head = (f"{f['agents']:>7} {f['batch']:>3} {f['edges']:>8} "
+            f"{f['particles']:>7} {f['edge_particles']:>9.2e} "
+            f"{f['operation']:>8}")
+    if 'skipped' in f or 'failed' in f:
+        return f"{head}  {f.get('skipped') or f.get('failed')}"
+    if f['operation'] == 'tracker':
+        return (f"{head} {'':>10} {'':>10} {num('peak_mb', '11.1f')} "
+                f"{'':>10} {'':>10} {'':>11} {num('s_per_step', '9.4f')}")
+    return (f"{head} {num('forward_ms', '10.2f')} "
+            f"{num('forward_edge_particles_per_s', '10.3e')} "
+            f"{num('forward_peak_mb', '11.1f')} "
+            f"{num('forward_backward_ms', '10.2f')} "
+            f"{num('forward_backward_edge_particles_per_s', '10.3e')} "
+            f"{num('backward_peak_mb', '11.1f')}")
 
 
 def run_bench(args) -> int:
-    r"""Runs :func:`measure` for every :math:`K` of :obj:`args.particles`,
-    each in a fresh process, and prints a table (or JSON lines)."""
+    r"""Runs :func:`measure` for every (agents, :math:`K`, operation), each
+    in a fresh process, and prints a table (or JSON lines)."""
+    for name in ('agents', 'particles'):
+        if any(v < 1 for v in getattr(args, name)):
+            raise ValueError(f"'--{name}' must be positive, got "
+                             f"{getattr(args, name)}")
+    if args.batch < 1 or args.repeats < 1 or args.steps < 1:
+        raise ValueError("'--batch', '--repeats' and '--steps' must be "
+                         "positive")
     context = multiprocessing.get_context('spawn')
-    # generate the test network once, before the children read it
-    from tg_nebp.datasets import CooperativeLocalizationDataset
-    CooperativeLocalizationDataset(args.root, 'paper_test', args.batch,
-                                   args.seed, log=False)
     if not args.json:
-        print(f"{'K':>7} {'E':>6} {'ms/iter':>9} {'edge-part/s':>12} "
-              f"{'+msgs ms':>9} {'naive ms':>9} {'speedup':>8} {'peak MB':>9} "
-              f"{'peak/EK':>8} {'s/step':>8} {'tracker MB':>11}")
-    for num_particles in args.particles:
-        queue = context.Queue()
-        child = context.Process(
-            target=_child, args=(queue, num_particles, args.device,
-                                 args.repeats, args.steps, args.seed,
-                                 args.root, args.batch))
-        child.start()
-        figures = _result(queue, child)
-        if args.json:
-            print(json.dumps(figures))
-        else:
-            f = figures
-            print(f"{f['particles']:>7} {f['edges']:>6} "
-                  f"{f['ms_per_iteration']:>9.2f} "
-                  f"{f['edge_particles_per_s']:>12.3e} "
-                  f"{f['with_messages_ms_per_iteration']:>9.2f} "
-                  f"{f['naive_ms_per_iteration']:>9.2f} "
-                  f"{f['speedup_vs_naive']:>8.2f} {f['peak_mb']:>9.1f} "
-                  f"{f['peak_in_ek_floats']:>8.2f} "
-                  f"{f['tracker_s_per_step']:>8.4f} "
-                  f"{f['tracker_peak_mb']:>11.1f}", flush=True)
+        print(f"{'agents':>7} {'B':>3} {'E':>8} {'K':>7} {'E*K':>9} "
+              f"{'op':>8} {'fwd ms':>10} {'fwd EK/s':>10} "
+              f"{'fwd peakMB':>11} {'f+b ms':>10} {'f+b EK/s':>10} "
+              f"{'f+b peakMB':>11} {'s/step':>9}")
+    for num_agents in args.agents:
+        for num_particles in args.particles:
+            for operation in args.ops:
+                queue = context.Queue()
+                child = context.Process(
+                    target=_child,
+                    args=(queue, operation, num_agents, num_particles,
+                          args.device, args.batch, args.repeats, args.steps,
+                          args.seed, args.chunk_size, args.compile))
+                child.start()
+                figures = _result(queue, child)
+                child.join()
+                figures = dict(dict(operation=operation, agents=num_agents,
+                                    batch=args.batch, particles=num_particles,
+                                    edges=0, edge_particles=0.0,
+                                    device=args.device), **figures)
+                print(json.dumps(figures) if args.json else _row(figures),
+                      flush=True)
     return 0

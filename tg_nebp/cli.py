@@ -44,6 +44,9 @@ def _add_common(parser: argparse.ArgumentParser):
                         help="'cpu' (default) or 'cuda'")
     parser.add_argument('--root', default='datasets',
                         help='dataset root (default: datasets)')
+    parser.add_argument('--compile', action='store_true',
+                        help='fuse the per-edge work with torch.compile (the '
+                        'first steps compile)')
 
 
 def _bar(total: int, desc: str, quiet: bool = False):
@@ -59,10 +62,12 @@ def _evaluate(args) -> int:
     if args.method == 'nebp':
         if args.checkpoint is None:
             raise ValueError("--method nebp needs --checkpoint PATH")
-        tracker = nebp_from_checkpoint(args.checkpoint, args.particles)
+        tracker = nebp_from_checkpoint(args.checkpoint, args.particles,
+                                       compile=args.compile)
     else:
         tracker = ParticleBP(args.particles or 1000, args.iterations,
-                             resampler=args.resampler, **models)
+                             resampler=args.resampler, compile=args.compile,
+                             **models)
     with _bar(len(dataset) * dataset.scenario.num_steps,
               f'{args.method} K={tracker.num_particles}', args.quiet) as bar:
         result = evaluate_method(args.method, tracker.to(args.device).eval(),
@@ -85,7 +90,7 @@ def _train(args) -> int:
     scenario = train_set.scenario
     torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion(),
-                 measurement=scenario.measurement())
+                 measurement=scenario.measurement(), compile=args.compile)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
     with _bar(steps * args.epochs, 'train', args.quiet) as bar:
@@ -111,7 +116,7 @@ def _train(args) -> int:
 def _reproduce(args) -> int:
     metrics = reproduce(args.preset, args.device, args.out, args.root,
                         progress_factory=lambda total, desc: _bar(
-                            total, desc, args.quiet))
+                            total, desc, args.quiet), compile=args.compile)
     print(f"report -> {Path(args.out) / 'report.md'}")
     for method, entry in metrics.items():
         print(f"{method}: outage {entry['outage']}, P(accept) "

@@ -93,10 +93,12 @@ def _report(metrics: dict, preset: str, config: dict, device: str,
 
 def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
               root: str = 'datasets', log: Callable = print,
-              progress_factory: Optional[Callable] = None) -> dict:
+              progress_factory: Optional[Callable] = None,
+              compile: bool = False) -> dict:
     r"""Runs the whole experiment of :obj:`preset` (see :obj:`PRESETS`) and
     writes its results to :obj:`out`; returns :obj:`metrics.json`'s
-    content."""
+    content. :obj:`compile` fuses the trackers' per-edge work with
+    :func:`torch.compile` (see :class:`~tg_nebp.nn.conv.NEBPConv`)."""
     from tg_nebp.plot import plot_consistency, plot_outage, plot_tracks
 
     if preset not in PRESETS:
@@ -117,7 +119,8 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
         root, 'paper_test', config['test_realizations'], TEST_SEED,
         log=False)
     scenario = test_set.scenario
-    models = dict(motion=scenario.motion(), measurement=scenario.measurement())
+    models = dict(motion=scenario.motion(), measurement=scenario.measurement(),
+                  compile=compile)
 
     log(f'training NEBP (K={k}, {len(train_set)} realizations, '
         f"{config['epochs']} epochs)")

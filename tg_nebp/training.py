@@ -74,10 +74,12 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
 
 
 def nebp_from_checkpoint(path: Union[str, Path],
-                         num_particles: Optional[int] = None) -> NEBP:
-    r"""Rebuilds an :class:`NEBP` tracker from a checkpoint. The paper's
-    :math:`g_e` and :math:`g_v` are sized by :math:`K`, so a different
-    :obj:`num_particles` is an error."""
+                         num_particles: Optional[int] = None,
+                         compile: bool = False) -> NEBP:
+    r"""Rebuilds an :class:`NEBP` tracker from a checkpoint (with
+    :obj:`compile`, see :class:`NEBP`). The paper's :math:`g_e` and
+    :math:`g_v` are sized by :math:`K`, so a different :obj:`num_particles`
+    is an error."""
     state = load_checkpoint(path)
     trained = state['config'].get('num_particles')
     if num_particles is not None and num_particles != trained:
@@ -85,7 +87,7 @@ def nebp_from_checkpoint(path: Union[str, Path],
                          f"checkpoint '{path}', trained with K = {trained} "
                          f"(g_e and g_v are sized by K)")
     try:
-        model = NEBP.from_config(state['config'])
+        model = NEBP.from_config(state['config'], compile=compile)
         model.load_state_dict(state['model'])
     except (TypeError, RuntimeError, KeyError) as e:
         raise ValueError(f"checkpoint '{path}' does not match the NEBP "

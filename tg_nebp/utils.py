@@ -2,7 +2,7 @@ r"""Small tensor helpers shared by the layers and the trackers."""
 import torch
 from torch import Tensor
 
-__all__ = ['weighted_moments']
+__all__ = ['weighted_moments', 'plain_tensor']
 
 
 def weighted_moments(particles: Tensor, log_weights: Tensor):
@@ -16,3 +16,12 @@ def weighted_moments(particles: Tensor, log_weights: Tensor):
     centered = particles - mean.unsqueeze(1)
     cov = (centered * weights.unsqueeze(-1)).transpose(1, 2) @ centered
     return mean, cov
+
+
+def plain_tensor(tensor: Tensor) -> Tensor:
+    r""":obj:`tensor` as a plain :class:`torch.Tensor` (PyG's
+    :class:`~torch_geometric.EdgeIndex` and :class:`~torch_geometric.Index`
+    are subclasses that compiled regions should not see); plain tensors pass
+    through untouched, which keeps :func:`torch.compile` free of graph
+    breaks."""
+    return tensor if type(tensor) is Tensor else tensor.as_subclass(Tensor)

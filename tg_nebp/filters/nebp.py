@@ -36,6 +36,10 @@ class NEBP(ParticleBP):
             too. (default: :obj:`False`)
         chunk_size (int, optional): Edge chunk of the BP messages.
             (default: :obj:`None`)
+        compile (bool, optional): Fuse the per-edge work of
+            :class:`~tg_nebp.nn.conv.NEBPConv` with :func:`torch.compile`
+            (training and inference; not part of :meth:`config`).
+            (default: :obj:`False`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -48,7 +52,7 @@ class NEBP(ParticleBP):
                  resampler: Union[str, Callable] = 'multinomial',
                  message_dim: int = 32, hidden_dim: int = 64,
                  correct_anchor_edges: bool = False,
-                 chunk_size: Optional[int] = None):
+                 chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__(num_particles, num_iterations, motion, measurement,
                          resampler, chunk_size)
         self.resampler_name = resampler if isinstance(resampler,
@@ -57,7 +61,7 @@ class NEBP(ParticleBP):
                              correct_anchor_edges,
                              node_update=num_iterations > 1,
                              measurement=self.measurement,
-                             chunk_size=chunk_size)
+                             chunk_size=chunk_size, compile=compile)
         self.message_dim = message_dim
         self.hidden_dim = hidden_dim
         self.correct_anchor_edges = correct_anchor_edges
@@ -87,8 +91,12 @@ class NEBP(ParticleBP):
                                      max_range=measurement.max_range))
 
     @classmethod
-    def from_config(cls, config: dict) -> 'NEBP':
+    def from_config(cls, config: dict, **options) -> 'NEBP':
+        r"""Rebuilds a tracker from :meth:`config`; :obj:`options` are
+        run-time arguments that are not part of it (:obj:`chunk_size`,
+        :obj:`compile`)."""
         config = dict(config)
         motion = ConstantVelocityDrag(**config.pop('motion'))
         measurement = GaussianRange(**config.pop('measurement'))
-        return cls(motion=motion, measurement=measurement, **config)
+        return cls(motion=motion, measurement=measurement, **config,
+                   **options)

@@ -68,6 +68,10 @@ class ParticleBP(torch.nn.Module):
             (default: :obj:`"multinomial"`)
         chunk_size (int, optional): Edge chunk of the convolution.
             (default: :obj:`None`)
+        compile (bool, optional): Fuse the convolution's per-edge work with
+            :func:`torch.compile` (see :class:`ParticleBPConv`); for BP on
+            CUDA the fused Triton kernel is used either way.
+            (default: :obj:`False`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization` with :math:`N`
@@ -79,7 +83,7 @@ class ParticleBP(torch.nn.Module):
                  motion: Optional[ConstantVelocityDrag] = None,
                  measurement: Optional[GaussianRange] = None,
                  resampler: Union[str, Callable] = 'multinomial',
-                 chunk_size: Optional[int] = None):
+                 chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__()
         if num_particles < 1:
             raise ValueError(f"'num_particles' must be positive, got "
@@ -98,7 +102,8 @@ class ParticleBP(torch.nn.Module):
         self.motion = motion or ConstantVelocityDrag()
         self.measurement = measurement or GaussianRange()
         self.resampler = resampler
-        self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size)
+        self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size,
+                                   compile=compile)
 
     def sample_prior(self, data: Realization,
                      generator: Optional[torch.Generator] = None) -> Tensor:
