@@ -75,3 +75,31 @@ def test_fused_path_equals_messages_path_on_cuda():
     again, _ = tracker.conv(particles, log_weights, sorted_edges, ranges,
                             anchor=data.anchor, return_messages=False)
     assert torch.equal(fused, again)
+
+
+@cuda
+def test_compiled_nebp_conv_equals_eager_and_is_deterministic_on_cuda():
+    from torch_geometric import EdgeIndex
+
+    from tg_nebp.nn.conv import NEBPConv
+
+    data = _data().to('cuda')
+    num_particles = 512
+    particles = ParticleBP(num_particles).sample_prior(
+        data, torch.Generator('cuda').manual_seed(0))
+    log_weights = torch.full(particles.shape[:2], -math.log(num_particles),
+                             device='cuda')
+    edge_index, ranges = data.edges_by_step()[0]
+    n = data.num_nodes
+    edges = EdgeIndex(edge_index, sparse_size=(n, n), sort_order='col')
+    torch.manual_seed(0)
+    eager = NEBPConv(num_particles).cuda()
+    compiled = NEBPConv(num_particles, compile=True).cuda()
+    compiled.load_state_dict(eager.state_dict())
+    beliefs = [
+        conv(particles, log_weights, edges, ranges, data.anchor)[0]
+        .log_softmax(-1) for conv in (eager, compiled, compiled)
+    ]
+    torch.testing.assert_close(beliefs[1].exp(), beliefs[0].exp(), atol=1e-5,
+                               rtol=0)
+    assert torch.equal(beliefs[1], beliefs[2])
