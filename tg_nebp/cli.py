@@ -1,11 +1,13 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 :obj:`reproduce` and :obj:`bench`."""
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import List, Optional
 
 import torch
+import torch.distributed as dist
 from tqdm import tqdm
 
 from tg_nebp.datasets import CooperativeLocalizationDataset
@@ -82,18 +84,43 @@ def _evaluate(args) -> int:
 
 
 def _train(args) -> int:
+    # under torchrun (WORLD_SIZE > 1) every process joins the group here:
+    # NCCL with one GPU per process (LOCAL_RANK), gloo on the CPU
+    launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
+                and not dist.is_initialized())
+    device = args.device
+    if launched:
+        if device.startswith('cuda'):
+            device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
+            torch.cuda.set_device(device)
+        dist.init_process_group('nccl' if device.startswith('cuda') else
+                                'gloo')
+    try:
+        return _train_on(args, device)
+    finally:
+        if launched:
+            dist.destroy_process_group()
+
+
+def _train_on(args, device: str) -> int:
+    distributed = dist.is_initialized()
+    rank = dist.get_rank() if distributed else 0
+    if rank > 0:  # rank 0 generates the data once, the others load it
+        dist.barrier()
     train_set = CooperativeLocalizationDataset(
         args.root, 'paper_train', args.realizations, args.seed, log=False)
     val_set = CooperativeLocalizationDataset(
         args.root, 'paper_train', args.val_realizations, args.seed + 1,
         log=False)
+    if rank == 0 and distributed:
+        dist.barrier()
     scenario = train_set.scenario
     torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion(),
                  measurement=scenario.measurement(), compile=args.compile)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
-    with _bar(steps * args.epochs, 'train', args.quiet) as bar:
+    with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
 
         def progress(info):
             bar.set_postfix(epoch=info['epoch'], loss=f"{info['loss']:.4f}")
@@ -104,12 +131,14 @@ def _train(args) -> int:
                 'history', []))
             bar.update(min(done, args.epochs) * steps)
         history = train(model, train_set, val_set, args.epochs,
-                        args.batch_size, args.lr, args.seed, args.device,
+                        args.batch_size, args.lr, args.seed, device,
                         checkpoint, args.resume, progress)
-    for h in history:
-        print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
-              f"validation loss {h['val_loss']:.4f} (m^2 per agent-step)")
-    print(f'checkpoint -> {checkpoint}')
+    if rank == 0:
+        for h in history:
+            print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
+                  f"validation loss {h['val_loss']:.4f} (m^2 per "
+                  f"agent-step)")
+        print(f'checkpoint -> {checkpoint}')
     return 0
 
 
@@ -157,8 +186,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(ev)
     ev.set_defaults(run=_evaluate)
 
-    tr = sub.add_parser('train', help='train NEBP on the paper\'s training '
-                        'network; writes DIR/nebp.pt')
+    tr = sub.add_parser(
+        'train', help='train NEBP on the paper\'s training network; writes '
+        'DIR/nebp.pt', description='Trains NEBP on the paper\'s training '
+        'network and writes DIR/nebp.pt. Data-parallel on N processes: '
+        '"torchrun --nproc_per_node=N -m tg_nebp train ..." (gloo on the '
+        'CPU; NCCL with --device cuda, one GPU per process); the same result '
+        'as one process up to float rounding. Rank 0 generates the data, '
+        'writes the checkpoint and prints; the others are quiet.')
     tr.add_argument('--particles', type=_positive, default=1000,
                     help='particles K (default: 1000; the paper: 50000)')
     tr.add_argument('--realizations', type=_positive, default=100,
@@ -166,7 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument('--val-realizations', type=_positive, default=10,
                     help='validation realizations (default: 10)')
     tr.add_argument('--epochs', type=_positive, default=10)
-    tr.add_argument('--batch-size', type=_positive, default=2)
+    tr.add_argument('--batch-size', type=_positive, default=2,
+                    help='realizations per batch, over all processes; under '
+                    'torchrun a multiple of N dividing --realizations '
+                    '(default: 2)')
     tr.add_argument('--lr', type=float, default=1e-4)
     tr.add_argument('--iterations', type=_positive, default=1,
                     help='NEBP iterations per step (default: 1)')

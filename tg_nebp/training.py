@@ -4,12 +4,20 @@ A checkpoint is a plain dictionary of tensors and Python primitives: the
 model's :obj:`state_dict`, the tracker configuration, the optimizer state,
 the training progress and a format version. It is read with
 :obj:`torch.load(weights_only=True)`, so loading never executes code from the
-file; a corrupt, foreign or mismatched file gets a :class:`ValueError`."""
+file; a corrupt, foreign or mismatched file gets a :class:`ValueError`.
+
+Training runs in one process or, under :obj:`torchrun`, data-parallel in
+several (:class:`~torch.nn.parallel.DistributedDataParallel`), with the same
+result up to float rounding (see :func:`train`)."""
+import contextlib
 import math
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP
@@ -27,15 +35,6 @@ def position_loss(mean, states, t, anchor):
     \mathbf{p}_i\|^2` over the agents at time index :obj:`t`."""
     agents = ~anchor
     return (mean[agents, :2] - states[agents, t, :2]).square().sum()
-
-
-def _generator(seed: int, *parts: int) -> torch.Generator:
-    # one independent stream per (seed, epoch, batch): a resumed run draws
-    # exactly what the uninterrupted run drew
-    value = seed
-    for part in parts:
-        value = (value * 1_000_003 + part) % (2**63 - 1)
-    return torch.Generator().manual_seed(value)
 
 
 def save_checkpoint(path: Union[str, Path], model: NEBP,
@@ -95,32 +94,122 @@ def nebp_from_checkpoint(path: Union[str, Path],
     return model
 
 
-def _batches(dataset, batch_size: int, generator: torch.Generator):
-    order = torch.randperm(len(dataset), generator=generator).tolist()
-    for start in range(0, len(order), batch_size):
-        yield Batch.from_data_list(
-            [dataset[i] for i in order[start:start + batch_size]])
+def _world() -> Tuple[int, int]:
+    r"""The world size and this process's rank (:obj:`(1, 0)` outside an
+    initialized process group)."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_world_size(), dist.get_rank()
+    return 1, 0
+
+
+def _sum_over_ranks(values: Sequence[float], device: str) -> List[float]:
+    if _world()[0] == 1:
+        return list(values)
+    # float64, as the Python floats that a single process sums
+    summed = torch.tensor(values, dtype=torch.float64, device=device)
+    dist.all_reduce(summed)
+    return summed.tolist()
+
+
+def _check_global_batches(num_realizations: int, batch_size: int,
+                          world_size: int):
+    r"""In distributed training, every global batch must split evenly over
+    the ranks: a partial one would be padded with repeated realizations or
+    leave a rank without a batch, hanging the gradient all-reduce."""
+    if world_size == 1:
+        return
+    if batch_size % world_size != 0:
+        raise ValueError(f"'batch_size' ({batch_size}) must be a multiple of "
+                         f"the world size ({world_size}) in distributed "
+                         f"training")
+    if num_realizations % batch_size != 0:
+        raise ValueError(f"the number of training realizations "
+                         f"('train_set', {num_realizations}) must be a "
+                         f"multiple of 'batch_size' ({batch_size}) in "
+                         f"distributed training")
+
+
+def _local_batches(dataset, batch_size: int, seed: int, epoch: int,
+                   world_size: int = 1, rank: int = 0) -> List[List[int]]:
+    r"""The dataset indices of this rank's batches of :obj:`epoch`: local
+    batch :math:`b` of every rank together form global batch :math:`b` of
+    :obj:`batch_size` realizations, the same as in a single process.
+
+    :class:`~torch.utils.data.distributed.DistributedSampler` permutes the
+    indices with a seed of :obj:`(seed, epoch)` alone (not the world size)
+    and gives rank :math:`r` the positions :math:`r, r + W, r + 2W, \dots`
+    of the permutation (no padding once :func:`_check_global_batches`
+    passed). With the local batch size :math:`L = B / W`, local batch
+    :math:`b` of rank :math:`r` holds the positions :math:`r + W j`,
+    :math:`j \in [bL, bL + L)`; over all ranks these are exactly the
+    positions :math:`[bB, bB + B)`, the single process's batch :math:`b`.
+    """
+    sampler = DistributedSampler(dataset, num_replicas=world_size, rank=rank,
+                                 shuffle=True, seed=seed, drop_last=False)
+    sampler.set_epoch(epoch)
+    indices = list(sampler)
+    local = batch_size // world_size
+    return [indices[start:start + local]
+            for start in range(0, len(indices), local)]
+
+
+def _realization_generator(device: str, seed: int, tag: int,
+                           index: int) -> torch.Generator:
+    # one independent stream per (seed, epoch or -1, realization): a resumed
+    # run, any batch and any rank draw what the uninterrupted run drew
+    value = seed
+    for part in (tag, index):
+        value = (value * 1_000_003 + part) % (2**63 - 1)
+    return torch.Generator(device).manual_seed(value)
+
+
+def _batch(dataset, indices: List[int], device: str, seed: int,
+           tag: int) -> Tuple[Batch, List[torch.Generator]]:
+    r"""The realizations :obj:`indices` as one batch, and one generator per
+    realization, seeded with :obj:`(seed, tag, index)`: a realization draws
+    the same particles in any batch and on any rank."""
+    batch = Batch.from_data_list([dataset[i] for i in indices]).to(device)
+    return batch, [_realization_generator(device, seed, tag, i)
+                   for i in indices]
 
 
 def validation_loss(model: NEBP, dataset, batch_size: int, device: str,
                     seed: int) -> float:
-    r"""Mean per-agent, per-step loss on :obj:`dataset` (no gradient)."""
+    r"""Mean per-agent, per-step loss on :obj:`dataset` (no gradient). In
+    distributed training, rank :math:`r` of :math:`W` tracks the
+    realizations :math:`r, r + W, \dots` in batches of
+    :obj:`batch_size // W` and the sums are all-reduced, so every rank
+    returns the single-process value."""
+    world_size, rank = _world()
+    shard = list(range(rank, len(dataset), world_size))
+    local = max(batch_size // world_size, 1)
     total, count = 0.0, 0
     with torch.no_grad():
-        for b, batch in enumerate(_batches(dataset, batch_size,
-                                           _generator(seed, -1))):
-            batch = batch.to(device)
-            generator = _device_generator(device, seed, -1, b)
-            for step in model.steps(batch, generator):
+        for start in range(0, len(shard), local):
+            batch, generators = _batch(dataset, shard[start:start + local],
+                                       device, seed, -1)
+            for step in model.steps(batch, generators):
                 total += float(position_loss(step.mean, batch.states, step.t,
                                              batch.anchor))
                 count += int((~batch.anchor).sum())
+    total, count = _sum_over_ranks([total, count], device)
     return total / max(count, 1)
 
 
-def _device_generator(device: str, seed: int, *parts: int):
-    base = _generator(seed, *parts).initial_seed()
-    return torch.Generator(device).manual_seed(base)
+@contextlib.contextmanager
+def _synchronized_gradients(model: NEBP,
+                            ddp: Optional[DistributedDataParallel]):
+    # DDP hooks forward(): the tracker calls model.nebp, so the wrapper
+    # stands in for it while training; validation and checkpoints see the
+    # plain module (unchanged state_dict keys)
+    if ddp is None:
+        yield
+        return
+    model.nebp = ddp
+    try:
+        yield
+    finally:
+        model.nebp = ddp.module
 
 
 def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
@@ -134,7 +223,31 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     every epoch the validation loss is computed and, if :obj:`checkpoint` is
     given, a checkpoint written atomically; :obj:`resume` continues from it
     and gives the same final parameters as an uninterrupted run (same seed,
-    same device).
+    same device). Every realization draws its particles from its own
+    generator, seeded with :obj:`(seed, epoch, index)`, so the result does
+    not depend on how a batch is split.
+
+    **Distributed training.** Started by :obj:`torchrun` with an initialized
+    process group of :math:`W > 1` processes (:obj:`tg-nebp train` does it:
+    :obj:`torchrun --nproc_per_node=W -m tg_nebp train ...`; gloo on the
+    CPU, NCCL on GPUs, with :obj:`device` the process's GPU), the GNN is
+    wrapped in :class:`~torch.nn.parallel.DistributedDataParallel` and every
+    global batch of :obj:`batch_size` realizations is split over the ranks
+    (:obj:`batch_size // W` each, shuffled by a
+    :class:`~torch.utils.data.distributed.DistributedSampler`). The local
+    loss is scaled by :math:`W`, so DDP's gradient average is the gradient of
+    the sum over the global batch: the parameters, history and checkpoint
+    equal single-process training with the same :obj:`batch_size` up to
+    float rounding (the gradient sums run in another order). Resampling is
+    discontinuous, so over many float32 steps such a rounding difference
+    eventually changes one ancestor draw, after which the two runs are
+    statistically, not numerically, equal (as runs on different thread
+    counts); in float64 they agree far longer.
+    :obj:`batch_size` must be a multiple of :math:`W` and
+    :obj:`len(train_set)` of :obj:`batch_size`. Only rank 0 writes
+    checkpoints and calls :obj:`progress` (all ranks read a checkpoint to
+    resume, so it must be on a shared file system); every rank returns the
+    same history.
 
     Args:
         model (NEBP): The tracker to train (moved to :obj:`device`).
@@ -143,7 +256,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
             (default: :obj:`None`)
         epochs (int, optional): Passes over :obj:`train_set`.
             (default: :obj:`10`)
-        batch_size (int, optional): Realizations per batch.
+        batch_size (int, optional): Realizations per (global) batch.
             (default: :obj:`2`)
         lr (float, optional): Adam learning rate. (default: :obj:`1e-4`)
         seed (int, optional): Seed of shuffling and particle draws.
@@ -153,8 +266,8 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
         resume (bool, optional): Continue from :obj:`checkpoint`.
             (default: :obj:`False`)
         progress (callable, optional): Called after every optimizer step
-            with :obj:`{"epoch", "step", "loss"}` (loss per agent).
-            (default: :obj:`None`)
+            with :obj:`{"epoch", "step", "loss"}` (loss per agent of the
+            global batch). (default: :obj:`None`)
 
     Returns:
         The history: one :obj:`{"epoch", "train_loss", "val_loss"}` per
@@ -163,6 +276,8 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     if epochs < 1 or batch_size < 1 or not lr > 0:
         raise ValueError(f"'epochs' and 'batch_size' must be positive and "
                          f"'lr' > 0, got {epochs}, {batch_size}, {lr}")
+    world_size, rank = _world()
+    _check_global_batches(len(train_set), batch_size, world_size)
     model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     history, start_epoch = [], 0
@@ -186,26 +301,34 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
         optimizer.load_state_dict(state['optimizer'])
         history = list(state['progress'].get('history', []))
         start_epoch = len(history)
+    # no device_ids: the module and its inputs are on the process's device
+    ddp = DistributedDataParallel(model.nebp) if world_size > 1 else None
     for epoch in range(start_epoch, epochs):
         model.train()
         total, count, step_index = 0.0, 0, 0
-        for b, batch in enumerate(_batches(train_set, batch_size,
-                                           _generator(seed, epoch))):
-            batch = batch.to(device)
-            generator = _device_generator(device, seed, epoch, b)
-            agents = int((~batch.anchor).sum())
-            for step in model.steps(batch, generator):
-                loss = position_loss(step.mean, batch.states, step.t,
-                                     batch.anchor)
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                total += float(loss.detach())
-                count += agents
-                step_index += 1
-                if progress is not None:
-                    progress(dict(epoch=epoch, step=step_index,
-                                  loss=float(loss.detach()) / agents))
+        with _synchronized_gradients(model, ddp):
+            for indices in _local_batches(train_set, batch_size, seed, epoch,
+                                          world_size, rank):
+                batch, generators = _batch(train_set, indices, device, seed,
+                                           epoch)
+                agents = int((~batch.anchor).sum())
+                for step in model.steps(batch, generators):
+                    loss = position_loss(step.mean, batch.states, step.t,
+                                         batch.anchor)
+                    optimizer.zero_grad()
+                    # DDP averages the gradients over the W ranks but the
+                    # loss is a sum over the global batch: W times each
+                    # local sum makes the average the single-process sum
+                    (loss * world_size).backward()
+                    optimizer.step()
+                    step_loss, step_agents = _sum_over_ranks(
+                        [float(loss.detach()), agents], device)
+                    total += step_loss
+                    count += step_agents
+                    step_index += 1
+                    if progress is not None and rank == 0:
+                        progress(dict(epoch=epoch, step=step_index,
+                                      loss=step_loss / step_agents))
         model.eval()
         record = dict(epoch=epoch, train_loss=total / max(count, 1),
                       val_loss=(validation_loss(model, val_set, batch_size,
@@ -213,7 +336,11 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
                                 if val_set is not None else math.nan))
         history.append(record)
         if checkpoint is not None:
-            save_checkpoint(checkpoint, model, optimizer,
-                            dict(history=history, epochs=epochs, seed=seed,
-                                 batch_size=batch_size, lr=lr))
+            if rank == 0:
+                save_checkpoint(checkpoint, model, optimizer,
+                                dict(history=history, epochs=epochs,
+                                     seed=seed, batch_size=batch_size,
+                                     lr=lr))
+            if world_size > 1:  # every rank returns with the file written
+                dist.barrier()
     return history

@@ -258,6 +258,36 @@ def test_tracker_batch_equals_each_graph_alone(num_iterations):
             assert float(one.log_weights[agents].std()) > 0.01
 
 
+@pytest.mark.parametrize('num_iterations', [1, 2])
+def test_per_graph_generators_make_a_batch_track_as_each_graph_alone(
+        num_iterations):
+    # real randomness (prior, motion noise, multinomial resampling): one
+    # generator per graph gives each graph its stand-alone draws
+    steps, K = 3, 16
+    big = small_realization(8, steps=steps)
+    small = tiny_scenario(steps).generate(gen(9))
+    batch = Batch.from_data_list([big, small])
+    torch.manual_seed(16)
+    model = NEBP(num_particles=K, num_iterations=num_iterations,
+                 message_dim=8, hidden_dim=16)
+    with torch.no_grad():
+        together = model(batch, [gen(40), gen(41)])
+        alone = [model(big, gen(40)), model(small, gen(41))]
+        shared = model(batch, gen(41))
+    ptr = batch.ptr.tolist()
+    for b in range(2):
+        part = slice(ptr[b], ptr[b + 1])
+        torch.testing.assert_close(together.mean[part], alone[b].mean,
+                                   rtol=0, atol=1e-4)
+        torch.testing.assert_close(together.cov[part], alone[b].cov,
+                                   rtol=1e-4, atol=1e-4)
+    # the check has teeth: a single generator draws otherwise for graph 2
+    assert not torch.allclose(shared.mean[ptr[1]:], alone[1].mean,
+                              atol=1e-2)
+    with pytest.raises(ValueError, match="'generator' holds 3 generators"):
+        model(batch, [gen(0)] * 3)
+
+
 # --------------------------------------------------------------------------
 # 4. configuration
 # --------------------------------------------------------------------------

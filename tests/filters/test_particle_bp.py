@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.stats import norm
+from torch_geometric.data import Batch
 from torch_geometric.loader import DataLoader
 
 from tg_nebp import metrics
@@ -294,6 +295,57 @@ def test_batch_of_two_realizations():
     err = metrics.position_errors(out.mean[agents, :, :2],
                                   batch.states[agents, :, :2])
     assert float(err[:, -1].median()) < 3.0
+
+
+@pytest.mark.parametrize('resampler', ['multinomial', 'systematic'])
+def test_per_graph_generators_make_a_batch_track_as_each_graph_alone(
+        resampler):
+    T, K = 4, 32
+    a = small_realization(seed=6, steps=T)  # 30 nodes
+    b = tiny_scenario(steps=T).generate(gen(7))  # 6 nodes
+    batch = Batch.from_data_list([a, b])
+    tracker = ParticleBP(num_particles=K, resampler=resampler)
+    together = list(tracker.steps(batch, [gen(10), gen(11)]))
+    alone = [list(tracker.steps(a, gen(10))), list(tracker.steps(b, gen(11)))]
+    ptr = batch.ptr.tolist()
+    for t in range(T):
+        for g in range(2):
+            part = slice(ptr[g], ptr[g + 1])
+            one = alone[g][t]
+            # the same particles (prior, prediction and resampling draws)
+            torch.testing.assert_close(together[t].particles[part],
+                                       one.particles, rtol=0, atol=1e-4)
+            torch.testing.assert_close(together[t].mean[part], one.mean,
+                                       rtol=0, atol=1e-4)
+            torch.testing.assert_close(together[t].cov[part], one.cov,
+                                       rtol=1e-4, atol=1e-4)
+    # one generator for the whole batch draws other numbers for graph b
+    shared = tracker(batch, gen(11))
+    assert not torch.allclose(shared.mean[ptr[1]:, -1],
+                              alone[1][-1].mean, atol=1e-2)
+
+
+def test_one_generator_in_a_list_equals_the_generator():
+    data = small_realization(seed=8, steps=3)
+    tracker = ParticleBP(num_particles=16)
+    a = tracker(data, [gen(3)])
+    b = tracker(data, gen(3))
+    assert torch.equal(a.mean, b.mean) and torch.equal(a.cov, b.cov)
+
+
+def test_wrong_number_of_generators():
+    data = small_realization(seed=9, steps=2)
+    batch = Batch.from_data_list([data, data])
+    tracker = ParticleBP(num_particles=8)
+    for generators, graphs, given in (([gen(0)], batch, 1),
+                                      ([gen(0)] * 3, batch, 3),
+                                      ([gen(0), gen(1)], data, 2),
+                                      ([], data, 0)):
+        with pytest.raises(ValueError) as info:
+            tracker(graphs, generators)
+        message = str(info.value)
+        assert "'generator'" in message and f'{given} generators' in message
+        assert f'{2 if graphs is batch else 1} graphs' in message
 
 
 def test_invalid_arguments():

@@ -1,9 +1,11 @@
 import math
-from typing import Callable, Iterator, NamedTuple, Optional, Union
+from typing import (Callable, Iterator, List, NamedTuple, Optional, Sequence,
+                    Union)
 
 import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex
+from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_realization
@@ -13,6 +15,34 @@ from tg_nebp.nn.conv import ParticleBPConv
 from tg_nebp.utils import weighted_moments
 
 __all__ = ['ParticleBP', 'StepOutput', 'TrackOutput', 'weighted_moments']
+
+Generators = Union[torch.Generator, Sequence[torch.Generator], None]
+
+
+def _nodes_per_graph(data: Realization,
+                     generator: Generators) -> Optional[List[int]]:
+    # None for a single generator (one draw over all nodes), else the node
+    # count of every graph, which must match the generators one to one
+    if generator is None or isinstance(generator, torch.Generator):
+        return None
+    counts = (data.ptr.diff().tolist() if isinstance(data, Batch) else
+              [data.num_nodes])
+    if len(generator) != len(counts):
+        raise ValueError(f"'generator' holds {len(generator)} generators "
+                         f"but the realization has {len(counts)} graphs "
+                         f"(one generator per graph, or a single one)")
+    return counts
+
+
+def _draw(draw: Callable, generator: Generators,
+          counts: Optional[List[int]], *tensors: Tensor) -> Tensor:
+    # draw(*tensors, generator) over all nodes at once, or over every
+    # graph's node slice with that graph's generator (concatenated), so that
+    # a graph draws the same numbers whatever it is batched with
+    if counts is None:
+        return draw(*tensors, generator)
+    slices = zip(*(tensor.split(counts) for tensor in tensors))
+    return torch.cat([draw(*part, g) for part, g in zip(slices, generator)])
 
 
 class StepOutput(NamedTuple):
@@ -50,6 +80,13 @@ class ParticleBP(torch.nn.Module):
     3. normalizes the log-weights and computes the MMSE estimate and its
        covariance,
     4. resamples (ancestor indices from :obj:`resampler`, gradient cut).
+
+    The randomness (prior, prediction, resampling) comes from
+    :obj:`generator`: one :class:`torch.Generator` for the whole batch, or
+    one per graph of a batched realization, which makes every graph's
+    result independent of what it is batched with (as in distributed
+    training, where the realizations of a batch are tracked by different
+    processes).
 
     Subclasses change step 2 only (:class:`NEBP` overrides :meth:`update`):
     the time loop (:meth:`steps`) is shared.
@@ -106,16 +143,27 @@ class ParticleBP(torch.nn.Module):
                                    compile=compile)
 
     def sample_prior(self, data: Realization,
-                     generator: Optional[torch.Generator] = None) -> Tensor:
+                     generator: Generators = None) -> Tensor:
         r"""Draws :math:`K` particles :math:`(N, K, 4)` from the prior; a
-        zero covariance (anchors) gives :math:`K` copies of the mean."""
+        zero covariance (anchors) gives :math:`K` copies of the mean.
+
+        Args:
+            data (Realization): A single or batched realization.
+            generator (torch.Generator or [torch.Generator], optional): One
+                generator, or one per graph of :obj:`data`.
+                (default: :obj:`None`)
+        """
         # a PSD square root (not Cholesky) also covers singular priors
         eigvals, eigvecs = torch.linalg.eigh(data.prior_cov.double())
         root = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
-        noise = torch.randn(
-            (data.num_nodes, self.num_particles, data.prior_mean.size(-1)),
-            dtype=data.prior_mean.dtype, device=data.prior_mean.device,
-            generator=generator)
+
+        def standard_normal(mean: Tensor, g: Optional[torch.Generator]):
+            return torch.randn(
+                (mean.size(0), self.num_particles, mean.size(-1)),
+                dtype=mean.dtype, device=mean.device, generator=g)
+
+        noise = _draw(standard_normal, generator,
+                      _nodes_per_graph(data, generator), data.prior_mean)
         offset = noise @ root.to(noise.dtype).transpose(-1, -2)
         return data.prior_mean.unsqueeze(1) + offset
 
@@ -162,32 +210,50 @@ class ParticleBP(torch.nn.Module):
         return belief, None
 
     def steps(self, data: Realization,
-              generator: Optional[torch.Generator] = None
-              ) -> Iterator[StepOutput]:
+              generator: Generators = None) -> Iterator[StepOutput]:
         r"""Runs the time loop lazily, yielding a :class:`StepOutput` per
-        time step (training takes an optimizer step between them)."""
+        time step (training takes an optimizer step between them).
+
+        Args:
+            data (Realization): A single or batched realization.
+            generator (torch.Generator or [torch.Generator], optional): The
+                source of every random draw: one generator for all nodes,
+                or a sequence of one generator per graph of :obj:`data`
+                (graph boundaries from :obj:`data.ptr` for a
+                :class:`~torch_geometric.data.Batch`, else a single graph),
+                each drawing for its graph's nodes only, so that a graph
+                gets the same result alone as in any batch.
+                (default: :obj:`None`)
+        """
         check_realization(data)
         if not data.prior_mean.is_floating_point():
             raise ValueError("'prior_mean' must be a floating point tensor")
+        counts = _nodes_per_graph(data, generator)
         anchor = data.anchor
         particles = self.sample_prior(data, generator)
         log_uniform = -math.log(self.num_particles)
         log_weights = particles.new_full(particles.shape[:2], log_uniform)
+
+        def resample(log_weights: Tensor, g: Optional[torch.Generator]):
+            return self.resampler(log_weights, self.num_particles, g)
+
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
-            particles = self.predict(particles, anchor, generator)
+            particles = _draw(self.predict, generator, counts, particles,
+                              anchor)
             log_weights = self.update(particles, log_weights, edge_index,
                                       edge_attr, anchor)
             mean, cov = weighted_moments(particles, log_weights)
             yield StepOutput(t, mean, cov, particles, log_weights)
-            ancestors = self.resampler(log_weights.detach(),
-                                       self.num_particles, generator)
+            ancestors = _draw(resample, generator, counts,
+                              log_weights.detach())
             particles = particles.gather(
                 1, ancestors.unsqueeze(-1).expand(-1, -1, particles.size(-1)))
             log_weights = particles.new_full(particles.shape[:2], log_uniform)
 
     def forward(self, data: Realization,
-                generator: Optional[torch.Generator] = None) -> TrackOutput:
-        r"""Tracks a whole (batched) sequence."""
+                generator: Generators = None) -> TrackOutput:
+        r"""Tracks a whole (batched) sequence; :obj:`generator` as in
+        :meth:`steps`."""
         means, covs = [], []
         for step in self.steps(data, generator):
             means.append(step.mean)
