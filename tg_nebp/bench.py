@@ -60,6 +60,8 @@ def add_arguments(parser):
     parser.add_argument('--chunk-size', type=int, default=None,
                         help='edge chunk of ParticleBPConv (default: '
                         'automatic)')
+    parser.add_argument('--forward-only', action='store_true',
+                        help='skip the forward + backward measurements')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--json', action='store_true',
                         help='print one JSON object per measurement')
@@ -151,14 +153,13 @@ def network(num_agents: int, batch: int, num_steps: int, seed: int):
 def measure(operation: str, num_agents: int, num_particles: int,
             device: str = 'cpu', batch: int = 1, repeats: int = 10,
             steps: int = 5, seed: int = 0, chunk_size: Optional[int] = None,
-            compile: bool = False) -> dict:
+            compile: bool = False, backward: bool = True) -> dict:
     r"""Runs one measurement in this process; returns a dict of figures."""
     from torch_geometric import EdgeIndex
 
     from tg_nebp.filters import ParticleBP
     from tg_nebp.nn.conv import NEBPConv
     from tg_nebp.training import position_loss
-    from tg_nebp.utils import weighted_moments
 
     data = network(num_agents, batch, steps + 2, seed).to(device)
     edge_index, ranges = data.edges_by_step()[0]
@@ -203,7 +204,10 @@ def measure(operation: str, num_agents: int, num_particles: int,
                              sort_order='col')
 
     def loss_of(log_belief, points):
-        mean, _ = weighted_moments(points, log_belief.log_softmax(-1))
+        # the training loss on the weighted mean position (the covariance
+        # would add [N, K, 4] temporaries that are not the layer's)
+        mean = torch.einsum('nk,nkd->nd', log_belief.softmax(-1),
+                            points[..., :2])
         return position_loss(mean, data.states, 0, data.anchor)
 
     if operation == 'naive':
@@ -212,7 +216,7 @@ def measure(operation: str, num_agents: int, num_particles: int,
         def forward():
             return _naive(particles, log_weights, edge_index, ranges, sigma)
 
-        backward = None
+        forward_backward = None
     elif operation == 'bp':
 
         def forward(points=particles, sender=log_weights):
@@ -220,7 +224,7 @@ def measure(operation: str, num_agents: int, num_particles: int,
                                 sender_log_weights=sender, anchor=data.anchor,
                                 validate=False, return_messages=False)[0]
 
-        def backward():
+        def forward_backward():
             points = particles.detach().requires_grad_()
             sender = log_weights.detach().requires_grad_()
             loss_of(forward(points, sender), points).backward()
@@ -233,7 +237,7 @@ def measure(operation: str, num_agents: int, num_particles: int,
             return conv(particles, log_weights, sorted_edges, ranges,
                         data.anchor, validate=False)[0]
 
-        def backward():
+        def forward_backward():
             conv.zero_grad(set_to_none=True)
             loss_of(forward(), particles).backward()
 
@@ -248,13 +252,13 @@ def measure(operation: str, num_agents: int, num_particles: int,
                    forward_edge_particles_per_s=edge_particles / seconds,
                    forward_peak_in_ek_floats=figures['forward_peak_mb'] *
                    2**20 / (4 * edge_particles))
-    if backward is not None:
+    if backward and forward_backward is not None:
         if compile:
-            backward()
+            forward_backward()
         peak = _Peak(device)
-        backward()
-        figures['backward_peak_mb'] = peak.megabytes()
-        seconds = _timed(backward, repeats, device)
+        forward_backward()
+        figures['forward_backward_peak_mb'] = peak.megabytes()
+        seconds = _timed(forward_backward, repeats, device)
         figures.update(
             forward_backward_ms=seconds * 1e3,
             forward_backward_edge_particles_per_s=edge_particles / seconds)
@@ -294,7 +298,7 @@ def _row(f: dict) -> str:
             f"{num('forward_peak_mb', '11.1f')} "
             f"{num('forward_backward_ms', '10.2f')} "
             f"{num('forward_backward_edge_particles_per_s', '10.3e')} "
-            f"{num('backward_peak_mb', '11.1f')}")
+            f"{num('forward_backward_peak_mb', '11.1f')}")
 
 
 def run_bench(args) -> int:
@@ -321,7 +325,8 @@ def run_bench(args) -> int:
                     target=_child,
                     args=(queue, operation, num_agents, num_particles,
                           args.device, args.batch, args.repeats, args.steps,
-                          args.seed, args.chunk_size, args.compile))
+                          args.seed, args.chunk_size, args.compile,
+                          not args.forward_only))
                 child.start()
                 figures = _result(queue, child)
                 child.join()

@@ -1,8 +1,8 @@
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import torch
 from torch import Tensor
-from torch.utils.checkpoint import checkpoint
+from torch.autograd.function import once_differentiable
 from torch_geometric import EdgeIndex
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
@@ -232,26 +232,12 @@ class ParticleBPConv(MessagePassing):
         # the peak temporary memory is one chunk, whatever E
         dst = plain_tensor(edge_index[1])
         bounds = self._receiver_blocks(ptr, self._chunk_edges(pos_x))
-        # with several blocks under autograd, each block is recomputed in the
-        # backward pass instead of saving its [chunk, K] intermediates
-        recompute = len(bounds) > 2 and torch.is_grad_enabled() and any(
-            t.requires_grad
-            for t in (pos_x, pos_y, sender_log_weights, ranges))
-        sums = []
-        for first, last in zip(bounds[:-1], bounds[1:]):
-            begin, end = int(ptr[first]), int(ptr[last])
-            part = slice(begin, end)
-            args = (pos_x, pos_y, sender_log_weights, ranges[part], src[part],
-                    dst[part], ptr[first:last + 1] - begin)
-            sums.append(checkpoint(self._block_sum, *args, use_reentrant=False)
-                        if recompute else self._block_sum(*args))
-        return sums[0] if len(sums) == 1 else torch.cat(sums)
-
-    def _block_sum(self, pos_x: Tensor, pos_y: Tensor,
-                   sender_log_weights: Tensor, ranges: Tensor, src: Tensor,
-                   dst: Tensor, ptr: Tensor) -> Tensor:
-        return segment(self._messages(pos_x, pos_y, sender_log_weights,
-                                      ranges, src, dst), ptr, reduce='sum')
+        inputs = (pos_x, pos_y, sender_log_weights, ranges)
+        if len(bounds) > 2 and torch.is_grad_enabled() and any(
+                t.requires_grad for t in inputs):
+            return _BlockwiseMessageSum.apply(self._messages, bounds, src,
+                                              dst, ptr, *inputs)
+        return _sum_blocks(self._messages, bounds, src, dst, ptr, *inputs)
 
     def _chunk_edges(self, pos_x: Tensor) -> int:
         if self.chunk_size is not None:
@@ -273,3 +259,66 @@ class ParticleBPConv(MessagePassing):
 
     def __repr__(self) -> str:
         return f'{self.__class__.__name__}({self.measurement})'
+
+
+def _sum_blocks(messages: Callable, bounds: List[int], src: Tensor,
+                dst: Tensor, ptr: Tensor, pos_x: Tensor, pos_y: Tensor,
+                sender_log_weights: Tensor, ranges: Tensor) -> Tensor:
+    # the segment sums of the receiver blocks [bounds[b], bounds[b + 1])
+    sums = []
+    for first, last in zip(bounds[:-1], bounds[1:]):
+        begin, end = int(ptr[first]), int(ptr[last])
+        block = messages(pos_x, pos_y, sender_log_weights,
+                         ranges[begin:end], src[begin:end], dst[begin:end])
+        sums.append(segment(block, ptr[first:last + 1] - begin, reduce='sum'))
+    return sums[0] if len(sums) == 1 else torch.cat(sums)
+
+
+class _BlockwiseMessageSum(torch.autograd.Function):
+    r""":func:`_sum_blocks` with a backward pass that recomputes each block
+    on its gathered rows and adds their gradients into one buffer per input:
+    neither pass holds more than one block of :math:`(\mathrm{chunk}, K)`
+    temporaries. (Autograd through the blocks would save them all, and
+    recomputing them under plain autograd would allocate a node-sized
+    gradient per block.)"""
+    @staticmethod
+    def forward(ctx, messages, bounds, src, dst, ptr, *inputs):
+        ctx.messages, ctx.bounds = messages, bounds
+        ctx.save_for_backward(src, dst, ptr, *inputs)
+        return _sum_blocks(messages, bounds, src, dst, ptr, *inputs)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        src, dst, ptr, pos_x, pos_y, sender, ranges = ctx.saved_tensors
+        needs = ctx.needs_input_grad[5:]
+        grads = [torch.zeros_like(t) if need else None
+                 for t, need in zip((pos_x, pos_y, sender, ranges), needs)]
+        bounds = ctx.bounds
+        for first, last in zip(bounds[:-1], bounds[1:]):
+            begin, end = int(ptr[first]), int(ptr[last])
+            count = end - begin
+            # the block's senders and receivers as 2 * count local nodes
+            nodes = torch.cat([src[begin:end], dst[begin:end]])
+            local = torch.arange(2 * count, device=nodes.device)
+            with torch.enable_grad():
+                leaves = [t.index_select(0, nodes).requires_grad_(need)
+                          for t, need in zip((pos_x, pos_y, sender), needs)]
+                block_ranges = ranges[begin:end].detach().requires_grad_(
+                    needs[3])
+                block = ctx.messages(*leaves, block_ranges, local[:count],
+                                     local[count:])
+                wanted = [t for t in (*leaves, block_ranges)
+                          if t.requires_grad]
+                found = torch.autograd.grad(
+                    block, wanted, grad_out.index_select(0, dst[begin:end]))
+            found = iter(found)
+            for grad, need, leaf in zip(grads, needs,
+                                        (*leaves, block_ranges)):
+                if not need:
+                    continue
+                if leaf is block_ranges:
+                    grad[begin:end] = next(found)
+                else:
+                    grad.index_add_(0, nodes, next(found))
+        return (None, None, None, None, None, *grads)
