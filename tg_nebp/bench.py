@@ -18,11 +18,11 @@ inputs:
 
 A measurement whose estimated memory exceeds what the device has free is
 skipped and says so."""
+import ctypes
 import json
 import math
 import multiprocessing
 import queue as queue_module
-import resource
 import statistics
 import time
 from typing import Callable, Optional
@@ -84,14 +84,19 @@ def _timed(fn: Callable, repeats: int, device: str) -> float:
     return statistics.median(times)
 
 
-def _rss_peak_bytes():
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+def _proc_status_bytes(field: str) -> int:
+    with open('/proc/self/status') as f:
+        for line in f:
+            if line.startswith(field + ':'):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError(f'/proc/self/status has no {field}')
 
 
 class _Peak:
-    r"""Peak memory beyond what is allocated when it starts: the CUDA
-    allocator's peak, or the process's peak resident set on the CPU (which
-    only grows, so measure the smaller workload first)."""
+    r"""Peak memory beyond what is in use when it starts: the CUDA
+    allocator's peak, or on the CPU the peak resident set (Linux), reset
+    first through :obj:`/proc/self/clear_refs` after freed heap memory went
+    back to the system, so that earlier peaks (setup) do not hide it."""
     def __init__(self, device):
         self.cuda = device.startswith('cuda')
         if self.cuda:
@@ -99,14 +104,17 @@ class _Peak:
             torch.cuda.reset_peak_memory_stats()
             self.base = torch.cuda.memory_allocated()
         else:
-            self.base = _rss_peak_bytes()
+            ctypes.CDLL('libc.so.6').malloc_trim(0)
+            with open('/proc/self/clear_refs', 'w') as f:
+                f.write('5')  # resets the peak resident set size
+            self.base = _proc_status_bytes('VmRSS')
 
     def megabytes(self) -> float:
         if self.cuda:
             torch.cuda.synchronize()
             peak = torch.cuda.max_memory_allocated()
         else:
-            peak = _rss_peak_bytes()
+            peak = _proc_status_bytes('VmHWM')
         return max(peak - self.base, 0) / 2**20
 
 
