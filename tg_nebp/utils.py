@@ -1,6 +1,7 @@
 r"""Small tensor helpers shared by the layers and the trackers."""
 import torch
 from torch import Tensor
+from torch_geometric import EdgeIndex, Index
 
 __all__ = ['weighted_moments', 'plain_tensor']
 
@@ -19,9 +20,11 @@ def weighted_moments(particles: Tensor, log_weights: Tensor):
 
 
 def plain_tensor(tensor: Tensor) -> Tensor:
-    r""":obj:`tensor` as a plain :class:`torch.Tensor` (PyG's
+    r""":obj:`tensor` as a plain :class:`torch.Tensor` (zero-copy): PyG's
     :class:`~torch_geometric.EdgeIndex` and :class:`~torch_geometric.Index`
-    are subclasses that compiled regions should not see); plain tensors pass
-    through untouched, which keeps :func:`torch.compile` free of graph
-    breaks."""
-    return tensor if type(tensor) is Tensor else tensor.as_subclass(Tensor)
+    are subclasses that compiled regions should not see (their
+    :obj:`as_subclass` keeps the subclass); plain tensors pass through
+    untouched, which keeps :func:`torch.compile` free of graph breaks."""
+    if isinstance(tensor, (EdgeIndex, Index)):
+        return tensor.as_tensor()
+    return tensor
