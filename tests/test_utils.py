@@ -1,0 +1,18 @@
+r"""Tests of :mod:`tg_nebp.utils`."""
+import torch
+from torch import Tensor
+from torch_geometric import EdgeIndex, Index
+
+from tg_nebp.utils import plain_tensor
+
+
+def test_plain_tensor_strips_pyg_subclasses_without_copying():
+    edges = torch.tensor([[0, 1, 2], [1, 2, 0]])
+    edge_index = EdgeIndex(edges, sparse_size=(3, 3))
+    index = Index(edges[1], dim_size=3)
+    for wrapped in (edge_index, index, edge_index[1]):
+        plain = plain_tensor(wrapped)
+        assert type(plain) is Tensor
+        assert plain.data_ptr() == wrapped.data_ptr()  # zero-copy
+        assert torch.equal(plain, wrapped.as_tensor())
+    assert plain_tensor(edges) is edges  # plain tensors pass through
