@@ -235,8 +235,12 @@ class ParticleBPConv(MessagePassing):
         inputs = (pos_x, pos_y, sender_log_weights, ranges)
         if len(bounds) > 2 and torch.is_grad_enabled() and any(
                 t.requires_grad for t in inputs):
-            return _BlockwiseMessageSum.apply(self._messages, bounds, src,
-                                              dst, ptr, *inputs)
+            # the Gaussian likelihood has a closed-form gradient; other
+            # measurement models are differentiated by autograd per block
+            sigma = self.measurement.sigma if type(
+                self.measurement) is GaussianRange else None
+            return _BlockwiseMessageSum.apply(self._messages, sigma, bounds,
+                                              src, dst, ptr, *inputs)
         return _sum_blocks(self._messages, bounds, src, dst, ptr, *inputs)
 
     def _chunk_edges(self, pos_x: Tensor) -> int:
@@ -280,45 +284,79 @@ class _BlockwiseMessageSum(torch.autograd.Function):
     neither pass holds more than one block of :math:`(\mathrm{chunk}, K)`
     temporaries. (Autograd through the blocks would save them all, and
     recomputing them under plain autograd would allocate a node-sized
-    gradient per block.)"""
+    gradient per block.) With :obj:`sigma` (a Gaussian range likelihood) the
+    block gradients are closed-form; otherwise autograd differentiates the
+    block."""
     @staticmethod
-    def forward(ctx, messages, bounds, src, dst, ptr, *inputs):
-        ctx.messages, ctx.bounds = messages, bounds
+    def forward(ctx, messages, sigma, bounds, src, dst, ptr, *inputs):
+        ctx.messages, ctx.sigma, ctx.bounds = messages, sigma, bounds
         ctx.save_for_backward(src, dst, ptr, *inputs)
         return _sum_blocks(messages, bounds, src, dst, ptr, *inputs)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out):
-        src, dst, ptr, pos_x, pos_y, sender, ranges = ctx.saved_tensors
-        needs = ctx.needs_input_grad[5:]
+        src, dst, ptr, *inputs = ctx.saved_tensors
+        needs = ctx.needs_input_grad[6:]
         grads = [torch.zeros_like(t) if need else None
-                 for t, need in zip((pos_x, pos_y, sender, ranges), needs)]
+                 for t, need in zip(inputs, needs)]
+        block_grads = (_gaussian_block_grads if ctx.sigma is not None else
+                       _autograd_block_grads)
         bounds = ctx.bounds
         for first, last in zip(bounds[:-1], bounds[1:]):
             begin, end = int(ptr[first]), int(ptr[last])
-            count = end - begin
-            # the block's senders and receivers as 2 * count local nodes
-            nodes = torch.cat([src[begin:end], dst[begin:end]])
-            local = torch.arange(2 * count, device=nodes.device)
-            with torch.enable_grad():
-                leaves = [t.index_select(0, nodes).requires_grad_(need)
-                          for t, need in zip((pos_x, pos_y, sender), needs)]
-                block_ranges = ranges[begin:end].detach().requires_grad_(
-                    needs[3])
-                block = ctx.messages(*leaves, block_ranges, local[:count],
-                                     local[count:])
-                wanted = [t for t in (*leaves, block_ranges)
-                          if t.requires_grad]
-                found = torch.autograd.grad(
-                    block, wanted, grad_out.index_select(0, dst[begin:end]))
-            found = iter(found)
-            for grad, need, leaf in zip(grads, needs,
-                                        (*leaves, block_ranges)):
-                if not need:
+            block_src, block_dst = src[begin:end], dst[begin:end]
+            found = block_grads(ctx, inputs, needs, begin, end, block_src,
+                                block_dst, grad_out.index_select(0, block_dst))
+            for grad, (nodes, value) in zip(grads, found):
+                if grad is None:
                     continue
-                if leaf is block_ranges:
-                    grad[begin:end] = next(found)
+                if nodes is None:  # per-edge: the ranges
+                    grad[begin:end] = value
                 else:
-                    grad.index_add_(0, nodes, next(found))
-        return (None, None, None, None, None, *grads)
+                    for index, part in zip(nodes, value):
+                        grad.index_add_(0, index, part)
+        return (None, None, None, None, None, None, *grads)
+
+
+# The block gradient functions return, per input (particle x, particle y,
+# sender log-weights, ranges), (row indices, parts) to add at those rows, or
+# (None, block) for the per-edge ranges.
+
+
+def _gaussian_block_grads(ctx, inputs, needs, begin, end, src, dst,
+                          grad_messages):
+    # messages m = -(z - d)^2 / (2 sigma^2) - log_norm + w_src with
+    # d = |p_src - p_dst|: dm/dd = (z - d) / sigma^2, dd/dp_src = diff / d
+    pos_x, pos_y, sender, ranges = inputs
+    dx = pos_x.index_select(0, src) - pos_x.index_select(0, dst)
+    dy = pos_y.index_select(0, src) - pos_y.index_select(0, dst)
+    distances = torch.sqrt(dx * dx + dy * dy)
+    per_distance = grad_messages * (ranges[begin:end] -
+                                    distances) / ctx.sigma**2
+    # zero (not NaN) where paired particles coincide, as autograd's norm
+    per_coordinate = torch.where(distances > 0, per_distance / distances,
+                                 torch.zeros_like(distances))
+    grad_x, grad_y = per_coordinate * dx, per_coordinate * dy
+    return ((src, dst), (grad_x, -grad_x)), ((src, dst), (grad_y, -grad_y)), \
+        ((src, ), (grad_messages, )), \
+        (None, -per_distance.sum(-1, keepdim=True) if needs[3] else None)
+
+
+def _autograd_block_grads(ctx, inputs, needs, begin, end, src, dst,
+                          grad_messages):
+    # the block's senders and receivers as 2 * count local nodes
+    count = end - begin
+    nodes = torch.cat([src, dst])
+    local = torch.arange(2 * count, device=nodes.device)
+    with torch.enable_grad():
+        leaves = [t.index_select(0, nodes).requires_grad_(need)
+                  for t, need in zip(inputs[:3], needs)]
+        block_ranges = inputs[3][begin:end].detach().requires_grad_(needs[3])
+        block = ctx.messages(*leaves, block_ranges, local[:count],
+                             local[count:])
+        wanted = [t for t in (*leaves, block_ranges) if t.requires_grad]
+        found = iter(torch.autograd.grad(block, wanted, grad_messages))
+    grads = [next(found) if need else None for need in needs]
+    return (((nodes, ), (grads[0], )), ((nodes, ), (grads[1], )),
+            ((nodes, ), (grads[2], )), (None, grads[3]))
