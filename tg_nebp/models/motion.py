@@ -52,10 +52,12 @@ class ConstantVelocityDrag:
     def propagate(self, states: Tensor, accel: Tensor) -> Tensor:
         r"""Applies the transition with a given acceleration noise
         :obj:`accel` :math:`(*, 2)`."""
-        pos, vel = states[..., :2], states[..., 2:]
-        accel = accel - self.drag * vel * vel.abs()
-        new_pos = pos + self.dt * vel + 0.5 * self.dt**2 * accel
-        new_vel = vel + self.dt * accel
+        # fused multiply-adds: few passes over the strided [..., 2] views
+        vel = states[..., 2:]
+        accel = torch.addcmul(accel, vel, vel.abs(), value=-self.drag)
+        new_pos = torch.add(states[..., :2], vel, alpha=self.dt).add_(
+            accel, alpha=0.5 * self.dt**2)
+        new_vel = torch.add(vel, accel, alpha=self.dt)
         return torch.cat([new_pos, new_vel], dim=-1)
 
     def sample(self, states: Tensor,
