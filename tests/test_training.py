@@ -17,18 +17,9 @@ from tg_nebp.training import (CHECKPOINT_VERSION, load_checkpoint,
                               save_checkpoint, train)
 from tg_nebp.utils import weighted_moments
 
+from helpers import gen, tiny_scenario
+
 SMALL = dict(message_dim=8, hidden_dim=16)
-
-
-def gen(seed):
-    return torch.Generator().manual_seed(seed)
-
-
-def tiny_scenario(steps):
-    return Scenario(name='tiny', num_agents=3,
-                    anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),
-                    agent_start_low=3.0, agent_start_high=10.0,
-                    num_steps=steps)
 
 
 def tiny_data(count, steps=2, offset=0):

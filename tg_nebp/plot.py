@@ -54,6 +54,13 @@ def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
     _save(fig, path)
 
 
+def _plot_with_paper(ax, name, x, y, paper_xy):
+    # this run's curve of a method, and the paper's dashed in its colour
+    color = COLORS.get(name)
+    ax.plot(x, y, color=color, label=f'{name.upper()} (this run)')
+    ax.plot(*paper_xy, color=color, ls='--', label=f'{name.upper()} (paper)')
+
+
 def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
                 max_threshold: float = 3.0):
     r"""Outage probability versus error threshold per method, with the
@@ -62,11 +69,9 @@ def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
     reference = paper_curves()
     fig, ax = _figure((5, 4))
     for name, err in errors.items():
-        ax.plot(thresholds, metrics.outage_from_errors(err, thresholds),
-                color=COLORS.get(name), label=f'{name.upper()} (this run)')
-        x, y = reference[('outage', PAPER_SERIES[name])]
-        ax.plot(x, y, color=COLORS.get(name), ls='--',
-                label=f'{name.upper()} (paper)')
+        _plot_with_paper(ax, name, thresholds,
+                         metrics.outage_from_errors(err, thresholds),
+                         reference[('outage', PAPER_SERIES[name])])
     ax.set_xlabel('error threshold $e_{th}$ [m]')
     ax.set_ylabel('outage probability')
     ax.set_xlim(0, max_threshold)
@@ -84,11 +89,9 @@ def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path]):
     fig, ax = _figure((5, 4))
     ax.plot([0, 1], [0, 1], color='black', lw=0.8, ls=':', label='ideal')
     for name, values in nees.items():
-        ax.plot(levels, metrics.consistency_curve(values, levels),
-                color=COLORS.get(name), label=f'{name.upper()} (this run)')
-        x, y = reference[('consistency', PAPER_SERIES[name])]
-        ax.plot(x, y, color=COLORS.get(name), ls='--',
-                label=f'{name.upper()} (paper)')
+        _plot_with_paper(ax, name, levels,
+                         metrics.consistency_curve(values, levels),
+                         reference[('consistency', PAPER_SERIES[name])])
     ax.axvline(0.95, color='gray', ls=':', lw=0.8)
     ax.set_xlabel('confidence level $1 - \\alpha$')
     ax.set_ylabel('P(accept $H_0$)')

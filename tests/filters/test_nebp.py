@@ -13,39 +13,12 @@ from tg_nebp.models import ConstantVelocityDrag
 from tg_nebp.training import position_loss
 from tg_nebp.utils import weighted_moments
 
-
-def gen(seed):
-    return torch.Generator().manual_seed(seed)
+from helpers import Const, Shift, gen, tiny_scenario
 
 
 def small_realization(seed=0, steps=2):
     scenario = Scenario.load('paper_train').replace(num_steps=steps)
     return scenario.generate(gen(seed))
-
-
-def tiny_scenario(steps):
-    return Scenario(name='tiny', num_agents=3,
-                    anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),
-                    agent_start_low=3.0, agent_start_high=10.0,
-                    num_steps=steps)
-
-
-class Const(torch.nn.Module):
-    def __init__(self, width, value):
-        super().__init__()
-        self.width, self.value = width, value
-
-    def forward(self, x):
-        return x.new_full((x.size(0), self.width), self.value)
-
-
-class Shift(torch.nn.Module):
-    def __init__(self, module, offset):
-        super().__init__()
-        self.module, self.offset = module, offset
-
-    def forward(self, x):
-        return self.module(x) + self.offset
 
 
 def keep_all(log_weights, num_samples, generator=None):

@@ -13,11 +13,9 @@ from tg_nebp.datasets import Scenario
 from tg_nebp.filters import ParticleBP, weighted_moments
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 
+from helpers import gen, tiny_scenario
+
 PRIOR_VAR = torch.tensor([10.0, 10.0, 0.01, 0.01])
-
-
-def gen(seed):
-    return torch.Generator().manual_seed(seed)
 
 
 def custom_realization(states, anchor, edges_per_step, seed=0, sigma=1.0):
@@ -49,13 +47,6 @@ def custom_realization(states, anchor, edges_per_step, seed=0, sigma=1.0):
 def small_realization(seed=0, steps=5):
     scenario = Scenario.load('paper_train').replace(num_steps=steps)
     return scenario.generate(gen(seed))
-
-
-def tiny_scenario(steps=5):
-    return Scenario(name='tiny', num_agents=3,
-                    anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),
-                    agent_start_low=3.0, agent_start_high=10.0,
-                    num_steps=steps)
 
 
 # ---- accuracy ---------------------------------------------------------------

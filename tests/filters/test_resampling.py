@@ -8,11 +8,9 @@ from scipy.stats import chi2
 from tg_nebp.filters import (RESAMPLERS, multinomial_resample,
                              systematic_resample)
 
+from helpers import gen
+
 RESAMPLER_FNS = [multinomial_resample, systematic_resample]
-
-
-def gen(seed):
-    return torch.Generator().manual_seed(seed)
 
 
 def random_log_weights(shape, seed):

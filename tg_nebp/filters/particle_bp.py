@@ -176,15 +176,16 @@ class ParticleBP(torch.nn.Module):
     def update(self, particles: Tensor, log_weights: Tensor,
                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor) -> Tensor:
         r"""The update step: :obj:`num_iterations` message passing
-        iterations (:meth:`iterate`); returns normalized log-weights."""
-        # edges sorted by receiver (edges_by_step gives them so): the convs
-        # sum each receiver's segment (deterministic, unlike CUDA's
-        # scatter-add) and BP never materializes its [E, K] messages
+        iterations (:meth:`iterate`); returns normalized log-weights. Edges
+        are summed per receiver, so a plain :obj:`edge_index` is sorted by
+        receiver first; :meth:`steps` passes an already sorted
+        :class:`~torch_geometric.EdgeIndex`."""
+        # receiver-sorted edges: the convs sum each receiver's segment
+        # (deterministic, unlike CUDA's scatter-add) and BP never
+        # materializes its [E, K] messages
         if not isinstance(edge_index, EdgeIndex):
-            n, receivers = particles.size(0), edge_index[1]
-            in_order = bool((receivers[1:] >= receivers[:-1]).all())
-            edge_index = EdgeIndex(edge_index, sparse_size=(n, n),
-                                   sort_order='col' if in_order else None)
+            n = particles.size(0)
+            edge_index = EdgeIndex(edge_index, sparse_size=(n, n))
         if not edge_index.is_sorted_by_col:
             edge_index, perm = edge_index.sort_by('col', stable=True)
             edge_attr = edge_attr[perm]
@@ -237,7 +238,11 @@ class ParticleBP(torch.nn.Module):
         def resample(log_weights: Tensor, g: Optional[torch.Generator]):
             return self.resampler(log_weights, self.num_particles, g)
 
+        size = (data.num_nodes, data.num_nodes)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+            # edges_by_step sorts by receiver: no check, no sort per step
+            edge_index = EdgeIndex(edge_index, sparse_size=size,
+                                   sort_order='col')
             particles = _draw(self.predict, generator, counts, particles,
                               anchor)
             log_weights = self.update(particles, log_weights, edge_index,

@@ -13,62 +13,11 @@ from tg_nebp.datasets import Scenario
 from tg_nebp.nn.conv import NEBPConv, ParticleBPConv
 from tg_nebp.nn.conv.nebp_conv import node_embedding
 
+from helpers import Const, Shift, gen, random_graph, tiny_scenario
+
 # --------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------
-
-
-def gen(seed):
-    return torch.Generator().manual_seed(seed)
-
-
-def random_graph(generator, num_agents, num_anchors, num_particles,
-                 edge_prob=0.6, spread=2.0, area=15.0, into_anchor=False):
-    r"""A random float64 snapshot: agents first, then anchors (K copies of
-    their position, zero velocity); edges ``j -> i`` into agents (and, if
-    ``into_anchor``, also into anchors); ranges = true distance + noise."""
-    g = generator
-    n = num_agents + num_anchors
-    true_pos = area * torch.rand(n, 2, generator=g, dtype=torch.float64)
-    particles = torch.randn(n, num_particles, 4, generator=g,
-                            dtype=torch.float64)
-    particles[..., :2] = true_pos.unsqueeze(1) + spread * particles[..., :2]
-    particles[num_agents:] = torch.cat(
-        [true_pos[num_agents:],
-         torch.zeros(num_anchors, 2, dtype=torch.float64)], dim=1).unsqueeze(1)
-    anchor = torch.arange(n) >= num_agents
-    pairs = [(j, i) for i in range(n) for j in range(n)
-             if i != j and (into_anchor or not bool(anchor[i]))]
-    keep = torch.rand(len(pairs), generator=g) < edge_prob
-    pairs = [p for p, k in zip(pairs, keep.tolist()) if k]
-    edge_index = torch.tensor(pairs, dtype=torch.long).view(-1, 2).t()
-    dist = (true_pos[edge_index[0]] - true_pos[edge_index[1]]).norm(dim=-1)
-    noise = torch.randn(dist.shape, generator=g, dtype=torch.float64)
-    edge_attr = (dist + noise).clamp_min(0.0).view(-1, 1)
-    log_weights = torch.randn(n, num_particles, generator=g,
-                              dtype=torch.float64) - math.log(num_particles)
-    return particles, log_weights, edge_index.contiguous(), edge_attr, anchor
-
-
-class Const(torch.nn.Module):
-    r"""Replaces an MLP by a constant output of :obj:`width` columns."""
-    def __init__(self, width, value):
-        super().__init__()
-        self.width, self.value = width, value
-
-    def forward(self, x):
-        return x.new_full((x.size(0), self.width), self.value)
-
-
-class Shift(torch.nn.Module):
-    r"""Wraps an MLP and adds a constant to its output (keeps its
-    parameters in the graph)."""
-    def __init__(self, module, offset):
-        super().__init__()
-        self.module, self.offset = module, offset
-
-    def forward(self, x):
-        return self.module(x) + self.offset
 
 
 def identity_correction(conv):
@@ -376,13 +325,6 @@ def test_gradcheck_wrt_mlp_parameters():
 # --------------------------------------------------------------------------
 # 4. batching
 # --------------------------------------------------------------------------
-
-def tiny_scenario(steps):
-    return Scenario(name='tiny', num_agents=3,
-                    anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),
-                    agent_start_low=3.0, agent_start_high=10.0,
-                    num_steps=steps)
-
 
 def snapshot_particles(data, K, generator):
     r"""Particles around the true positions of snapshot 1 (anchors: K

@@ -141,7 +141,6 @@ class NEBPConv(MessagePassing):
         self.feature_scale = feature_scale
         self.bp = ParticleBPConv(measurement, chunk_size=chunk_size,
                                  compile=compile)
-        self.compile = compile
         # dynamic: the number of edges changes at every time step
         self._corrected_messages = torch.compile(
             self.corrected_messages,

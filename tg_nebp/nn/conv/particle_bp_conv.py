@@ -82,7 +82,6 @@ class ParticleBPConv(MessagePassing):
                              f"{chunk_size}")
         self.measurement = measurement or GaussianRange()
         self.chunk_size = chunk_size
-        self.compile = compile
         # dynamic: chunk lengths and edge counts change from call to call
         self._messages = torch.compile(
             self._log_messages,

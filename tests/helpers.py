@@ -1,0 +1,73 @@
+r"""Helpers shared by the tests (on the path through pytest's
+:obj:`pythonpath` setting): generators, small networks, random snapshots and
+stand-ins for the NEBP MLPs."""
+import math
+
+import torch
+
+from tg_nebp.datasets import Scenario
+
+
+def gen(seed):
+    return torch.Generator().manual_seed(seed)
+
+
+def tiny_scenario(steps=5):
+    r"""Three agents between three anchors."""
+    return Scenario(name='tiny', num_agents=3,
+                    anchor_positions=((0.0, 0.0), (15.0, 0.0), (7.0, 12.0)),
+                    agent_start_low=3.0, agent_start_high=10.0,
+                    num_steps=steps)
+
+
+def random_graph(generator, num_agents, num_anchors, num_particles,
+                 edge_prob=0.5, spread=2.0, area=15.0, sigma=1.0,
+                 dtype=torch.float64, into_anchor=False):
+    r"""A random snapshot: agents first, then anchors (K copies of their
+    position); edges ``j -> i`` with i an agent (and, if ``into_anchor``,
+    also edges into anchors); ranges = true distance + noise, clamped at
+    zero."""
+    g = generator
+    n = num_agents + num_anchors
+    true_pos = area * torch.rand(n, 2, generator=g, dtype=torch.float64)
+    particles = torch.randn(n, num_particles, 4, generator=g,
+                            dtype=torch.float64)
+    particles[..., :2] = true_pos.unsqueeze(1) + spread * particles[..., :2]
+    particles[num_agents:] = torch.cat(
+        [true_pos[num_agents:], torch.zeros(num_anchors, 2,
+                                            dtype=torch.float64)],
+        dim=1).unsqueeze(1)
+    anchor = torch.arange(n) >= num_agents
+    pairs = [(j, i) for i in range(n) for j in range(n)
+             if i != j and (into_anchor or not bool(anchor[i]))]
+    keep = torch.rand(len(pairs), generator=g) < edge_prob
+    pairs = [p for p, k in zip(pairs, keep.tolist()) if k]
+    edge_index = torch.tensor(pairs, dtype=torch.long).view(-1, 2).t()
+    dist = (true_pos[edge_index[0]] - true_pos[edge_index[1]]).norm(dim=-1)
+    noise = sigma * torch.randn(dist.shape, generator=g, dtype=torch.float64)
+    edge_attr = (dist + noise).clamp_min(0.0).view(-1, 1)
+    log_weights = torch.randn(n, num_particles, generator=g,
+                              dtype=torch.float64) - math.log(num_particles)
+    return (particles.to(dtype), log_weights.to(dtype), edge_index.contiguous(),
+            edge_attr.to(dtype), anchor)
+
+
+class Const(torch.nn.Module):
+    r"""Replaces an MLP by a constant output of :obj:`width` columns."""
+    def __init__(self, width, value):
+        super().__init__()
+        self.width, self.value = width, value
+
+    def forward(self, x):
+        return x.new_full((x.size(0), self.width), self.value)
+
+
+class Shift(torch.nn.Module):
+    r"""Wraps an MLP and adds a constant to its output (keeps its
+    parameters in the graph)."""
+    def __init__(self, module, offset):
+        super().__init__()
+        self.module, self.offset = module, offset
+
+    def forward(self, x):
+        return self.module(x) + self.offset
