@@ -4,7 +4,7 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import List, Optional
+from typing import List, NoReturn, Optional
 
 import torch
 import torch.distributed as dist
@@ -12,6 +12,7 @@ from tqdm import tqdm
 
 from tg_nebp.datasets import CooperativeLocalizationDataset
 from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.io import check_writable_folder, one_line
 from tg_nebp.reproduce import PRESETS, evaluate_method, reproduce
 from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
 
@@ -154,7 +155,7 @@ def _reproduce(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog='tg-nebp',
         description='Particle BP and Neural Enhanced BP for cooperative '
         'localization.')
@@ -235,15 +236,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Parser(argparse.ArgumentParser):
+    r"""argparse with the CLI's one-line errors (no usage block)."""
+    def error(self, message: str) -> NoReturn:
+        _print_error(f'{message} (see {self.prog} --help)')
+        sys.exit(2)
+
+
+def _print_error(message) -> int:
+    print(f'error: {one_line(message)}', file=sys.stderr)
+    return 2
+
+
+def _check_paths(args):
+    # before any work: a run must not fail at its end, after minutes of
+    # work, because its output cannot be written
+    root = getattr(args, 'root', None)
+    if root is not None and Path(root).exists() and not Path(root).is_dir():
+        raise ValueError(f"--root '{root}' is a file, not a folder")
+    if getattr(args, 'out', None) is not None:
+        check_writable_folder(args.out, '--out')
+
+
 def main(argv: Optional[List[str]] = None) -> int:
-    r"""The :obj:`tg-nebp` entry point; bad input exits with status 2 and a
-    one-line message."""
+    r"""The :obj:`tg-nebp` entry point. A user error (bad flag, missing or
+    malformed file, unwritable output) prints one line starting with
+    :obj:`error:` and exits with status 2, without a traceback."""
     args = build_parser().parse_args(argv)
     try:
+        _check_paths(args)
         return args.run(args)
     except ValueError as e:  # bad input: a clear message, no traceback
-        print(f'tg-nebp: error: {e}', file=sys.stderr)
-        return 2
+        return _print_error(e)
+    except OSError as e:  # a file or folder that cannot be read or written
+        where = f" '{e.filename}'" if e.filename else ''
+        return _print_error(f'{e.strerror or e}{where}')
 
 
 if __name__ == '__main__':

@@ -1,21 +1,40 @@
-r"""File writing shared by the CLI: every file is written to a temporary
-name in the same folder and renamed, so a killed run never leaves a
-half-written result."""
+r"""File writing shared by the library: every file is written to a
+temporary name in the same folder and renamed, so a killed run never leaves
+a half-written result; the temporaries that killed runs leave behind are
+removed at the next write to their folder."""
 import json
 import os
+import re
+import socket
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Callable, Union
 
-__all__ = ['atomic_write', 'write_json', 'write_text', 'read_json']
+__all__ = ['atomic_write', 'write_json', 'write_text', 'read_json',
+           'remove_stale_temporaries', 'check_writable_folder', 'one_line',
+           'first_line']
+
+_ANSI_ESCAPE = re.compile(r'\x1b\[[0-9;]*[A-Za-z]')
+
+# '.~<pid>@<host>~<name>.<random>.partial': the writer is known, so only
+# the temporaries of processes that no longer run are removed
+_TEMPORARY = re.compile(r'\.~(?P<pid>\d+)@(?P<host>[^~/]+)~.*\.partial\Z')
+# the unnamed temporaries of earlier tg_nebp versions: no live write lasts
+# this long (seconds)
+_UNNAMED_STALE_AFTER = 24 * 3600
 
 
 def atomic_write(path: Union[str, Path], write: Callable[[str], None]):
-    r"""Calls :obj:`write(tmp_path)` and renames the result to :obj:`path`."""
+    r"""Calls :obj:`write(tmp_path)` and renames the result to :obj:`path`;
+    first removes the stale temporaries of killed writes in that folder
+    (:func:`remove_stale_temporaries`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.',
-                               suffix='.partial')
+    remove_stale_temporaries(path.parent)
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent, prefix=f'.~{os.getpid()}@{_host()}~{path.name}.',
+        suffix='.partial')
     os.close(fd)
     try:
         write(tmp)
@@ -24,6 +43,51 @@ def atomic_write(path: Union[str, Path], write: Callable[[str], None]):
     except BaseException:
         os.unlink(tmp)
         raise
+
+
+def remove_stale_temporaries(folder: Union[str, Path]) -> None:
+    r"""Removes this library's temporary files in :obj:`folder` that no
+    live write owns: those written on this host by a process that has
+    ended, and unnamed ones (earlier versions) unmodified for a day. Another
+    process's live temporary is never touched."""
+    host = _host()
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        if not (entry.name.startswith('.') and entry.name.endswith('.partial')
+                and entry.is_file(follow_symlinks=False)):
+            continue
+        match = _TEMPORARY.match(entry.name)
+        if match is not None:
+            stale = (match['host'] == host
+                     and not _process_alive(int(match['pid'])))
+        else:
+            try:
+                age = time.time() - entry.stat(follow_symlinks=False).st_mtime
+            except OSError:
+                continue
+            stale = age > _UNNAMED_STALE_AFTER
+        if stale:
+            try:
+                os.unlink(entry.path)
+            except OSError:  # removed by another cleaner meanwhile
+                pass
+
+
+def _host() -> str:
+    return socket.gethostname().replace('~', '-').replace('/', '-') or 'host'
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by another user
+        return True
+    return True
 
 
 def _umask() -> int:
@@ -52,5 +116,38 @@ def read_json(path: Union[str, Path]) -> Any:
     try:
         with open(path) as f:
             return json.load(f)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"'{path}' is not a valid JSON file: {e}") from e
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"'{path}' is not a valid JSON file: {e}") from None
+    except OSError as e:
+        raise ValueError(f"cannot read '{path}': "
+                         f"{e.strerror or e}") from None
+
+
+def check_writable_folder(path: Union[str, Path], name: str) -> Path:
+    r"""Creates the folder :obj:`path` if needed and checks that files can
+    be written in it, before any work that would write there starts; a
+    :class:`ValueError` names the argument :obj:`name` otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{name} '{path}' is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as e:
+        raise ValueError(f"{name} '{path}' is not a writable folder: "
+                         f"{e.strerror or e}") from None
+    return path
+
+
+def one_line(error: Union[BaseException, str]) -> str:
+    r"""An error message on one line, without terminal colour codes."""
+    text = _ANSI_ESCAPE.sub('', str(error))
+    return ' '.join(text.split()) or type(error).__name__
+
+
+def first_line(error: BaseException) -> str:
+    r"""The first line of an error message, without colour codes (the rest
+    of a library's message is often advice that does not apply)."""
+    lines = _ANSI_ESCAPE.sub('', str(error)).strip().splitlines()
+    return lines[0].strip() if lines else type(error).__name__

@@ -3,7 +3,11 @@ r"""Accuracy and consistency metrics of position estimates, as in the
 <https://arxiv.org/abs/2105.12903>`_ paper. Every function takes estimates
 and truths of any leading shape :math:`(*, 2)` (e.g. :math:`(N, T, 2)`) and
 an optional boolean :obj:`mask` :math:`(*)` selecting the entries to count
-(e.g. the agents, not the anchors)."""
+(e.g. the agents, not the anchors).
+
+A diverged filter never reads as a good one: a NaN estimate, error or
+covariance makes the result NaN (RMSE, outage, NEES, consistency), and an
+empty selection is a :class:`ValueError`."""
 from typing import Optional, Sequence
 
 import torch
@@ -23,11 +27,21 @@ __all__ = [
 
 def _select(values: Tensor, mask: Optional[Tensor]) -> Tensor:
     if mask is None:
-        return values.reshape(-1)
+        return _non_empty(values.reshape(-1))
     if mask.shape != values.shape[:mask.dim()]:
         raise ValueError(f"'mask' of shape {list(mask.shape)} does not "
                          f"match the leading shape {list(values.shape)}")
-    return values[mask.bool()].reshape(-1)
+    mask = mask.bool()
+    if not bool(mask.any()):
+        raise ValueError("'mask' selects no entry")
+    return values[mask].reshape(-1)
+
+
+def _non_empty(values: Tensor, name: str = 'errors') -> Tensor:
+    if values.numel() == 0:
+        raise ValueError(f"'{name}' is empty: a metric of no entry is "
+                         f"undefined")
+    return values
 
 
 def position_errors(est_pos: Tensor, true_pos: Tensor) -> Tensor:
@@ -48,7 +62,7 @@ def rmse(est_pos: Tensor, true_pos: Tensor,
 
 def rmse_from_errors(errors: Tensor) -> float:
     r"""RMSE of precomputed position errors :math:`(*)`."""
-    return float(errors.double().square().mean().sqrt())
+    return float(_non_empty(errors).double().square().mean().sqrt())
 
 
 def outage_probability(est_pos: Tensor, true_pos: Tensor,
@@ -62,12 +76,16 @@ def outage_probability(est_pos: Tensor, true_pos: Tensor,
 
 
 def outage_from_errors(errors: Tensor, thresholds: Sequence[float]) -> Tensor:
-    r"""Outage probabilities of precomputed position errors :math:`(*)`."""
-    errors = errors.reshape(-1).double()
+    r"""Outage probabilities of precomputed position errors :math:`(*)`;
+    NaN if any error is NaN (a comparison with NaN would count it as no
+    outage)."""
+    errors = _non_empty(errors.reshape(-1).double())
     thresholds = torch.as_tensor(thresholds, dtype=torch.float64,
                                  device=errors.device)
-    return (errors.unsqueeze(-1) > thresholds.reshape(-1)).double().mean(
-        0).view(thresholds.shape)
+    outage = (errors.unsqueeze(-1) > thresholds.reshape(-1)).double().mean(0)
+    if bool(torch.isnan(errors).any()):
+        outage = torch.full_like(outage, float('nan'))
+    return outage.view(thresholds.shape)
 
 
 def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
@@ -75,14 +93,18 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     :math:`e = (\hat{\mathbf{p}} - \mathbf{p})^\top
     \hat{\boldsymbol{\Sigma}}_{\mathbf{p}}^{-1} (\hat{\mathbf{p}} -
     \mathbf{p})` for covariances :math:`(*, 2, 2)`. A singular covariance
-    gives :math:`+\infty` (or :math:`0` for a zero error), never NaN."""
+    gives :math:`+\infty` (or :math:`0` for a zero error); a NaN estimate,
+    truth or covariance gives NaN."""
     err = (est_pos - true_pos).double().unsqueeze(-1)
     cov = pos_cov.double()
     solution, info = torch.linalg.solve_ex(cov, err)
     value = (err * solution).sum((-1, -2))
     singular = (info != 0) | ~torch.isfinite(value)
     fallback = torch.where(err.abs().sum((-1, -2)) > 0, float('inf'), 0.0)
-    return torch.where(singular, fallback, value)
+    value = torch.where(singular, fallback, value)
+    unknown = torch.isnan(err).any(-1).any(-1) | torch.isnan(cov).flatten(
+        -2).any(-1)
+    return value.masked_fill(unknown, float('nan'))
 
 
 def consistency_curve(nees_values: Tensor, confidence: Sequence[float],
@@ -101,4 +123,7 @@ def consistency_curve(nees_values: Tensor, confidence: Sequence[float],
     low = torch.as_tensor(chi2.ppf(alpha / 2, dof), device=values.device)
     high = torch.as_tensor(chi2.ppf(1 - alpha / 2, dof), device=values.device)
     inside = (values.unsqueeze(-1) >= low) & (values.unsqueeze(-1) <= high)
-    return inside.double().mean(0).view(confidence.shape).cpu()
+    accept = inside.double().mean(0)
+    if bool(torch.isnan(values).any()):  # NaN would count as rejected
+        accept = torch.full_like(accept, float('nan'))
+    return accept.view(confidence.shape).cpu()

@@ -11,6 +11,7 @@ several (:class:`~torch.nn.parallel.DistributedDataParallel`), with the same
 result up to float rounding (see :func:`train`)."""
 import contextlib
 import math
+import pickle
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -21,7 +22,7 @@ from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP
-from tg_nebp.io import atomic_write
+from tg_nebp.io import atomic_write, first_line, one_line
 
 __all__ = ['train', 'position_loss', 'save_checkpoint', 'load_checkpoint',
            'nebp_from_checkpoint', 'CHECKPOINT_VERSION']
@@ -56,10 +57,16 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
         state = torch.load(path, map_location='cpu', weights_only=True)
     except FileNotFoundError:
         raise ValueError(f"checkpoint '{path}' does not exist") from None
+    except pickle.UnpicklingError as e:
+        # never pass on torch's advice to retry with weights_only=False
+        reason = ('it holds objects other than tensors and primitives: '
+                  'refused' if 'weights only' in str(e).lower() else
+                  first_line(e))
+        raise ValueError(f"'{path}' is not a readable tg_nebp checkpoint: "
+                         f"{reason}") from None
     except Exception as e:  # the unpickler raises many kinds on bad input
         raise ValueError(f"'{path}' is not a readable tg_nebp checkpoint "
-                         f"(corrupt, foreign, or holding objects other than "
-                         f"tensors and primitives): {e}") from None
+                         f"(corrupt or foreign): {first_line(e)}") from None
     if not isinstance(state, dict) or state.get('format') != CHECKPOINT_FORMAT:
         raise ValueError(f"'{path}' is not a tg_nebp NEBP checkpoint")
     if state.get('version') != CHECKPOINT_VERSION:
@@ -90,7 +97,7 @@ def nebp_from_checkpoint(path: Union[str, Path],
         model.load_state_dict(state['model'])
     except (TypeError, RuntimeError, KeyError) as e:
         raise ValueError(f"checkpoint '{path}' does not match the NEBP "
-                         f"model: {e}") from None
+                         f"model: {one_line(e)}") from None
     return model
 
 

@@ -1,22 +1,57 @@
 r"""Small tensor helpers shared by the layers and the trackers."""
+from typing import Tuple
+
 import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
-__all__ = ['weighted_moments', 'plain_tensor']
+__all__ = ['weighted_moments', 'log_normalize', 'compute_dtype', 'plain_tensor',
+           'sort_by_receiver']
+
+
+def compute_dtype(*tensors: Tensor) -> torch.dtype:
+    r"""The floating dtype that the layers and trackers compute in: the
+    promotion of the floating :obj:`tensors`' dtypes and float32. Half
+    precision is promoted: log-weights need float32's range and
+    precision."""
+    dtype = torch.float32
+    for tensor in tensors:
+        if tensor.is_floating_point():
+            dtype = torch.promote_types(dtype, tensor.dtype)
+    return dtype
 
 
 def weighted_moments(particles: Tensor, log_weights: Tensor):
     r"""Weighted mean :math:`\hat{\mathbf{x}}_i = \sum_k w_i^{(k)}
     \mathbf{x}_i^{(k)}` and covariance :math:`\sum_k w_i^{(k)}
     (\mathbf{x}_i^{(k)} - \hat{\mathbf{x}}_i)(\mathbf{x}_i^{(k)} -
-    \hat{\mathbf{x}}_i)^\top` of particles :math:`(N, K, D)` with normalized
-    log-weights :math:`(N, K)`."""
-    weights = log_weights.exp()
+    \hat{\mathbf{x}}_i)^\top` of particles :math:`(N, K, D)` with
+    log-weights :math:`(N, K)`, normalized here (:func:`log_normalize`), so
+    that the weights sum to one whatever their scale. A row of zero weights
+    gives zeros: validation rejects such rows before."""
+    weights = log_normalize(log_weights).exp()
     mean = torch.einsum('nk,nkd->nd', weights, particles)
     centered = particles - mean.unsqueeze(1)
     cov = (centered * weights.unsqueeze(-1)).transpose(1, 2) @ centered
     return mean, cov
+
+
+def log_normalize(log_weights: Tensor) -> Tensor:
+    r"""Normalizes log-weights over the last dimension, :math:`\log w^{(k)}
+    - \log \sum_l w^{(l)}`, so that their exponentials sum to one for any
+    finite input, in float32 too.
+
+    The maximum is subtracted before the sum (:func:`torch.log_softmax`);
+    :obj:`x - x.logsumexp(-1)` is not enough: around :math:`-10^{10}` the
+    float32 sum :math:`\max + \log \sum` rounds back to the maximum, and
+    tied particles each get weight one. A row of zero weights (all
+    :math:`-\infty`) has no normalization: it stays :math:`-\infty` with a
+    zero gradient, never NaN; callers that need a distribution reject it
+    (:func:`~tg_nebp.data.validation.check_particles`)."""
+    zero = torch.isneginf(log_weights).all(-1, keepdim=True)
+    # a finite stand-in keeps log_softmax's NaN out of both passes
+    normalized = log_weights.masked_fill(zero, 0.0).log_softmax(-1)
+    return normalized.masked_fill(zero, float('-inf'))
 
 
 def plain_tensor(tensor: Tensor) -> Tensor:
@@ -28,3 +63,23 @@ def plain_tensor(tensor: Tensor) -> Tensor:
     if isinstance(tensor, (EdgeIndex, Index)):
         return tensor.as_tensor()
     return tensor
+
+
+def sort_by_receiver(edge_index: Tensor, num_nodes: int,
+                     edge_attr: Tensor) -> Tuple[EdgeIndex, Tensor]:
+    r"""The edges as an int64 :class:`~torch_geometric.EdgeIndex` sorted by
+    receiver (column), and :obj:`edge_attr` in the same order: free for an
+    :class:`~torch_geometric.EdgeIndex` already sorted by column (whose
+    claim validation checks), else a stable sort, so each receiver's edges
+    keep their order and with it the summation order of a scatter over the
+    input edges. Receiver segments give deterministic sums, and let the
+    convolutions sum block by block without :math:`(E, K)` tensors."""
+    if not isinstance(edge_index, EdgeIndex):
+        edge_index = EdgeIndex(edge_index, sparse_size=(num_nodes,
+                                                        num_nodes))
+    if edge_index.dtype != torch.long:  # PyG's scatter wants int64
+        edge_index = edge_index.to(torch.long)
+    if not edge_index.is_sorted_by_col:
+        edge_index, perm = edge_index.sort_by('col', stable=True)
+        edge_attr = edge_attr[perm]
+    return edge_index, edge_attr

@@ -37,8 +37,6 @@ import numbers
 
 import torch
 from torch_geometric.data import Data
-from torch_geometric.data.data import DataEdgeAttr, DataTensorAttr
-from torch_geometric.data.storage import GlobalStorage
 
 __all__ = ['Realization', 'num_steps_of']
 
@@ -47,6 +45,10 @@ def num_steps_of(data: Data) -> int:
     r"""Returns the number of time steps :math:`T` of a single or batched
     realization, checking that all graphs of a batch agree."""
     steps = torch.as_tensor(data.num_steps).view(-1)
+    if steps.is_floating_point() or steps.is_complex() \
+            or steps.dtype == torch.bool:
+        raise ValueError(f"'num_steps' must be an integer, got "
+                         f"{steps.tolist()}")
     if steps.numel() == 0 or bool((steps != steps[0]).any()):
         raise ValueError(f"'num_steps' must be equal across a batch, got "
                          f"{steps.tolist()}")
@@ -87,6 +89,13 @@ class Realization(Data):
         Args:
             t (int): Time index in :math:`[0, T)`.
         """
+        if isinstance(t, torch.Tensor) and t.numel() == 1 and not (
+                t.is_floating_point() or t.is_complex()
+                or t.dtype == torch.bool):
+            t = int(t)
+        if not isinstance(t, numbers.Integral) or isinstance(t, bool):
+            raise TypeError(f"'t' must be an integer time index, got "
+                            f"{t!r}")
         steps = num_steps_of(self)
         if not 0 <= t < steps:
             raise ValueError(f"'t' = {t} is outside [0, {steps})")
@@ -114,8 +123,3 @@ class Realization(Data):
         counts = torch.bincount(self.edge_time, minlength=steps).tolist()
         return list(zip(self.edge_index[:, order].split(counts, dim=1),
                         self.edge_attr[order].split(counts, dim=0)))
-
-
-# datasets and checkpoints are read with torch.load(weights_only=True)
-torch.serialization.add_safe_globals(
-    [Realization, DataEdgeAttr, DataTensorAttr, GlobalStorage])

@@ -4,12 +4,16 @@ Every public entry point (datasets, convolutions, trackers, CLI) calls these
 checks, so bad input fails early with a :class:`ValueError` that names the
 field and the offending index instead of producing NaNs far downstream.
 """
+import math
+import numbers
 from typing import Optional
 
 import torch
 from torch import Tensor
+from torch_geometric import EdgeIndex
 
 from tg_nebp.data.realization import num_steps_of
+from tg_nebp.utils import compute_dtype
 
 __all__ = [
     'check_graph',
@@ -18,11 +22,38 @@ __all__ = [
     'check_prior',
     'check_realization',
     'check_anchor',
+    'magnitude_limit',
+    'check_positive_int',
 ]
 
 
 def _first(mask: Tensor) -> int:
     return int(mask.nonzero()[0, 0])
+
+
+def magnitude_limit(dtype: torch.dtype) -> float:
+    r"""The largest coordinate or range (in metres) accepted for a tensor of
+    :obj:`dtype`: a quarter of the square root of the largest number of the
+    dtype it is computed in (:func:`~tg_nebp.utils.compute_dtype`), so that
+    squared distances between accepted positions and squared range
+    residuals stay finite (float32: :math:`4.6 \cdot 10^{18}`)."""
+    working = torch.promote_types(dtype, torch.float32)
+    return math.sqrt(torch.finfo(working).max) / 4
+
+
+def check_positive_int(value, name: str) -> int:
+    r"""Returns :obj:`value` as an :obj:`int` if it is an integer of at
+    least one (a float such as :obj:`2.5` or a bool is a
+    :class:`TypeError` naming :obj:`name`)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"'{name}' must be an integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"'{name}' must be positive, got {value}")
+    return int(value)
+
+
+def _too_large(values: Tensor) -> Tensor:
+    return values.abs() > magnitude_limit(values.dtype)
 
 
 def check_graph(edge_index: Tensor, num_nodes: int,
@@ -52,6 +83,28 @@ def check_graph(edge_index: Tensor, num_nodes: int,
         e = _first(loop)
         raise ValueError(f"'{name}[:, {e}]' is a self-loop on node "
                          f"{int(edge_index[0, e])}")
+    if isinstance(edge_index, EdgeIndex):
+        _check_edge_index_claims(edge_index, num_nodes, name)
+
+
+def _check_edge_index_claims(edge_index: EdgeIndex, num_nodes: int,
+                             name: str) -> None:
+    # the convs trust an EdgeIndex's sort order (they sum receiver
+    # segments) and size their output by its sparse size: a false claim
+    # would give wrong numbers, not an error
+    size = edge_index.sparse_size()
+    if any(s is not None and s != num_nodes for s in size):
+        raise ValueError(f"'{name}' has sparse size {tuple(size)} but the "
+                         f"graph has {num_nodes} nodes")
+    for row, order in ((0, 'row'), (1, 'col')):
+        if getattr(edge_index, f'is_sorted_by_{order}'):
+            down = edge_index.as_tensor()[row].diff() < 0
+            if bool(down.any()):
+                e = _first(down) + 1
+                raise ValueError(f"'{name}' claims sort_order='{order}' but "
+                                 f"'{name}[{row}, {e}]' = "
+                                 f"{int(edge_index[row, e])} follows "
+                                 f"{int(edge_index[row, e - 1])}")
 
 
 def check_ranges(ranges: Tensor, num_edges: int,
@@ -76,6 +129,13 @@ def check_ranges(ranges: Tensor, num_edges: int,
         e = _first(neg)
         raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0])} is a "
                          f"negative range")
+    big = _too_large(ranges[:, 0])
+    if bool(big.any()):
+        e = _first(big)
+        raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0]):.3g} is too "
+                         f"large a range (at most "
+                         f"{magnitude_limit(ranges.dtype):.3g}: its square "
+                         f"must be finite in {compute_dtype(ranges)})")
 
 
 def check_particles(particles: Tensor, log_weights: Tensor,
@@ -106,14 +166,28 @@ def check_particles(particles: Tensor, log_weights: Tensor,
                          f"{list(particles.shape[:2])} to match 'particles' "
                          f"(K = {particles.size(1)}), got "
                          f"{list(getattr(log_weights, 'shape', []))}")
+    if not (particles.is_floating_point()
+            and log_weights.is_floating_point()):
+        raise TypeError(f"'particles' and '{weights_name}' must be floating "
+                        f"point tensors, got {particles.dtype} and "
+                        f"{log_weights.dtype}")
     bad = ~torch.isfinite(particles).all(dim=-1).all(dim=-1)
     if bool(bad.any()):
         raise ValueError(f"'particles[{_first(bad)}]' holds a non-finite "
                          f"value")
+    big = _too_large(particles[..., :2]).flatten(1).any(-1)
+    if bool(big.any()):
+        raise ValueError(f"'particles[{_first(big)}]' holds a position "
+                         f"beyond {magnitude_limit(particles.dtype):.3g}, too "
+                         f"large for {compute_dtype(particles)} distances")
     bad = (torch.isnan(log_weights) | (log_weights == float('inf'))).any(-1)
     if bool(bad.any()):
         raise ValueError(f"'{weights_name}[{_first(bad)}]' holds NaN or "
                          f"+inf")
+    zero = torch.isneginf(log_weights).all(-1)
+    if bool(zero.any()):
+        raise ValueError(f"'{weights_name}[{_first(zero)}]' is -inf for "
+                         f"every particle: zero weights are no belief")
 
 
 def check_anchor(anchor: Tensor, num_nodes: int) -> None:
@@ -140,6 +214,12 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
         what = ('anchor without a known position' if bool(anchor[i]) else
                 'non-finite prior mean')
         raise ValueError(f"'prior_mean[{i}]': {what}")
+    big = _too_large(prior_mean[:, :2]).any(-1)
+    if bool(big.any()):
+        raise ValueError(f"'prior_mean[{_first(big)}]' holds a position "
+                         f"beyond {magnitude_limit(prior_mean.dtype):.3g}, "
+                         f"too large for {compute_dtype(prior_mean)} "
+                         f"distances")
     bad = ~torch.isfinite(prior_cov).flatten(1).all(-1)
     if bool(bad.any()):
         raise ValueError(f"'prior_cov[{_first(bad)}]' is not finite")
@@ -186,6 +266,8 @@ def check_realization(data) -> None:
         raise ValueError(f"'edge_time' must be an integer tensor, got "
                          f"{t.dtype}")
     steps = num_steps_of(data)
+    if steps < 1:
+        raise ValueError(f"'num_steps' must be at least 1, got {steps}")
     bad = (t < 0) | (t >= steps)
     if bool(bad.any()):
         e = _first(bad)

@@ -1,4 +1,8 @@
 import os
+import pickle
+import re
+import sys
+import warnings
 from typing import Callable, List, Optional, Union
 
 import torch
@@ -7,12 +11,19 @@ from torch_geometric.data import InMemoryDataset
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_realization
 from tg_nebp.datasets.scenario import Scenario
-from tg_nebp.io import atomic_write
+from tg_nebp.io import atomic_write, first_line
 
 __all__ = ['CooperativeLocalizationDataset']
 
-# bump when the generator changes, so old processed files are not reused
-FORMAT_VERSION = 2
+# bump when the generator or the file layout changes, so old processed files
+# are not reused (3: a dictionary of tensors and primitives, no classes)
+FORMAT_VERSION = 3
+FILE_FORMAT = 'tg_nebp.dataset'
+
+
+class _UnreadableFile(ValueError):
+    r"""A processed file that is cut short or corrupt (not unsafe): it is a
+    cache of deterministic data, so it is generated again."""
 
 
 class CooperativeLocalizationDataset(InMemoryDataset):
@@ -30,6 +41,13 @@ class CooperativeLocalizationDataset(InMemoryDataset):
     shorter one). The processed file name holds the scenario name, the number
     of realizations, the seed and a hash of every generation parameter:
     changing any of them generates new data, never reusing stale files.
+
+    The processed file holds tensors and Python primitives only and is read
+    with :obj:`torch.load(weights_only=True)`, so loading never runs code
+    from it; a file holding anything else is refused with an error naming
+    it. A file cut short (a full disk, a copy interrupted) is generated
+    again, with a warning. It is written to a temporary name and renamed,
+    so a killed run never leaves a half-written file.
 
     Args:
         root (str, optional): Root directory; data goes to
@@ -88,12 +106,20 @@ class CooperativeLocalizationDataset(InMemoryDataset):
                              f"{num_realizations}")
         if int(seed) < 0:
             raise ValueError(f"'seed' must be non-negative, got {seed}")
+        if os.path.exists(root) and not os.path.isdir(root):
+            raise ValueError(f"'root' = '{root}' is not a folder")
         self.scenario = scenario
         self.num_realizations = int(num_realizations)
         self.seed = int(seed)
         super().__init__(os.path.join(root, scenario.name), transform,
                          pre_transform, log=log, force_reload=force_reload)
-        self.load(self.processed_paths[0], data_cls=Realization)
+        path = self.processed_paths[0]
+        try:
+            self.load(path)
+        except _UnreadableFile as e:
+            warnings.warn(f"{e}; generating it again", stacklevel=2)
+            self.process()
+            self.load(path)
 
     @property
     def raw_file_names(self) -> List[str]:
@@ -105,8 +131,57 @@ class CooperativeLocalizationDataset(InMemoryDataset):
         return [f'{s.name}_r{self.num_realizations}_t{s.num_steps}_'
                 f'seed{self.seed}_{s.fingerprint()}_v{FORMAT_VERSION}.pt']
 
-    def download(self):
-        pass
+    def _process(self):
+        # replaces PyG's, which reads processed/pre_transform.pt with
+        # weights_only=False (code from a file would run) and writes it in
+        # place (a killed run leaves it empty); the pre_transform is recorded
+        # in the processed file instead
+        if self.force_reload or not os.path.exists(self.processed_paths[0]):
+            if self.log and 'PYTEST_CURRENT_TEST' not in os.environ:
+                print(f'Generating {self.processed_paths[0]}',
+                      file=sys.stderr)
+            self.process()
+
+    def load(self, path: str, data_cls=Realization) -> None:
+        r"""Reads a processed file with :obj:`weights_only=True`; an unsafe
+        or foreign file is refused with a :class:`ValueError` naming it."""
+        try:
+            state = torch.load(path, map_location='cpu', weights_only=True)
+        except pickle.UnpicklingError as e:
+            if 'weights only' in str(e).lower():  # torch's allow-list refused
+                raise ValueError(f"processed file '{path}' holds objects "
+                                 f"other than tensors and primitives: "
+                                 f"refused (delete it to generate it "
+                                 f"again)") from None
+            raise _UnreadableFile(f"processed file '{path}' is corrupt: "
+                                  f"{first_line(e)}") from None
+        except (RuntimeError, EOFError, OSError) as e:
+            if isinstance(e, (FileNotFoundError, PermissionError,
+                              IsADirectoryError)):
+                raise
+            raise _UnreadableFile(f"processed file '{path}' is cut short "
+                                  f"or corrupt: {first_line(e)}") from None
+        if not (isinstance(state, dict)
+                and state.get('format') == FILE_FORMAT
+                and state.get('version') == FORMAT_VERSION
+                and isinstance(state.get('data'), dict)
+                # None for a single realization (PyG's collate)
+                and isinstance(state.get('slices', {}), (dict, type(None)))):
+            raise ValueError(f"processed file '{path}' is not a tg_nebp "
+                             f"dataset of format version {FORMAT_VERSION} "
+                             f"(delete it to generate it again)")
+        if state.get('pre_transform') != _describe(self.pre_transform):
+            warnings.warn(f"'{path}' was generated with the pre_transform "
+                          f"{state.get('pre_transform')}, not "
+                          f"{_describe(self.pre_transform)}; pass "
+                          f"force_reload=True to generate it again",
+                          stacklevel=3)
+        try:
+            self.data = data_cls.from_dict(state['data'])
+            self.slices = state['slices']
+        except Exception as e:
+            raise ValueError(f"processed file '{path}' does not hold "
+                             f"realizations: {first_line(e)}") from None
 
     def process(self):
         data_list = []
@@ -118,11 +193,21 @@ class CooperativeLocalizationDataset(InMemoryDataset):
             if self.pre_transform is not None:
                 data = self.pre_transform(data)
             data_list.append(data)
+        data, slices = self.collate(data_list)
+        state = dict(format=FILE_FORMAT, version=FORMAT_VERSION,
+                     data=data.to_dict(), slices=slices,
+                     pre_transform=_describe(self.pre_transform))
         # write then rename: a killed run never leaves a half-written file,
         # a failed one no temporary file
         atomic_write(self.processed_paths[0],
-                     lambda tmp: self.save(data_list, tmp))
+                     lambda tmp: torch.save(state, tmp))
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}({len(self)}, scenario='
                 f'{self.scenario.name}, seed={self.seed})')
+
+
+def _describe(transform: Optional[Callable]) -> str:
+    # repr without memory addresses, which change from run to run
+    return re.sub(r' at 0x[0-9a-fA-F]+', '', repr(transform))
+

@@ -2,6 +2,8 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Optional, Tuple, Union
@@ -9,9 +11,24 @@ from typing import Optional, Tuple, Union
 import torch
 
 from tg_nebp.data.realization import Realization
+from tg_nebp.io import read_json
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 
 __all__ = ['Scenario']
+
+_FILE_NAME = re.compile(r'[A-Za-z0-9_+-][A-Za-z0-9_.+-]*\Z')
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_sequence(value) -> bool:
+    return isinstance(value, (list, tuple))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,13 +77,11 @@ class Scenario:
     description: str = ''
 
     def __post_init__(self):
+        self._check_types()
         fix = object.__setattr__  # frozen: normalize lists to tuples once
         fix(self, 'anchor_positions',
             tuple(tuple(float(c) for c in p) for p in self.anchor_positions))
         fix(self, 'prior_var', tuple(float(v) for v in self.prior_var))
-        if not self.name or any(c in self.name for c in '/\\ '):
-            raise ValueError(f"'name' must be a non-empty file-name-safe "
-                             f"string, got {self.name!r}")
         for key in ('num_agents', 'num_steps'):
             if int(getattr(self, key)) < 1:
                 raise ValueError(f"'{key}' must be at least 1, got "
@@ -91,6 +106,34 @@ class Scenario:
         self.motion()  # the models validate their own parameters
         self.measurement()
 
+    def _check_types(self):
+        # JSON gives any type: a wrong one must name its field, not fail
+        # deep inside the generator
+        if not (isinstance(self.name, str) and _FILE_NAME.match(self.name)):
+            raise ValueError(f"'name' must be a plain file name (letters, "
+                             f"digits, '_', '-', '.', '+'; not starting "
+                             f"with '.'), got {self.name!r}")
+        if not isinstance(self.description, str):
+            raise TypeError(f"'description' must be a string, got "
+                            f"{self.description!r}")
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if field.type is int and not _is_integer(value):
+                raise TypeError(f"'{field.name}' must be an integer, got "
+                                f"{value!r}")
+            if field.type is float and not _is_real(value):
+                raise TypeError(f"'{field.name}' must be a number, got "
+                                f"{value!r}")
+        if not _is_sequence(self.anchor_positions) or not all(
+                _is_sequence(p) and all(_is_real(c) for c in p)
+                for p in self.anchor_positions):
+            raise TypeError(f"'anchor_positions' must be a list of [x, y] "
+                            f"number pairs, got {self.anchor_positions!r}")
+        if not _is_sequence(self.prior_var) or not all(
+                _is_real(v) for v in self.prior_var):
+            raise TypeError(f"'prior_var' must be a list of 4 numbers, got "
+                            f"{self.prior_var!r}")
+
     @classmethod
     def load(cls, name_or_path: Union[str, Path]) -> 'Scenario':
         r"""Loads a scenario by name (:obj:`"paper_train"`,
@@ -104,13 +147,26 @@ class Scenario:
                                if p.name.endswith('.json'))
                 raise ValueError(f"unknown scenario '{name_or_path}'; known: "
                                  f"{known} or a path to a .json file")
-        with path.open() as f:
-            fields = json.load(f)
-        unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
+        elif not path.is_file():
+            raise ValueError(f"scenario file '{path}' does not exist")
+        fields = read_json(path)
+        if not isinstance(fields, dict):
+            raise ValueError(f"scenario '{path}' must be a JSON object of "
+                             f"fields")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(fields) - known
         if unknown:
             raise ValueError(f"scenario '{path}' has unknown fields "
                              f"{sorted(unknown)}")
-        return cls(**fields)
+        missing = sorted(f.name for f in dataclasses.fields(cls)
+                         if f.name not in fields
+                         and f.default is dataclasses.MISSING)
+        if missing:
+            raise ValueError(f"scenario '{path}' lacks the fields {missing}")
+        try:
+            return cls(**fields)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"scenario '{path}': {e}") from None
 
     def replace(self, **changes) -> 'Scenario':
         r"""A copy with some parameters changed."""

@@ -8,11 +8,12 @@ from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_realization
+from tg_nebp.data.validation import check_positive_int, check_realization
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 from tg_nebp.nn.conv import ParticleBPConv
-from tg_nebp.utils import weighted_moments
+from tg_nebp.utils import (compute_dtype, log_normalize, sort_by_receiver,
+                            weighted_moments)
 
 __all__ = ['ParticleBP', 'StepOutput', 'TrackOutput', 'weighted_moments']
 
@@ -43,6 +44,25 @@ def _draw(draw: Callable, generator: Generators,
         return draw(*tensors, generator)
     slices = zip(*(tensor.split(counts) for tensor in tensors))
     return torch.cat([draw(*part, g) for part, g in zip(slices, generator)])
+
+
+def _check_belief(log_weights: Tensor, data: Realization, t: int) -> None:
+    # a belief of zero weights cannot be normalized or resampled: name the
+    # measurements that caused it rather than let NaNs or an internal field
+    # of the resampler reach the user
+    zero = torch.isneginf(log_weights).all(-1)
+    if not bool(zero.any()):
+        return
+    i = int(zero.nonzero()[0, 0])
+    edges = ((data.edge_time == t) &
+             (data.edge_index[1] == i)).nonzero().view(-1)[:3].tolist()
+    ranges = ', '.join(f"'edge_attr[{e}]' = {float(data.edge_attr[e, 0]):.4g}"
+                       for e in edges)
+    raise ValueError(f"node {i} at time index {t}: its measurements ("
+                     f"{ranges or 'none'}) give every one of its particles "
+                     f"zero likelihood in {log_weights.dtype}; the ranges "
+                     f"and the prior of node {i} or its neighbours are "
+                     f"irreconcilably far apart for the measurement model")
 
 
 class StepOutput(NamedTuple):
@@ -122,12 +142,8 @@ class ParticleBP(torch.nn.Module):
                  resampler: Union[str, Callable] = 'multinomial',
                  chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__()
-        if num_particles < 1:
-            raise ValueError(f"'num_particles' must be positive, got "
-                             f"{num_particles}")
-        if num_iterations < 1:
-            raise ValueError(f"'num_iterations' must be positive, got "
-                             f"{num_iterations}")
+        num_particles = check_positive_int(num_particles, 'num_particles')
+        num_iterations = check_positive_int(num_iterations, 'num_iterations')
         if isinstance(resampler, str):
             if resampler not in RESAMPLERS:
                 raise ValueError(f"'resampler' must be one of "
@@ -162,10 +178,14 @@ class ParticleBP(torch.nn.Module):
                 (mean.size(0), self.num_particles, mean.size(-1)),
                 dtype=mean.dtype, device=mean.device, generator=g)
 
+        # half precision is drawn in float32 (torch has no half normals on
+        # every device, and the filter computes in float32 anyway)
+        mean = data.prior_mean.to(compute_dtype(data.prior_mean,
+                                                data.prior_cov))
         noise = _draw(standard_normal, generator,
-                      _nodes_per_graph(data, generator), data.prior_mean)
+                      _nodes_per_graph(data, generator), mean)
         offset = noise @ root.to(noise.dtype).transpose(-1, -2)
-        return data.prior_mean.unsqueeze(1) + offset
+        return mean.unsqueeze(1) + offset
 
     def predict(self, particles: Tensor, anchor: Tensor,
                 generator: Optional[torch.Generator] = None) -> Tensor:
@@ -183,19 +203,15 @@ class ParticleBP(torch.nn.Module):
         # receiver-sorted edges: the convs sum each receiver's segment
         # (deterministic, unlike CUDA's scatter-add) and BP never
         # materializes its [E, K] messages
-        if not isinstance(edge_index, EdgeIndex):
-            n = particles.size(0)
-            edge_index = EdgeIndex(edge_index, sparse_size=(n, n))
-        if not edge_index.is_sorted_by_col:
-            edge_index, perm = edge_index.sort_by('col', stable=True)
-            edge_attr = edge_attr[perm]
+        edge_index, edge_attr = sort_by_receiver(edge_index,
+                                                 particles.size(0), edge_attr)
         sender, state = log_weights, None
         for _ in range(self.num_iterations):
             belief, state = self.iterate(particles, log_weights, edge_index,
                                          edge_attr, anchor, sender, state)
             # normalizing scales each message by a per-node constant: the
             # beliefs are unchanged and the log-weights stay bounded
-            sender = belief - belief.logsumexp(-1, keepdim=True)
+            sender = log_normalize(belief)
         return sender
 
     def iterate(self, particles: Tensor, log_weights: Tensor,
@@ -227,11 +243,11 @@ class ParticleBP(torch.nn.Module):
                 (default: :obj:`None`)
         """
         check_realization(data)
-        if not data.prior_mean.is_floating_point():
-            raise ValueError("'prior_mean' must be a floating point tensor")
         counts = _nodes_per_graph(data, generator)
         anchor = data.anchor
-        particles = self.sample_prior(data, generator)
+        # one dtype for the whole loop: half precision is promoted
+        dtype = compute_dtype(data.prior_mean, data.prior_cov, data.edge_attr)
+        particles = self.sample_prior(data, generator).to(dtype)
         log_uniform = -math.log(self.num_particles)
         log_weights = particles.new_full(particles.shape[:2], log_uniform)
 
@@ -241,12 +257,13 @@ class ParticleBP(torch.nn.Module):
         size = (data.num_nodes, data.num_nodes)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
             # edges_by_step sorts by receiver: no check, no sort per step
-            edge_index = EdgeIndex(edge_index, sparse_size=size,
+            edge_index = EdgeIndex(edge_index.long(), sparse_size=size,
                                    sort_order='col')
             particles = _draw(self.predict, generator, counts, particles,
                               anchor)
             log_weights = self.update(particles, log_weights, edge_index,
-                                      edge_attr, anchor)
+                                      edge_attr.to(dtype), anchor)
+            _check_belief(log_weights, data, t)
             mean, cov = weighted_moments(particles, log_weights)
             yield StepOutput(t, mean, cov, particles, log_weights)
             ancestors = _draw(resample, generator, counts,

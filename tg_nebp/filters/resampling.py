@@ -12,13 +12,15 @@ __all__ = ['multinomial_resample', 'systematic_resample', 'RESAMPLERS']
 def _probabilities(log_weights: Tensor) -> Tensor:
     if log_weights.size(-1) == 0:
         raise ValueError("'log_weights' holds K = 0 particles")
-    if bool(torch.isnan(log_weights).any()):
-        raise ValueError("'log_weights' holds NaN")
-    if bool((log_weights == float('inf')).any()):
-        raise ValueError("'log_weights' holds +inf")
-    if bool((log_weights == float('-inf')).all(-1).any()):
-        raise ValueError("'log_weights' holds a row of zero weights (all "
-                         "-inf): nothing to resample from")
+    for bad, what in ((torch.isnan(log_weights), 'holds NaN'),
+                      (log_weights == float('inf'), 'holds +inf'),
+                      (torch.isneginf(log_weights).all(-1, keepdim=True),
+                       'is a row of zero weights (all -inf): nothing to '
+                       'resample from')):
+        rows = bad.any(-1)
+        if bool(rows.any()):
+            row = ''.join(f'[{i}]' for i in rows.nonzero()[0].tolist())
+            raise ValueError(f"'log_weights{row}' {what}")
     # softmax subtracts the maximum: finite for any finite log-weights
     return torch.softmax(log_weights.detach().double(), dim=-1)
 

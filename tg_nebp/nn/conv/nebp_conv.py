@@ -9,10 +9,12 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter, segment
 
 from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_particles, check_ranges)
+                                     check_particles, check_positive_int,
+                                     check_ranges)
 from tg_nebp.models import GaussianRange
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
-from tg_nebp.utils import plain_tensor, weighted_moments
+from tg_nebp.utils import (compute_dtype, log_normalize, plain_tensor,
+                            weighted_moments)
 
 __all__ = ['NEBPConv', 'node_embedding']
 
@@ -23,7 +25,7 @@ def node_embedding(particles: Tensor, log_weights: Tensor) -> Tensor:
     r"""The paper's node embedding :math:`\mathbf{h}_i = [\hat{\mathbf{x}}_i^
     \top, \mathrm{vec}(\hat{\mathbf{C}}_i)^\top]^\top` :math:`(N, 20)`: the
     weighted particle mean and covariance."""
-    mean, cov = weighted_moments(particles, log_weights.log_softmax(-1))
+    mean, cov = weighted_moments(particles, log_weights)
     return torch.cat([mean, cov.flatten(1)], dim=-1)
 
 
@@ -128,11 +130,9 @@ class NEBPConv(MessagePassing):
                  feature_scale: float = 10.0,
                  chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__(aggr='add', node_dim=0)
-        for name, value in (('num_particles', num_particles),
-                            ('message_dim', message_dim),
-                            ('hidden_dim', hidden_dim)):
-            if int(value) < 1:
-                raise ValueError(f"'{name}' must be positive, got {value}")
+        num_particles = check_positive_int(num_particles, 'num_particles')
+        message_dim = check_positive_int(message_dim, 'message_dim')
+        hidden_dim = check_positive_int(hidden_dim, 'hidden_dim')
         if not feature_scale > 0:
             raise ValueError(f"'feature_scale' must be positive, got "
                              f"{feature_scale}")
@@ -189,8 +189,12 @@ class NEBPConv(MessagePassing):
                 (default: :obj:`True`)
         """
         num_nodes = particles.size(0)
+        if sender_log_weights is None:
+            sender_log_weights = log_weights
         if validate:
             check_particles(particles, log_weights, state_dim=4)
+            check_particles(particles, sender_log_weights,
+                            weights_name='sender_log_weights')
             check_graph(edge_index, num_nodes)
             check_ranges(edge_attr, edge_index.size(1))
             check_anchor(anchor, num_nodes)
@@ -198,8 +202,17 @@ class NEBPConv(MessagePassing):
             raise ValueError(f"'particles' holds K = {particles.size(1)} "
                              f"particles per node but this NEBPConv was "
                              f"built for K = {self.num_particles}")
-        if sender_log_weights is None:
-            sender_log_weights = log_weights
+        # like any torch.nn layer, compute in the parameters' dtype
+        parameter = next(self.parameters(), None)
+        dtype = (parameter.dtype if parameter is not None else compute_dtype(
+            particles, log_weights, sender_log_weights, edge_attr))
+        particles, log_weights, sender_log_weights, edge_attr = (
+            t.to(dtype)
+            for t in (particles, log_weights, sender_log_weights, edge_attr))
+        if embedding is not None:
+            embedding = embedding.to(dtype)
+        if edge_index.dtype != torch.long:  # PyG's scatter wants int64
+            edge_index = edge_index.to(torch.long)
         if embedding is None:
             embedding = node_embedding(particles, log_weights)
 
@@ -232,8 +245,7 @@ class NEBPConv(MessagePassing):
         (no graph breaks): the per-edge-particle chain becomes a few fused
         kernels."""
         # scaled to mean one per edge: a per-edge constant, BP is unchanged
-        log_phi = log_phi - log_phi.logsumexp(-1, keepdim=True) + math.log(
-            self.num_particles)
+        log_phi = log_normalize(log_phi) + math.log(self.num_particles)
         message = self.edge_updater(edge_index, h=embedding, log_phi=log_phi)
         log_scaled = torch.nn.functional.logsigmoid(
             self.g_s(message)) + log_phi

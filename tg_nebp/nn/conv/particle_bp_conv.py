@@ -8,10 +8,11 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
 
 from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_particles, check_ranges)
+                                     check_particles, check_positive_int,
+                                     check_ranges)
 from tg_nebp.models import GaussianRange
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
-from tg_nebp.utils import plain_tensor
+from tg_nebp.utils import compute_dtype, plain_tensor, sort_by_receiver
 
 __all__ = ['ParticleBPConv']
 
@@ -77,9 +78,8 @@ class ParticleBPConv(MessagePassing):
     def __init__(self, measurement: Optional[GaussianRange] = None,
                  chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__(aggr='add', node_dim=0)
-        if chunk_size is not None and chunk_size < 1:
-            raise ValueError(f"'chunk_size' must be positive, got "
-                             f"{chunk_size}")
+        if chunk_size is not None:
+            chunk_size = check_positive_int(chunk_size, 'chunk_size')
         self.measurement = measurement or GaussianRange()
         self.chunk_size = chunk_size
         # dynamic: chunk lengths and edge counts change from call to call
@@ -137,10 +137,10 @@ class ParticleBPConv(MessagePassing):
                 check_anchor(anchor, particles.size(0))
         # one dtype for every operand lets the no-grad path work in place;
         # contiguous coordinate planes make every gather a dense [E, K] copy
-        dtype = torch.promote_types(
-            torch.promote_types(particles.dtype, sender_log_weights.dtype),
-            edge_attr.dtype)
+        dtype = compute_dtype(particles, sender_log_weights, edge_attr)
         size = (particles.size(0), particles.size(0))
+        if edge_index.dtype != torch.long:  # PyG's scatter wants int64
+            edge_index = edge_index.to(torch.long)
         node_args = dict(pos_x=particles[..., 0].to(dtype).contiguous(),
                          pos_y=particles[..., 1].to(dtype).contiguous(),
                          sender_log_weights=sender_log_weights.to(dtype),
@@ -153,13 +153,8 @@ class ParticleBPConv(MessagePassing):
             # receiver-sorted edges let message_and_aggregate sum chunk by
             # chunk: no [E, K] tensor is ever allocated
             log_messages = None
-            if not (isinstance(edge_index, EdgeIndex)
-                    and edge_index.is_sorted_by_col):
-                # stable: each receiver's edges keep their order, and with it
-                # the summation order of a scatter over the input edges
-                edge_index, perm = EdgeIndex(
-                    edge_index, sparse_size=size).sort_by('col', stable=True)
-                node_args['ranges'] = node_args['ranges'][perm]
+            edge_index, node_args['ranges'] = sort_by_receiver(
+                edge_index, size[0], node_args['ranges'])
         out = self.propagate(edge_index, log_messages=log_messages,
                              size=size, **node_args)
         if anchor is not None:
