@@ -193,3 +193,57 @@ def test_consistent_gaussian_estimator_accepts_at_confidence_level():
     bad = metrics.consistency_curve(metrics.nees(est, cov / 4, true),
                                     confidence).numpy()
     assert np.all(bad < np.array(confidence) - 0.1)
+
+
+# --- a diverged filter never reads as a good one ---------------------------
+
+def test_nan_estimates_give_nan_not_perfect_scores():
+    est, true = random_problem((5, 3), 7)
+    est[2, 1] = float('nan')  # one diverged estimate
+    cov = torch.eye(2, dtype=torch.float64).expand(5, 3, 2, 2).clone()
+    assert math.isnan(metrics.rmse(est, true))
+    assert torch.isnan(metrics.outage_probability(est, true,
+                                                  [0.5, 1.0])).all()
+    values = metrics.nees(est, cov, true)
+    assert torch.isnan(values[2, 1])
+    assert torch.isfinite(values[0]).all()  # the others are unaffected
+    assert torch.isnan(metrics.consistency_curve(values, [0.95])).all()
+    # all-NaN estimates: the "outage 0, NEES 0"
+    nan_est = torch.full_like(est, float('nan'))
+    assert torch.isnan(metrics.outage_probability(nan_est, true, [1.0])).all()
+    assert torch.isnan(metrics.nees(nan_est, cov, true)).all()
+
+
+def test_nan_covariance_gives_nan_nees():
+    est, true = random_problem((4, ), 8)
+    cov = torch.eye(2, dtype=torch.float64).expand(4, 2, 2).clone()
+    cov[1, 0, 0] = float('nan')
+    values = metrics.nees(est, cov, true)
+    assert torch.isnan(values[1]) and torch.isfinite(values[[0, 2, 3]]).all()
+
+
+def test_masked_out_nan_does_not_count():
+    est, true = random_problem((3, ), 9)
+    est[0] = float('nan')
+    mask = torch.tensor([False, True, True])
+    assert math.isfinite(metrics.rmse(est, true, mask=mask))
+    assert torch.isfinite(metrics.outage_probability(est, true, [1.0],
+                                                     mask=mask)).all()
+
+
+def test_empty_selection_is_an_error():
+    est, true = random_problem((3, 2), 10)
+    nothing = torch.zeros(3, 2, dtype=torch.bool)
+    cov = torch.eye(2, dtype=torch.float64).expand(3, 2, 2, 2)
+    for call in (lambda: metrics.rmse(est, true, mask=nothing),
+                 lambda: metrics.outage_probability(est, true, [1.0],
+                                                    mask=nothing),
+                 lambda: metrics.consistency_curve(
+                     metrics.nees(est, cov, true), [0.95], mask=nothing)):
+        with pytest.raises(ValueError, match="'mask' selects no entry"):
+            call()
+    for call in (lambda: metrics.rmse_from_errors(torch.empty(0)),
+                 lambda: metrics.outage_from_errors(torch.empty(0), [1.0]),
+                 lambda: metrics.consistency_curve(torch.empty(0), [0.95])):
+        with pytest.raises(ValueError, match='empty'):
+            call()

@@ -261,8 +261,13 @@ def test_code_executing_pickle_is_refused(tmp_path, writer):
         state = torch.load(path, weights_only=True)
         state['progress'] = {'history': Exploit(marker)}
         torch.save(state, path)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError) as info:
         load_checkpoint(path)
+    # one line, without torch's colour codes and its advice to load the
+    # file unsafely
+    message = str(info.value)
+    assert '\n' not in message and '\x1b' not in message
+    assert 'weights_only=False' not in message and 'refused' in message
     with pytest.raises(ValueError):
         nebp_from_checkpoint(path)
     with pytest.raises(ValueError):
@@ -377,3 +382,16 @@ def test_resume_with_other_run_settings_is_refused(tmp_path, change):
     with pytest.raises(ValueError, match=next(iter(change))):
         train(make_model(), data, checkpoint=path, resume=True,
               **{**settings, **change})
+
+
+def test_checkpoint_of_other_shapes_is_refused_on_one_line(tmp_path):
+    # a config that says K = 8 with the weights of a K = 16 model
+    path = tmp_path / 'mixed.pt'
+    save_checkpoint(path, NEBP(num_particles=8))
+    state = torch.load(path, weights_only=True)
+    state['model'] = NEBP(num_particles=16).state_dict()
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=r"does not match the NEBP model: "
+                       r".*size mismatch") as info:
+        nebp_from_checkpoint(path)
+    assert '\n' not in str(info.value) and '\t' not in str(info.value)

@@ -1,9 +1,13 @@
 r"""Tests of :mod:`tg_nebp.utils`."""
+import math
+
+import pytest
 import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
-from tg_nebp.utils import plain_tensor
+from tg_nebp.utils import (compute_dtype, log_normalize, plain_tensor,
+                           sort_by_receiver, weighted_moments)
 
 
 def test_plain_tensor_strips_pyg_subclasses_without_copying():
@@ -17,3 +21,80 @@ def test_plain_tensor_strips_pyg_subclasses_without_copying():
         assert plain.data_ptr() == source.data_ptr()  # zero-copy
         assert torch.equal(plain, source)
     assert plain_tensor(edges) is edges  # plain tensors pass through
+
+
+# ---------------------------------------------------------------- log_normalize
+
+def reference_normalized(row):
+    r"""Normalized weights of one row with plain float64 loops."""
+    top = max(row)
+    w = [math.exp(v - top) for v in row]
+    return [v / sum(w) for v in w]
+
+
+@pytest.mark.parametrize('dtype', [torch.float32, torch.float64])
+@pytest.mark.parametrize('offset', [0.0, -1e3, -1e6, -1e10, -3e30])
+def test_log_normalize_sums_to_one_at_any_offset(dtype, offset):
+    # the issue's failure: around -1e10, x - x.logsumexp() in float32 rounds
+    # max + log(sum) back to max and tied particles each get weight one
+    g = torch.Generator().manual_seed(0)
+    spread = torch.randn(6, 50, generator=g, dtype=torch.float64) * 3
+    spread[:, 10:20] = spread[:, :1]  # ties with each other
+    spread[:, 20:25] = spread.amax(-1, keepdim=True)  # ties at the maximum
+    rows = (offset + spread).to(dtype)
+    weights = log_normalize(rows).double().exp()
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    assert not torch.isnan(weights).any()
+    assert torch.allclose(weights.sum(-1), torch.ones(6, dtype=torch.float64),
+                          atol=tol, rtol=0)
+    for r in range(6):  # against the rows as stored in dtype
+        expected = reference_normalized(rows[r].double().tolist())
+        assert torch.allclose(weights[r], torch.tensor(expected,
+                                                       dtype=torch.float64),
+                              atol=tol, rtol=0)
+
+
+def test_log_normalize_keeps_zero_rows_without_nan():
+    rows = torch.tensor([[0.0, -1.0, float('-inf')],
+                         [float('-inf')] * 3], requires_grad=True)
+    out = log_normalize(rows)
+    assert torch.isneginf(out[1]).all()
+    assert torch.allclose(out[0, :2].exp().sum(), torch.tensor(1.0))
+    out[:, :2].sum().backward()  # a finite part of every row
+    assert not torch.isnan(rows.grad).any()
+    assert torch.equal(rows.grad[1], torch.zeros(3))
+
+
+def test_weighted_moments_normalize_unnormalized_log_weights():
+    g = torch.Generator().manual_seed(1)
+    particles = torch.randn(3, 40, 4, generator=g, dtype=torch.float64)
+    log_weights = torch.randn(3, 40, generator=g, dtype=torch.float64)
+    far = (log_weights - 1e10).float()  # quantized: compare as stored
+    far_mean, far_cov = weighted_moments(particles.float(), far)
+    mean, cov = weighted_moments(particles, far.double().log_softmax(-1))
+    assert torch.allclose(far_mean.double(), mean, atol=1e-5)
+    assert torch.allclose(far_cov.double(), cov, atol=1e-5)
+
+
+def test_compute_dtype_promotes_half_precision():
+    half, single = torch.zeros(1, dtype=torch.float16), torch.zeros(1)
+    double = torch.zeros(1, dtype=torch.float64)
+    index = torch.zeros(1, dtype=torch.long)
+    assert compute_dtype(half) == torch.float32
+    assert compute_dtype(half, torch.zeros(1, dtype=torch.bfloat16)) \
+        == torch.float32
+    assert compute_dtype(single, double) == torch.float64
+    assert compute_dtype(index) == torch.float32
+
+
+@pytest.mark.parametrize('dtype', [torch.int32, torch.long])
+def test_sort_by_receiver_is_stable_and_int64(dtype):
+    edges = torch.tensor([[0, 1, 2, 3, 1], [2, 0, 0, 2, 1]], dtype=dtype)
+    attr = torch.arange(5.0).view(-1, 1)
+    edge_index, sorted_attr = sort_by_receiver(edges, 4, attr)
+    assert edge_index.dtype == torch.long and edge_index.is_sorted_by_col
+    assert edge_index.tolist() == [[1, 2, 1, 0, 3], [0, 0, 1, 2, 2]]
+    assert sorted_attr.view(-1).tolist() == [1.0, 2.0, 4.0, 0.0, 3.0]
+    # an EdgeIndex already sorted by receiver is passed through
+    again, same = sort_by_receiver(edge_index, 4, sorted_attr)
+    assert same is sorted_attr and torch.equal(again, edge_index)

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 import torch
 from torch_geometric.data import Batch
@@ -49,6 +50,23 @@ def test_snapshot_single(pair):
 def test_snapshot_out_of_range(pair, t):
     with pytest.raises(ValueError, match="'t'"):
         pair[0].snapshot(t)
+
+
+@pytest.mark.parametrize('t', [1.5, 1.0, True, '1', torch.tensor(1.0),
+                               torch.tensor([0, 1])])
+def test_snapshot_needs_an_integer_time_index(pair, t):
+    # 1.5 gave an IndexError, or silently no edges without states
+    for data in (pair[0].clone(), pair[1].clone()):
+        del data.states
+        with pytest.raises(TypeError, match="'t' must be an integer"):
+            data.snapshot(t)
+
+
+def test_snapshot_takes_numpy_and_tensor_integers(pair):
+    expected = pair[0].snapshot(1)
+    for t in (np.int64(1), torch.tensor(1), torch.tensor([1])):
+        assert torch.equal(pair[0].snapshot(t).edge_index,
+                           expected.edge_index)
 
 
 def test_snapshot_without_states(pair):

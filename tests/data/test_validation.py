@@ -7,13 +7,16 @@ its two main entry points: :class:`~tg_nebp.nn.conv.ParticleBPConv` with
 import math
 import re
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch
 
 from tg_nebp.data import Realization, check_realization
+from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import Scenario
 from tg_nebp.filters import ParticleBP
 from tg_nebp.nn.conv import ParticleBPConv
@@ -131,6 +134,26 @@ CONV_CORRUPTIONS = [
      r"'anchor' must be a bool tensor of shape \[5\], got torch.uint8"),
     ('anchor_short', _set('anchor', lambda t: t[:-1]),
      r"'anchor' must be a bool tensor of shape \[5\].*\[4\]"),
+    ('weights_zero_row', _set('log_weights', _at(2, -math.inf)),
+     r"'log_weights\[2\]' is -inf for every particle"),
+    ('sender_zero_row', lambda i: i.update(
+        sender_log_weights=_at(3, -math.inf)(torch.zeros(N, K))),
+     r"'sender_log_weights\[3\]' is -inf for every particle"),
+    ('range_too_large', _set('edge_attr', _at((4, 0), 1e30)),
+     r"'edge_attr\[4\]' = 1e\+30 is too large a range \(at most 4.61e\+18"),
+    ('particle_too_large', _set('particles', _at((1, 2, 0), -1e20)),
+     r"'particles\[1\]' holds a position beyond 4.61e\+18"),
+    ('false_col_order_claim', _set('edge_index', lambda t: EdgeIndex(
+        t[:, [0, 3, 1]], sparse_size=(N, N), sort_order='col')),
+     r"'edge_index' claims sort_order='col' but 'edge_index\[1, 2\]' = 0 "
+     r"follows 1"),
+    ('false_row_order_claim', _set('edge_index', lambda t: EdgeIndex(
+        t, sparse_size=(N, N), sort_order='row')),
+     r"'edge_index' claims sort_order='row' but 'edge_index\[0, 3\]' = 0 "
+     r"follows 4"),
+    ('edge_index_sparse_size', _set('edge_index', lambda t: EdgeIndex(
+        t, sparse_size=(N + 1, N + 1))),
+     r"'edge_index' has sparse size \(6, 6\) but the graph has 5 nodes"),
     ('empty_graph', lambda i: i.update(
         particles=torch.zeros(0, K, 4), log_weights=torch.zeros(0, K),
         edge_index=torch.zeros(2, 0, dtype=torch.long),
@@ -501,3 +524,37 @@ def test_first_of_several_offending_indices_is_named(realization):
     inputs['log_weights'][1, 2] = math.inf
     with pytest.raises(ValueError, match=r"'log_weights\[1\]'"):
         run_conv(inputs)
+
+
+def test_realization_without_steps(realization):
+    realization.num_steps = 0
+    realization.edge_time = realization.edge_time[:0]
+    realization.edge_index = realization.edge_index[:, :0]
+    realization.edge_attr = realization.edge_attr[:0]
+    realization.states = realization.states[:, :0]
+    check_both(realization, r"'num_steps' must be at least 1, got 0")
+
+
+def test_realization_fractional_steps(realization):
+    realization.num_steps = torch.tensor([2.5])
+    check_both(realization, r"'num_steps' must be an integer, got \[2.5\]")
+
+
+def test_realization_range_too_large(realization):
+    # the probe: NaN estimates, then an internal resampler error
+    realization.edge_attr[11, 0] = 1e30
+    check_both(realization, r"'edge_attr\[11\]' = 1e\+30 is too large")
+
+
+def test_realization_prior_mean_too_large(realization):
+    realization.prior_mean[2, 1] = 1e25
+    check_both(realization, r"'prior_mean\[2\]' holds a position beyond")
+
+
+@pytest.mark.parametrize('value,error', [
+    (2.5, TypeError), ('8', TypeError), (True, TypeError), (0, ValueError),
+    (-3, ValueError)])
+def test_check_positive_int(value, error):
+    with pytest.raises(error, match="'num_particles' must be"):
+        check_positive_int(value, 'num_particles')
+    assert check_positive_int(np.int64(7), 'num_particles') == 7

@@ -246,3 +246,83 @@ def test_prior_statistics(tmp_path):
     # the position and velocity prior errors are independent
     corr = np.corrcoef(diffs[:, 0], diffs[:, 1])[0, 1]
     assert abs(corr) < 5 / math.sqrt(n)
+
+
+# --- files on disk: nothing in them runs, damage heals or is named ----------
+
+class Exploit:
+    r"""Unpickling this creates :obj:`marker`: proof that code ran."""
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, 'w'))
+
+
+def test_crafted_processed_file_does_not_run(tmp_path):
+    path = make(tmp_path, num_realizations=2).processed_paths[0]
+    marker = tmp_path / 'ran'
+    torch.save({'format': 'tg_nebp.dataset', 'payload': Exploit(marker)},
+               path)
+    with pytest.raises(ValueError, match=r"processed file '.*\.pt' holds "
+                       r"objects other than tensors and primitives"):
+        make(tmp_path, num_realizations=2)
+    assert not marker.exists()
+    # the payload is real: an unsafe load would have run it (PyG's
+    # fs.torch_load falls back to weights_only=False)
+    torch.load(path, weights_only=False)
+    assert marker.exists()
+
+
+def test_crafted_pre_transform_record_is_never_read(tmp_path):
+    # PyG reads processed/pre_transform.pt with weights_only=False
+    ds = make(tmp_path, num_realizations=2)
+    marker = tmp_path / 'ran'
+    folder = os.path.dirname(ds.processed_paths[0])
+    for name in ('pre_transform.pt', 'pre_filter.pt'):
+        torch.save(Exploit(marker), os.path.join(folder, name))
+    again = make(tmp_path, num_realizations=2)
+    make(tmp_path, num_realizations=3)  # generating writes no record
+    assert not marker.exists() and same_data(again[0], ds[0])
+    assert sorted(os.listdir(folder)) == sorted(
+        [os.path.basename(ds.processed_paths[0]), 'pre_transform.pt',
+         'pre_filter.pt', os.path.basename(
+             make(tmp_path, num_realizations=3).processed_paths[0])])
+
+
+@pytest.mark.parametrize('damage', ['cut in half', 'empty', 'garbage'])
+def test_damaged_processed_file_is_generated_again(tmp_path, damage):
+    ds = make(tmp_path, num_realizations=2)
+    path = ds.processed_paths[0]
+    content = open(path, 'rb').read()
+    damaged = {'cut in half': content[:len(content) // 2], 'empty': b'',
+               'garbage': os.urandom(1000)}[damage]
+    with open(path, 'wb') as f:
+        f.write(damaged)
+    with pytest.warns(UserWarning, match=r"processed file '.*\.pt' is "
+                      r"(cut short or )?corrupt.*generating it again"):
+        healed = make(tmp_path, num_realizations=2)
+    assert same_data(healed[1], ds[1])
+    assert open(path, 'rb').read() != damaged
+
+
+def test_foreign_processed_file_is_refused(tmp_path):
+    path = make(tmp_path, num_realizations=2).processed_paths[0]
+    torch.save({'weights': torch.zeros(3)}, path)
+    with pytest.raises(ValueError, match=r"processed file '.*\.pt' is not a "
+                       r"tg_nebp dataset"):
+        make(tmp_path, num_realizations=2)
+
+
+def test_other_pre_transform_warns(tmp_path):
+    make(tmp_path, num_realizations=2)
+    with pytest.warns(UserWarning, match='pre_transform'):
+        make(tmp_path, num_realizations=2, pre_transform=lambda d: d)
+
+
+def test_root_that_is_a_file(tmp_path):
+    root = tmp_path / 'file'
+    root.write_text('x')
+    with pytest.raises(ValueError, match=r"'root' = '.*file' is not a "
+                       r"folder"):
+        make(root)

@@ -1,4 +1,5 @@
 import dataclasses
+import importlib.resources
 import json
 import math
 
@@ -71,7 +72,9 @@ def test_fingerprint_covers_every_generation_parameter():
 
 
 @pytest.mark.parametrize('key,value', [
-    ('name', ''), ('name', 'a/b'), ('name', 'a b'), ('num_agents', 0),
+    ('name', ''), ('name', 'a/b'), ('name', 'a b'), ('name', '..'),
+    ('name', '.hidden'), ('name', 'a\\b'), ('name', 'a\x00b'),
+    ('num_agents', 0),
     ('num_steps', 0), ('anchor_positions', ((1.0, 2.0, 3.0), )),
     ('agent_start_low', 50.0), ('prior_var', (1.0, 1.0, 1.0)),
     ('prior_var', (1.0, 1.0, 0.0, 1.0)), ('sigma_v0', -1.0),
@@ -202,3 +205,49 @@ def test_grown_keeps_the_density(name, num_agents):
 def test_grown_rejects_no_agents():
     with pytest.raises(ValueError, match="'num_agents'"):
         Scenario.load('paper_test').grown(0)
+
+
+@pytest.mark.parametrize('key,value', [
+    ('num_agents', 2.5), ('num_agents', '3'), ('num_agents', True),
+    ('num_steps', 1.0), ('sigma_r', '1.0'), ('dt', None),
+    ('prior_var', 10.0), ('prior_var', (1.0, '1', 1.0, 1.0)),
+    ('anchor_positions', 5.0), ('anchor_positions', ((0.0, 'x'), )),
+    ('name', 7), ('description', 3),
+])
+def test_wrong_types_name_the_field(key, value):
+    with pytest.raises(TypeError, match=f"'{key}' must be"):
+        Scenario.load('paper_train').replace(**{key: value})
+
+
+@pytest.mark.parametrize('change,message', [
+    (dict(num_agents=None), r"lacks the fields \['num_agents'\]"),
+    (dict(num_agents=2.5), r"'num_agents' must be an integer, got 2.5"),
+    (dict(prior_var=10.0), r"'prior_var' must be a list of 4 numbers"),
+    (dict(name='..'), r"'name' must be a plain file name"),
+    (dict(num_steps=0), r"'num_steps' must be at least 1"),
+])
+def test_bad_json_scenario_names_the_file_and_field(tmp_path, change,
+                                                     message):
+    fields = json.loads((importlib.resources.files('tg_nebp.datasets') /
+                         'scenarios' / 'paper_test.json').read_text())
+    fields.update(change)
+    fields = {k: v for k, v in fields.items() if v is not None}
+    path = tmp_path / 'bad.json'
+    path.write_text(json.dumps(fields))
+    with pytest.raises(ValueError, match=rf"scenario '.*bad.json'.*{message}"):
+        Scenario.load(path)
+
+
+def test_missing_or_malformed_json_scenario_names_the_file(tmp_path):
+    with pytest.raises(ValueError, match=r"scenario file '.*none.json' does "
+                       r"not exist"):
+        Scenario.load(tmp_path / 'none.json')
+    broken = tmp_path / 'broken.json'
+    broken.write_text('{"name": ')
+    with pytest.raises(ValueError, match=r"'.*broken.json' is not a valid "
+                       r"JSON file"):
+        Scenario.load(broken)
+    listed = tmp_path / 'list.json'
+    listed.write_text('[1, 2]')
+    with pytest.raises(ValueError, match='must be a JSON object'):
+        Scenario.load(listed)

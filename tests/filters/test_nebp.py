@@ -335,3 +335,14 @@ def test_compiled_tracker_step_equals_eager_with_gradients():
         error = float((results[1][1][name] - grad).norm())
         assert float(grad.norm()) > 0 and error <= 1e-4 * float(
             grad.norm()), (name, error)
+
+
+def test_two_iterations_with_int32_edges():
+    # NEBP with two iterations crashed in PyG's scatter on int32 edges
+    data = small_realization(seed=5)
+    model = NEBP(num_particles=16, num_iterations=2, message_dim=4,
+                 hidden_dim=8)
+    expected = model(data, gen(1))
+    data.edge_index = data.edge_index.int()
+    out = model(data, gen(1))
+    assert torch.equal(out.mean, expected.mean)

@@ -3,6 +3,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.stats import norm
 from torch_geometric.data import Batch
 from torch_geometric.loader import DataLoader
@@ -363,3 +365,116 @@ def test_custom_resampler_is_used():
     # after keeping particle 0 only, the spread at the next step is the
     # motion noise alone: tiny compared with the prior
     assert float(outs[1].cov[:25, 0, 0].max()) < 0.01
+
+
+# ---- extreme inputs: weights stay normalized, never NaN ---------------------
+
+def static_network(num_agents, num_anchors, steps, seed):
+    r"""Agents and anchors at rest in [0, 20]^2, every node measured by every
+    agent at every step, ranges drawn from the model."""
+    g = gen(seed)
+    n = num_agents + num_anchors
+    pos = 20 * torch.rand(n, 2, generator=g)
+    states = torch.cat([pos, torch.zeros(n, 2)], 1).unsqueeze(1).repeat(
+        1, steps, 1)
+    anchor = torch.arange(n) >= num_agents
+    edges = [(j, i) for i in range(num_agents) for j in range(n) if i != j]
+    return custom_realization(states, anchor, [edges] * steps, seed=seed)
+
+
+def assert_normalized(step, dtype):
+    weights = step.log_weights.double().exp()
+    assert not torch.isnan(step.log_weights).any()
+    assert torch.isfinite(step.mean).all() and torch.isfinite(step.cov).all()
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(weights.sum(-1), torch.ones_like(weights[:, 0]),
+                          atol=tol, rtol=0)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(st.data())
+def test_property_extreme_inputs_keep_weights_normalized(data):
+    dtype = data.draw(st.sampled_from([torch.float32, torch.float64]))
+    num_agents = data.draw(st.integers(1, 4))
+    net = static_network(num_agents, data.draw(st.integers(1, 3)), 2,
+                         data.draw(st.integers(0, 1000)))
+    # an agent believed far from where its ranges put it ...
+    agent = data.draw(st.integers(0, num_agents - 1))
+    offset = data.draw(st.floats(-1e6, 1e6))
+    net.prior_mean[agent, data.draw(st.integers(0, 1))] += offset
+    # ... ranges anywhere between 0 and 1e6 m, and peaked likelihoods
+    for e in data.draw(st.lists(st.integers(0, net.edge_attr.size(0) - 1),
+                                max_size=3)):
+        net.edge_attr[e, 0] = data.draw(st.floats(0.0, 1e6))
+    sigma = data.draw(st.floats(1e-3, 10.0))
+    net.prior_mean, net.edge_attr = net.prior_mean.to(dtype), \
+        net.edge_attr.to(dtype)
+    bp = ParticleBP(num_particles=16, measurement=GaussianRange(sigma),
+                    resampler=data.draw(st.sampled_from(['multinomial',
+                                                         'systematic'])))
+    for step in bp.steps(net, gen(0)):
+        assert step.log_weights.dtype == dtype
+        assert_normalized(step, dtype)
+
+
+def test_far_prior_does_not_inflate_the_neighbours_weights():
+    # the issue's case: an agent believed 1e5 m away made its neighbours'
+    # float32 weights sum to 2 or 3 and doubled their estimates
+    net = static_network(3, 3, 2, seed=3)
+    net.prior_mean[0, 0] += 1e5
+    bp = ParticleBP(num_particles=64)
+    step = next(bp.steps(net, gen(1)))
+    assert_normalized(step, torch.float32)
+    # the same particles updated in float64
+    edge_index, edge_attr = net.edges_by_step()[0]
+    uniform = torch.full((6, 64), -math.log(64), dtype=torch.float64)
+    log_weights = bp.update(step.particles.double(), uniform, edge_index,
+                            edge_attr.double(), net.anchor)
+    mean, _ = weighted_moments(step.particles.double(), log_weights)
+    # the neighbours (agent 0's own float32 log-weights, around -5e9, are
+    # resolved to 512 only)
+    assert torch.allclose(step.mean[1:].double(), mean[1:], atol=1e-3)
+
+
+def test_int32_edges_track_as_int64():
+    net = static_network(2, 3, 3, seed=4)
+    expected = ParticleBP(num_particles=16)(net, gen(2))
+    net.edge_index = net.edge_index.int()
+    net.edge_time = net.edge_time.int()
+    for tracker in (ParticleBP(num_particles=16),
+                    ParticleBP(num_particles=16, num_iterations=2)):
+        out = tracker(net, gen(2))
+        reference = expected if tracker.num_iterations == 1 else tracker(
+            static_network(2, 3, 3, seed=4), gen(2))
+        assert torch.equal(out.mean, reference.mean)
+
+
+def test_half_precision_prior_is_tracked_in_float32():
+    net = static_network(2, 3, 2, seed=5)
+    net.prior_mean = net.prior_mean.half()
+    net.prior_cov = net.prior_cov.half()
+    out = ParticleBP(num_particles=16)(net, gen(3))
+    assert out.mean.dtype == torch.float32
+    net.prior_mean = net.prior_mean.float()  # the same values in float32
+    net.prior_cov = net.prior_cov.float()
+    assert torch.equal(out.mean, ParticleBP(num_particles=16)(net,
+                                                               gen(3)).mean)
+
+
+def test_zero_belief_names_the_node_and_its_ranges():
+    # sigma = 1e-18 and residuals of about 1 km: every scaled squared
+    # residual overflows float32 to -inf
+    net = static_network(1, 3, 2, seed=6)
+    net.prior_mean[0, :2] += 1e3
+    bp = ParticleBP(num_particles=8, measurement=GaussianRange(1e-18))
+    with pytest.raises(ValueError, match=r"node 0 at time index 0: its "
+                       r"measurements \('edge_attr\[0\]' = .*, "
+                       r"'edge_attr\[1\]' = .*\) give every one of its "
+                       r"particles zero likelihood in torch.float32"):
+        bp(net, gen(0))
+
+
+@pytest.mark.parametrize('value', [2.5, '16', True])
+def test_non_integer_particle_count_is_a_type_error(value):
+    with pytest.raises(TypeError, match="'num_particles' must be an integer"):
+        ParticleBP(num_particles=value)

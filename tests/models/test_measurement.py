@@ -141,6 +141,7 @@ def test_connect_never_ends_at_non_receivers():
     ('sigma', dict(sigma=-1.0)),
     ('sigma', dict(sigma=float('nan'))),
     ('sigma', dict(sigma=float('inf'))),
+    ('sigma', dict(sigma=1e-20)),  # 1 / (2 sigma^2) overflows float32
     ('max_range', dict(max_range=0.0)),
     ('max_range', dict(max_range=-5.0)),
     ('max_range', dict(max_range=float('nan'))),
@@ -148,3 +149,16 @@ def test_connect_never_ends_at_non_receivers():
 def test_bad_parameters_raise(name, kwargs):
     with pytest.raises(ValueError, match=f"'{name}'"):
         GaussianRange(**kwargs)
+
+
+def test_smallest_sigma_gives_no_nan():
+    # zero residuals times the largest accepted factor stay finite, large
+    # ones overflow to -inf (never 0 * inf = NaN), in both code paths
+    model = GaussianRange(sigma=1e-19)
+    ranges = torch.tensor([[3.0], [3.0]])
+    distances = torch.tensor([[3.0, 3.5], [3.0, 1e3]])
+    for inplace in (False, True):
+        out = model.log_likelihood_of_distance(ranges, distances.clone(),
+                                               inplace=inplace)
+        assert not torch.isnan(out).any()
+        assert torch.isfinite(out[:, 0]).all() and torch.isneginf(out[1, 1])

@@ -109,7 +109,9 @@ class Scenario:
     def _check_types(self):
         # JSON gives any type: a wrong one must name its field, not fail
         # deep inside the generator
-        if not (isinstance(self.name, str) and _FILE_NAME.match(self.name)):
+        if not isinstance(self.name, str):
+            raise TypeError(f"'name' must be a string, got {self.name!r}")
+        if not _FILE_NAME.match(self.name):
             raise ValueError(f"'name' must be a plain file name (letters, "
                              f"digits, '_', '-', '.', '+'; not starting "
                              f"with '.'), got {self.name!r}")

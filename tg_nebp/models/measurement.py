@@ -43,6 +43,11 @@ class GaussianRange:
         if not (math.isfinite(sigma) and sigma > 0):
             raise ValueError(f"'sigma' must be a finite positive number, "
                              f"got {sigma}")
+        # the likelihood scales squared residuals by 1 / (2 sigma^2): an
+        # infinite factor would turn a zero residual into NaN
+        if not sigma**2 * torch.finfo(torch.float32).max >= 0.5:
+            raise ValueError(f"'sigma' = {sigma} is too small: 1 / (2 "
+                             f"sigma^2) overflows float32")
         if not max_range > 0:
             raise ValueError(f"'max_range' must be positive, got {max_range}")
         self.sigma = sigma

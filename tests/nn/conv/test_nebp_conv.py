@@ -470,3 +470,44 @@ def test_compiled_particle_bp_conv_equals_eager(return_messages):
     if return_messages:
         torch.testing.assert_close(outputs[1][1], outputs[0][1], atol=1e-9,
                                    rtol=0)
+
+
+def test_zero_weight_row_is_rejected_not_nan():
+    # the issue: an all -inf row became NaN (ParticleBPConv kept -inf)
+    particles, lw, ei, ea, anchor = random_graph(gen(90), 3, 1, 8)
+    conv = NEBPConv(8, message_dim=4, hidden_dim=4).double()
+    lw[1] = float('-inf')
+    with pytest.raises(ValueError, match=r"'log_weights\[1\]' is -inf for "
+                       r"every particle"):
+        conv(particles, lw, ei, ea, anchor)
+    lw[1] = 0.0
+    sender = lw.clone()
+    sender[2] = float('-inf')
+    with pytest.raises(ValueError, match=r"'sender_log_weights\[2\]'"):
+        conv(particles, lw, ei, ea, anchor, sender_log_weights=sender)
+
+
+def test_int32_edges_and_mixed_dtypes_match_the_reference_inputs():
+    # int32 indices, and particles in another dtype than the parameters,
+    # crashed inside PyG's scatter and an einsum
+    particles, lw, ei, ea, anchor = random_graph(gen(91), 4, 2, 8)
+    conv = NEBPConv(8, message_dim=4, hidden_dim=4, node_update=True)
+    single = [t.float() for t in (particles, lw, ea)]
+    expected = conv(single[0], single[1], ei, single[2], anchor)
+    out = conv(single[0], single[1], ei.int(), single[2], anchor)
+    assert torch.equal(out[0], expected[0])
+    assert torch.equal(out[1], expected[1])
+    # float64 and float16 inputs to a float32 layer: computed in float32
+    wide = conv(particles, lw, ei, ea, anchor)
+    assert wide[0].dtype == torch.float32
+    torch.testing.assert_close(wide[0], expected[0])
+    half = conv(single[0].half(), single[1], ei, single[2], anchor)
+    again = conv(single[0].half().float(), single[1], ei, single[2], anchor)
+    assert torch.equal(half[0], again[0])
+
+
+def test_non_integer_sizes_are_type_errors():
+    for kwargs in (dict(num_particles=2.5), dict(num_particles=4,
+                                                   hidden_dim=True)):
+        with pytest.raises(TypeError, match='must be an integer'):
+            NEBPConv(**kwargs)

@@ -623,3 +623,45 @@ def test_blockwise_gradients_equal_autograd_of_materialized_messages(
         assert bool(torch.isfinite(blockwise).all())
         torch.testing.assert_close(blockwise, materialized, atol=1e-10,
                                    rtol=1e-9)
+
+
+# ---- index and floating dtypes that validation accepts ---------------------
+
+@pytest.mark.parametrize('return_messages', [True, False])
+def test_int32_edge_index_equals_int64(return_messages):
+    # int32 passed check_graph, then PyG's scatter wanted int64
+    particles, lw, ei, ea, anchor = random_graph(gen(80), 4, 2, 6)
+    conv = ParticleBPConv()
+    expected = conv(particles, lw, ei, ea, anchor=anchor,
+                    return_messages=return_messages)
+    for edges in (ei.int(), EdgeIndex(ei.int(), sparse_size=(6, 6))):
+        out = conv(particles, lw, edges, ea, anchor=anchor,
+                   return_messages=return_messages)
+        assert torch.equal(out[0], expected[0])
+        if return_messages:
+            assert torch.equal(out[1], expected[1])
+
+
+def test_half_precision_inputs_compute_in_float32():
+    particles, lw, ei, ea, anchor = random_graph(gen(81), 4, 2, 6,
+                                                 dtype=torch.float32)
+    conv = ParticleBPConv()
+    half = conv(particles.half(), lw, ei, ea, anchor=anchor)
+    same = conv(particles.half().float(), lw, ei, ea, anchor=anchor)
+    assert half[0].dtype == torch.float32
+    assert torch.equal(half[0], same[0]) and torch.equal(half[1], same[1])
+    # ranges and weights in bfloat16: float32 too
+    out, _ = conv(particles, lw.bfloat16(), ei, ea.bfloat16(), anchor=anchor)
+    assert out.dtype == torch.float32 and torch.isfinite(out).all()
+
+
+def test_false_sort_claim_is_rejected_not_believed():
+    # the issue: an unsorted EdgeIndex claiming sort_order='col' passed and
+    # gave log-weights off by up to 58
+    particles, lw, ei, ea, anchor = random_graph(gen(82), 5, 2, 4)
+    ei, ea = ei.flip(1), ea.flip(0)  # random_graph sorts by receiver
+    claimed = EdgeIndex(ei, sparse_size=(7, 7), sort_order='col')
+    with pytest.raises(ValueError, match=r"'edge_index' claims "
+                       r"sort_order='col' but 'edge_index\[1, \d+\]'"):
+        ParticleBPConv()(particles, lw, claimed, ea, anchor=anchor,
+                         return_messages=False)

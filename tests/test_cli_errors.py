@@ -1,0 +1,245 @@
+r"""Every user error of the :obj:`tg-nebp` command line exits with status 2
+and prints one line, starting with :obj:`error:`, that names what is wrong:
+no traceback, no usage block, and no work done first.
+
+Each case runs :obj:`python -m tg_nebp` in its own folder. Importing torch
+takes seconds per process, so the module's processes run together, once
+(:func:`cli_runs`), and each case's test checks its own result. The
+processes inherit the environment, :obj:`PYTHONPATH` included."""
+import json
+import os
+import random
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from importlib import resources
+from pathlib import Path
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
+
+import pytest
+import torch
+
+from tg_nebp import NEBP
+from tg_nebp.training import save_checkpoint
+
+# tiny runs: a case that is not caught early still ends in seconds
+EVALUATE = ['evaluate', '--realizations', '1', '--particles', '8', '--quiet']
+TRAIN = ['train', '--realizations', '1', '--val-realizations', '1',
+         '--epochs', '1', '--batch-size', '1', '--particles', '8', '--quiet']
+NEBP_EVALUATE = ['evaluate', '--method', 'nebp', '--realizations', '1',
+                 '--quiet']
+SECONDS_PER_RUN = 120  # a hang fails its case, not the whole module
+
+# a case writes its files into its folder and returns the command line and
+# the texts (file names, flags) that its error line must contain
+Prepare = Callable[[Path], Tuple[List[str], List[str]]]
+
+
+class CreatesFileWhenUnpickled:
+    r"""A malicious checkpoint's payload: unpickling it runs
+    :obj:`open(path, 'w')`, which creates :obj:`path`."""
+    def __init__(self, path: Path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, 'w'))
+
+
+def out_is_file(command: List[str]) -> Prepare:
+    def prepare(folder):
+        (folder / 'taken.txt').write_text('')
+        return command + ['--out', 'taken.txt'], ['taken.txt']
+
+    return prepare
+
+
+def out_is_unwritable(command: List[str]) -> Prepare:
+    def prepare(folder):
+        if os.geteuid() == 0:  # root writes into read-only folders
+            (folder / 'plain.txt').write_text('')
+            out = 'plain.txt/sub'
+        else:
+            (folder / 'locked').mkdir(mode=0o500)
+            out = 'locked/sub'
+        return command + ['--out', out], [out]
+
+    return prepare
+
+
+def root_is_file(folder):
+    (folder / 'taken.txt').write_text('')
+    return EVALUATE + ['--root', 'taken.txt'], ['taken.txt']
+
+
+def paper_test_fields() -> dict:
+    path = resources.files('tg_nebp.datasets') / 'scenarios' / 'paper_test.json'
+    return json.loads(path.read_text())
+
+
+def scenario_file(edit: Callable[[dict], None],
+                  expected: Optional[str] = None) -> Prepare:
+    r"""A copy of :obj:`paper_test` changed by :obj:`edit`; the error line
+    names :obj:`expected`, by default the file."""
+    def prepare(folder):
+        fields = paper_test_fields()
+        edit(fields)
+        (folder / 'bad.json').write_text(json.dumps(fields))
+        return (EVALUATE + ['--scenario', 'bad.json'],
+                [expected or 'bad.json'])
+
+    return prepare
+
+
+def scenario_missing(folder):
+    return EVALUATE + ['--scenario', 'missing.json'], ['missing.json']
+
+
+def scenario_malformed(folder):
+    (folder / 'bad.json').write_text('{"name": ')
+    return EVALUATE + ['--scenario', 'bad.json'], ['bad.json']
+
+
+def checkpoint_malicious(folder):
+    torch.save(CreatesFileWhenUnpickled(folder / 'marker'),
+               folder / 'evil.pt')
+    return NEBP_EVALUATE + ['--checkpoint', 'evil.pt'], ['evil.pt']
+
+
+def checkpoint_missing(folder):
+    return NEBP_EVALUATE + ['--checkpoint', 'absent.pt'], ['absent.pt']
+
+
+def checkpoint_random_bytes(folder):
+    (folder / 'noise.pt').write_bytes(random.Random(0).randbytes(4096))
+    return NEBP_EVALUATE + ['--checkpoint', 'noise.pt'], ['noise.pt']
+
+
+def checkpoint_other_k(folder):
+    save_checkpoint(folder / 'k8.pt', NEBP(num_particles=8))
+    return (NEBP_EVALUATE + ['--checkpoint', 'k8.pt', '--particles', '16'],
+            ['k8.pt'])
+
+
+def checkpoint_weights_of_other_k(folder):
+    # the config says K = 8, the weights are sized for K = 16
+    path = folder / 'mixed.pt'
+    save_checkpoint(path, NEBP(num_particles=8))
+    state = torch.load(path, weights_only=True)
+    state['model'] = NEBP(num_particles=16).state_dict()
+    torch.save(state, path)
+    return NEBP_EVALUATE + ['--checkpoint', 'mixed.pt'], ['mixed.pt']
+
+
+def argv_only(argv: List[str], expected: List[str]) -> Prepare:
+    return lambda folder: (argv, expected)
+
+
+def delete(key: str) -> Callable[[dict], None]:
+    return lambda fields: fields.pop(key)
+
+
+def assign(key: str, value) -> Callable[[dict], None]:
+    return lambda fields: fields.__setitem__(key, value)
+
+
+CASES: Dict[str, Prepare] = {
+    'evaluate-out-is-file': out_is_file(EVALUATE),
+    'train-out-is-file': out_is_file(TRAIN),
+    'evaluate-out-unwritable': out_is_unwritable(EVALUATE),
+    'train-out-unwritable': out_is_unwritable(TRAIN),
+    'evaluate-root-is-file': root_is_file,
+    'scenario-missing': scenario_missing,
+    'scenario-without-num_agents': scenario_file(delete('num_agents')),
+    'scenario-fractional-num_agents': scenario_file(assign('num_agents', 2.5)),
+    'scenario-scalar-prior_var': scenario_file(assign('prior_var', 10.0)),
+    'scenario-malformed-json': scenario_malformed,
+    # '..' as a processed-file name would escape the dataset folder
+    'scenario-name-dotdot': scenario_file(assign('name', '..'), "'name'"),
+    'checkpoint-malicious-pickle': checkpoint_malicious,
+    'checkpoint-missing': checkpoint_missing,
+    'checkpoint-random-bytes': checkpoint_random_bytes,
+    'checkpoint-other-K': checkpoint_other_k,
+    'checkpoint-weights-of-other-K': checkpoint_weights_of_other_k,
+    'particles-zero': argv_only(['evaluate', '--particles', '0'],
+                                ['--particles']),
+    'unknown-flag': argv_only(['evaluate', '--bogus-flag'], ['--bogus-flag']),
+    'device-tpu': argv_only(['evaluate', '--device', 'tpu'], ['--device']),
+    'no-subcommand': argv_only([], []),
+    'bench-agents-zero': argv_only(['bench', '--agents', '0'], ['--agents']),
+}
+
+
+class Run(NamedTuple):
+    folder: Path
+    expected: List[str]
+    returncode: Optional[int]  # None: still running after SECONDS_PER_RUN
+    stdout: str
+    stderr: str
+
+
+def run_cli(argv: List[str],
+            folder: Path) -> Tuple[Optional[int], str, str]:
+    try:
+        done = subprocess.run([sys.executable, '-m', 'tg_nebp', *argv],
+                              cwd=folder, capture_output=True,
+                              timeout=SECONDS_PER_RUN)
+        returncode, stdout, stderr = done.returncode, done.stdout, done.stderr
+    except subprocess.TimeoutExpired as e:
+        returncode, stdout, stderr = None, e.stdout, e.stderr
+    return (returncode, (stdout or b'').decode(errors='replace'),
+            (stderr or b'').decode(errors='replace'))
+
+
+@pytest.fixture(scope='module')
+def cli_runs(tmp_path_factory) -> Dict[str, Run]:
+    r"""Every case's process, run concurrently once for the module."""
+    prepared = {}
+    for name, prepare in CASES.items():
+        folder = tmp_path_factory.mktemp(name)
+        prepared[name] = (folder, *prepare(folder))
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
+        futures = {
+            name: pool.submit(run_cli, argv, folder)
+            for name, (folder, argv, _) in prepared.items()
+        }
+        return {
+            name: Run(prepared[name][0], prepared[name][2],
+                      *futures[name].result())
+            for name in CASES
+        }
+
+
+@pytest.mark.parametrize('case', list(CASES))
+def test_user_error_is_one_line(cli_runs, case):
+    r"""Status 2 and exactly one line, :obj:`error: ...`, naming the file or
+    flag at fault; no traceback, no colour codes, and never the advice to
+    load a checkpoint with :obj:`weights_only=False`."""
+    run = cli_runs[case]
+    report = (f'status {run.returncode}\nstdout:\n{run.stdout}\n'
+              f'stderr:\n{run.stderr}')
+    assert run.returncode == 2, report
+    assert 'Traceback' not in run.stdout + run.stderr, report
+    lines = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, report
+    line = lines[0]
+    assert line.startswith('error:'), report
+    assert '\x1b' not in line, report
+    assert 'weights_only=False' not in line, report
+    for text in run.expected:
+        assert text in line, report
+
+
+def test_malicious_checkpoint_runs_no_code(cli_runs):
+    r"""The payload that :obj:`checkpoint-malicious-pickle` refuses would
+    have created its marker file."""
+    assert not (cli_runs['checkpoint-malicious-pickle'].folder /
+                'marker').exists()
+
+
+def test_malicious_checkpoint_payload_works(tmp_path):
+    r"""The payload is live: unpickled without :obj:`weights_only`, it
+    creates the marker, so its absence above means no code ran."""
+    torch.save(CreatesFileWhenUnpickled(tmp_path / 'marker'),
+               tmp_path / 'evil.pt')
+    torch.load(tmp_path / 'evil.pt', weights_only=False).close()
+    assert (tmp_path / 'marker').exists()
