@@ -82,6 +82,10 @@ class NEBPConv(MessagePassing):
       another (the paper trains on :math:`[0, 60]^2` and tests on
       :math:`[0, 100]^2`).
 
+    Like any :class:`torch.nn` layer it computes in its parameters' dtype
+    (float32, or float64 after :obj:`conv.double()`): floating inputs are
+    cast to it.
+
     Args:
         num_particles (int): :math:`K` (sizes :math:`g_e` and :math:`g_v`).
         message_dim (int, optional): Size of :math:`\mathbf{m}`.

@@ -43,7 +43,9 @@ class ParticleBPConv(MessagePassing):
     scatter (or, for an :class:`~torch_geometric.EdgeIndex` sorted by
     receiver, a deterministic segment) sum. Anchors send their known position
     (all :math:`K` particles at it) and never receive: their log-weights are
-    returned unchanged.
+    returned unchanged. The layer computes in the promoted dtype of its
+    inputs, at least float32 (half precision cannot hold log-weights), and
+    takes int32 or int64 edge indices.
 
     Args:
         measurement (GaussianRange, optional): The measurement model that
