@@ -72,8 +72,8 @@ def root_is_file(folder):
 
 
 def paper_test_fields() -> dict:
-    path = resources.files('tg_nebp.datasets') / 'scenarios' / 'paper_test.json'
-    return json.loads(path.read_text())
+    scenarios = resources.files('tg_nebp.datasets') / 'scenarios'
+    return json.loads((scenarios / 'paper_test.json').read_text())
 
 
 def scenario_file(edit: Callable[[dict], None],

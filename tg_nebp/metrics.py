@@ -47,10 +47,18 @@ def _non_empty(values: Tensor, name: str = 'errors') -> Tensor:
 def position_errors(est_pos: Tensor, true_pos: Tensor) -> Tensor:
     r"""Euclidean errors :math:`\|\hat{\mathbf{p}} - \mathbf{p}\|`
     :math:`(*)`."""
+    _check_positions(est_pos, true_pos)
+    return torch.linalg.vector_norm((est_pos - true_pos).double(), dim=-1)
+
+
+def _check_positions(est_pos: Tensor, true_pos: Tensor) -> None:
+    for name, pos in (('est_pos', est_pos), ('true_pos', true_pos)):
+        if not isinstance(pos, Tensor):
+            raise TypeError(f"'{name}' must be a tensor, got "
+                            f"{type(pos).__name__}")
     if est_pos.shape != true_pos.shape:
         raise ValueError(f"'est_pos' {list(est_pos.shape)} and 'true_pos' "
                          f"{list(true_pos.shape)} differ in shape")
-    return torch.linalg.vector_norm(est_pos - true_pos, dim=-1)
 
 
 def rmse(est_pos: Tensor, true_pos: Tensor,
@@ -82,6 +90,9 @@ def outage_from_errors(errors: Tensor, thresholds: Sequence[float]) -> Tensor:
     errors = _non_empty(errors.reshape(-1).double())
     thresholds = torch.as_tensor(thresholds, dtype=torch.float64,
                                  device=errors.device)
+    if not bool((thresholds >= 0).all()):  # also catches NaN
+        raise ValueError(f"'thresholds' must be non-negative numbers, got "
+                         f"{thresholds.tolist()}")
     outage = (errors.unsqueeze(-1) > thresholds.reshape(-1)).double().mean(0)
     if bool(torch.isnan(errors).any()):
         outage = torch.full_like(outage, float('nan'))
@@ -95,6 +106,11 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     \mathbf{p})` for covariances :math:`(*, 2, 2)`. A singular covariance
     gives :math:`+\infty` (or :math:`0` for a zero error); a NaN estimate,
     truth or covariance gives NaN."""
+    _check_positions(est_pos, true_pos)
+    if pos_cov.shape != est_pos.shape + (2, ):
+        raise ValueError(f"'pos_cov' must have shape "
+                         f"{list(est_pos.shape) + [2]}, got "
+                         f"{list(pos_cov.shape)}")
     err = (est_pos - true_pos).double().unsqueeze(-1)
     cov = pos_cov.double()
     solution, info = torch.linalg.solve_ex(cov, err)
@@ -117,8 +133,10 @@ def consistency_curve(nees_values: Tensor, confidence: Sequence[float],
     confidence level itself."""
     values = _select(nees_values, mask).double()
     confidence = torch.as_tensor(confidence, dtype=torch.float64)
-    if bool(((confidence <= 0) | (confidence >= 1)).any()):
+    if not bool(((confidence > 0) & (confidence < 1)).all()):  # NaN too
         raise ValueError("'confidence' levels must lie in (0, 1)")
+    if isinstance(dof, bool) or not isinstance(dof, int) or dof < 1:
+        raise ValueError(f"'dof' must be a positive integer, got {dof!r}")
     alpha = (1 - confidence.reshape(-1)).numpy()
     low = torch.as_tensor(chi2.ppf(alpha / 2, dof), device=values.device)
     high = torch.as_tensor(chi2.ppf(1 - alpha / 2, dof), device=values.device)

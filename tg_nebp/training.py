@@ -59,9 +59,11 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
         raise ValueError(f"checkpoint '{path}' does not exist") from None
     except pickle.UnpicklingError as e:
         # never pass on torch's advice to retry with weights_only=False
+        # (torch names the refused class or function: 'Unsupported global';
+        # random bytes fail on an opcode instead)
         reason = ('it holds objects other than tensors and primitives: '
-                  'refused' if 'weights only' in str(e).lower() else
-                  first_line(e))
+                  'refused' if 'global' in str(e).lower() else
+                  'corrupt or foreign')
         raise ValueError(f"'{path}' is not a readable tg_nebp checkpoint: "
                          f"{reason}") from None
     except Exception as e:  # the unpickler raises many kinds on bad input

@@ -6,7 +6,7 @@ from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
 __all__ = ['weighted_moments', 'log_normalize', 'compute_dtype', 'plain_tensor',
-           'sort_by_receiver']
+           'sort_by_receiver', 'as_edge_index', 'long_edge_index']
 
 
 def compute_dtype(*tensors: Tensor) -> torch.dtype:
@@ -29,7 +29,9 @@ def weighted_moments(particles: Tensor, log_weights: Tensor):
     log-weights :math:`(N, K)`, normalized here (:func:`log_normalize`), so
     that the weights sum to one whatever their scale. A row of zero weights
     gives zeros: validation rejects such rows before."""
-    weights = log_normalize(log_weights).exp()
+    dtype = torch.promote_types(particles.dtype, log_weights.dtype)
+    particles = particles.to(dtype)
+    weights = log_normalize(log_weights.to(dtype)).exp()
     mean = torch.einsum('nk,nkd->nd', weights, particles)
     centered = particles - mean.unsqueeze(1)
     cov = (centered * weights.unsqueeze(-1)).transpose(1, 2) @ centered
@@ -74,12 +76,34 @@ def sort_by_receiver(edge_index: Tensor, num_nodes: int,
     keep their order and with it the summation order of a scatter over the
     input edges. Receiver segments give deterministic sums, and let the
     convolutions sum block by block without :math:`(E, K)` tensors."""
-    if not isinstance(edge_index, EdgeIndex):
-        edge_index = EdgeIndex(edge_index, sparse_size=(num_nodes,
-                                                        num_nodes))
-    if edge_index.dtype != torch.long:  # PyG's scatter wants int64
-        edge_index = edge_index.to(torch.long)
+    edge_index = as_edge_index(edge_index, num_nodes)
     if not edge_index.is_sorted_by_col:
         edge_index, perm = edge_index.sort_by('col', stable=True)
         edge_attr = edge_attr[perm]
     return edge_index, edge_attr
+
+
+def as_edge_index(edge_index: Tensor, num_nodes: int) -> EdgeIndex:
+    r"""The edges as an int64 :class:`~torch_geometric.EdgeIndex` of sparse
+    size :obj:`(num_nodes, num_nodes)` (see :func:`long_edge_index`)."""
+    edge_index = long_edge_index(edge_index, num_nodes)
+    if not isinstance(edge_index, EdgeIndex):
+        edge_index = EdgeIndex(edge_index, sparse_size=(num_nodes,
+                                                        num_nodes))
+    return edge_index
+
+
+def long_edge_index(edge_index: Tensor, num_nodes: int) -> Tensor:
+    r"""The edges in int64 (PyG's scatter wants it); an
+    :class:`~torch_geometric.EdgeIndex` also gets the sparse size
+    :obj:`(num_nodes, num_nodes)` and keeps its sort order. (PyG otherwise
+    infers the size from the largest index, which silently drops the last
+    nodes when they receive nothing.)"""
+    if isinstance(edge_index, EdgeIndex) \
+            and edge_index.sparse_size() != (num_nodes, num_nodes):
+        edge_index = EdgeIndex(edge_index.as_tensor(),
+                               sparse_size=(num_nodes, num_nodes),
+                               sort_order=edge_index.sort_order)
+    if edge_index.dtype != torch.long:
+        edge_index = edge_index.to(torch.long)
+    return edge_index

@@ -142,7 +142,11 @@ CONV_CORRUPTIONS = [
     ('range_too_large', _set('edge_attr', _at((4, 0), 1e30)),
      r"'edge_attr\[4\]' = 1e\+30 is too large a range \(at most 4.61e\+18"),
     ('particle_too_large', _set('particles', _at((1, 2, 0), -1e20)),
-     r"'particles\[1\]' holds a position beyond 4.61e\+18"),
+     r"'particles\[1\]' holds a value beyond 4.61e\+18"),
+    ('velocity_too_large', _set('particles', _at((2, 0, 3), 1e20)),
+     r"'particles\[2\]' holds a value beyond 4.61e\+18"),
+    ('log_weight_too_large', _set('log_weights', _at((1, 1), -2e38)),
+     r"'log_weights\[1\]' holds a finite value beyond 4.61e\+18"),
     ('false_col_order_claim', _set('edge_index', lambda t: EdgeIndex(
         t[:, [0, 3, 1]], sparse_size=(N, N), sort_order='col')),
      r"'edge_index' claims sort_order='col' but 'edge_index\[1, 2\]' = 0 "

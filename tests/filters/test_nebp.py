@@ -346,3 +346,17 @@ def test_two_iterations_with_int32_edges():
     data.edge_index = data.edge_index.int()
     out = model(data, gen(1))
     assert torch.equal(out.mean, expected.mean)
+
+
+@pytest.mark.parametrize('model_dtype,data_dtype', [
+    (torch.float32, torch.float64), (torch.float64, torch.float32)])
+def test_data_and_model_of_different_dtypes(model_dtype, data_dtype):
+    # NEBP returned log-weights in its parameters' dtype and the moments
+    # failed on float64 data
+    data = small_realization(seed=6)
+    for key in ('prior_mean', 'prior_cov', 'edge_attr', 'states'):
+        data[key] = data[key].to(data_dtype)
+    model = NEBP(num_particles=16, message_dim=4, hidden_dim=8).to(
+        model_dtype)
+    out = model(data, gen(2))
+    assert torch.isfinite(out.mean).all()

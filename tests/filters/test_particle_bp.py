@@ -6,6 +6,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import norm
+from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch
 from torch_geometric.loader import DataLoader
 
@@ -478,3 +479,70 @@ def test_zero_belief_names_the_node_and_its_ranges():
 def test_non_integer_particle_count_is_a_type_error(value):
     with pytest.raises(TypeError, match="'num_particles' must be an integer"):
         ParticleBP(num_particles=value)
+
+
+def test_update_validates_its_inputs():
+    # update is public: an out-of-range receiver corrupted the heap
+    particles, log_weights = torch.randn(3, 8, 4), torch.zeros(3, 8)
+    anchor = torch.zeros(3, dtype=torch.bool)
+    bp = ParticleBP(8)
+    with pytest.raises(ValueError, match=r"'edge_index\[1, 0\]' = 9 is out "
+                       r"of range for 3 nodes"):
+        bp.update(particles, log_weights, torch.tensor([[0], [9]]),
+                  torch.tensor([[1.0]]), anchor)
+    with pytest.raises(ValueError, match=r"'log_weights\[0\]' holds a finite "
+                       r"value beyond"):
+        bp.update(particles, torch.full_like(log_weights, 3e38),
+                  torch.tensor([[0], [1]]), torch.tensor([[1.0]]), anchor)
+
+
+def test_edge_index_without_sparse_size_counts_every_node():
+    # PyG infers the size from the largest receiver: node 2, which receives
+    # nothing, got node 0's row
+    g = gen(12)
+    particles, log_weights = torch.randn(3, 8, 4, generator=g), \
+        torch.randn(3, 8, generator=g)
+    anchor = torch.zeros(3, dtype=torch.bool)
+    edges, ranges = torch.tensor([[1, 2], [0, 0]]), torch.tensor([[1.], [2.]])
+    bp = ParticleBP(8)
+    expected = bp.update(particles, log_weights, edges, ranges, anchor)
+    for claim in (EdgeIndex(edges, sort_order='col'), EdgeIndex(edges)):
+        out = bp.update(particles, log_weights, claim, ranges, anchor)
+        assert torch.equal(out, expected)
+    assert torch.allclose(expected[2], log_weights[2].log_softmax(-1))
+
+
+@pytest.mark.parametrize('dtype', [torch.int8, torch.uint8, torch.int16,
+                                   torch.int32])
+def test_narrow_edge_time_keeps_every_step(dtype):
+    # edge_time * num_nodes overflowed int8: ranges went to other steps
+    data = tiny_scenario(30).generate(gen(2))
+    narrow = data.clone()
+    narrow.edge_time = data.edge_time.to(dtype)
+    for (ei, ea), (ni, na) in zip(data.edges_by_step(),
+                                  narrow.edges_by_step()):
+        assert torch.equal(ei, ni) and torch.equal(ea, na)
+
+
+def test_diverging_motion_is_named_not_nan():
+    # the explicit quadratic drag is unstable beyond |v| = 2 / (drag dt)
+    data = static_network(2, 3, 8, seed=7)
+    data.prior_mean[:2, 2] = 100.0
+    bp = ParticleBP(16, motion=ConstantVelocityDrag(sigma_a=0.0))
+    with pytest.raises(ValueError, match=r"node 0 at time index \d: the "
+                       r"motion model .* predicted states beyond"):
+        for step in bp.steps(data, gen(0)):
+            assert not torch.isnan(step.log_weights).any()
+
+
+@pytest.mark.parametrize('generator', [[1, 2], 'abc', 5])
+def test_generator_of_wrong_type(generator):
+    with pytest.raises(TypeError, match="'generator' must be a "
+                       "torch.Generator"):
+        ParticleBP(8)(static_network(2, 3, 2, seed=8), generator)
+
+
+def test_resampler_of_wrong_type():
+    with pytest.raises(TypeError, match="'resampler' must be a name or a "
+                       "callable"):
+        ParticleBP(8, resampler=5)

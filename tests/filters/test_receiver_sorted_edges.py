@@ -10,10 +10,12 @@ from tg_nebp import NEBP, ParticleBP, Scenario
 def _force_edge_index(tracker):
     update = tracker.update
 
-    def sorted_update(particles, log_weights, edge_index, edge_attr, anchor):
+    def sorted_update(particles, log_weights, edge_index, edge_attr, anchor,
+                      validate=True):
         n = particles.size(0)
         edges = EdgeIndex(edge_index, sparse_size=(n, n), sort_order='col')
-        return update(particles, log_weights, edges, edge_attr, anchor)
+        return update(particles, log_weights, edges, edge_attr, anchor,
+                      validate)
 
     tracker.update = sorted_update
 

@@ -44,7 +44,11 @@ __all__ = ['Realization', 'num_steps_of']
 def num_steps_of(data: Data) -> int:
     r"""Returns the number of time steps :math:`T` of a single or batched
     realization, checking that all graphs of a batch agree."""
-    steps = torch.as_tensor(data.num_steps).view(-1)
+    try:
+        steps = torch.as_tensor(data.num_steps).view(-1)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"'num_steps' must be an integer, got "
+                         f"{data.num_steps!r}") from None
     if steps.is_floating_point() or steps.is_complex() \
             or steps.dtype == torch.bool:
         raise ValueError(f"'num_steps' must be an integer, got "
@@ -118,8 +122,10 @@ class Realization(Data):
         aggregation can use a deterministic segment sum)."""
         steps = num_steps_of(self)
         # one sort by (time, receiver) instead of T boolean masks
-        key = self.edge_time * self.num_nodes + self.edge_index[1]
+        # in int64: int8/int16 time indices would overflow the key
+        edge_time = self.edge_time.long()
+        key = edge_time * self.num_nodes + self.edge_index[1].long()
         order = torch.argsort(key, stable=True)
-        counts = torch.bincount(self.edge_time, minlength=steps).tolist()
+        counts = torch.bincount(edge_time, minlength=steps).tolist()
         return list(zip(self.edge_index[:, order].split(counts, dim=1),
                         self.edge_attr[order].split(counts, dim=0)))

@@ -24,6 +24,7 @@ __all__ = [
     'check_anchor',
     'magnitude_limit',
     'check_positive_int',
+    'check_number',
 ]
 
 
@@ -50,6 +51,22 @@ def check_positive_int(value, name: str) -> int:
     if value < 1:
         raise ValueError(f"'{name}' must be positive, got {value}")
     return int(value)
+
+
+def check_number(value, name: str, minimum: float = 0.0,
+                 inclusive: bool = False) -> float:
+    r"""Returns :obj:`value` as a :obj:`float` if it is a finite real number
+    above :obj:`minimum` (or equal to it, if :obj:`inclusive`); a string or
+    a bool is a :class:`TypeError`, anything else out of range a
+    :class:`ValueError`, both naming :obj:`name`."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"'{name}' must be a number, got {value!r}")
+    above = value >= minimum if inclusive else value > minimum
+    if not (math.isfinite(value) and above):
+        bound = 'at least' if inclusive else 'above'
+        raise ValueError(f"'{name}' must be a finite number {bound} "
+                         f"{minimum}, got {value}")
+    return float(value)
 
 
 def _too_large(values: Tensor) -> Tensor:
@@ -175,15 +192,24 @@ def check_particles(particles: Tensor, log_weights: Tensor,
     if bool(bad.any()):
         raise ValueError(f"'particles[{_first(bad)}]' holds a non-finite "
                          f"value")
-    big = _too_large(particles[..., :2]).flatten(1).any(-1)
+    big = _too_large(particles).flatten(1).any(-1)
     if bool(big.any()):
-        raise ValueError(f"'particles[{_first(big)}]' holds a position "
-                         f"beyond {magnitude_limit(particles.dtype):.3g}, too "
-                         f"large for {compute_dtype(particles)} distances")
+        raise ValueError(f"'particles[{_first(big)}]' holds a value beyond "
+                         f"{magnitude_limit(particles.dtype):.3g}, too large "
+                         f"for {compute_dtype(particles)} distances and "
+                         f"covariances")
     bad = (torch.isnan(log_weights) | (log_weights == float('inf'))).any(-1)
     if bool(bad.any()):
         raise ValueError(f"'{weights_name}[{_first(bad)}]' holds NaN or "
                          f"+inf")
+    # -inf is a zero weight; finite values must leave room for the sums of
+    # messages
+    big = (_too_large(log_weights) & torch.isfinite(log_weights)).any(-1)
+    if bool(big.any()):
+        raise ValueError(f"'{weights_name}[{_first(big)}]' holds a finite "
+                         f"value beyond "
+                         f"{magnitude_limit(log_weights.dtype):.3g} in "
+                         f"magnitude")
     zero = torch.isneginf(log_weights).all(-1)
     if bool(zero.any()):
         raise ValueError(f"'{weights_name}[{_first(zero)}]' is -inf for "
@@ -205,6 +231,9 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
     r"""Checks the prior: finite means (an anchor's mean is its known
     position), symmetric positive semi-definite covariances."""
     n, d = prior_mean.shape
+    if not prior_cov.is_floating_point():
+        raise ValueError(f"'prior_cov' must be a floating point tensor, got "
+                         f"{prior_cov.dtype}")
     if prior_cov.shape != (n, d, d):
         raise ValueError(f"'prior_cov' must have shape [{n}, {d}, {d}], got "
                          f"{list(prior_cov.shape)}")
@@ -287,3 +316,8 @@ def check_realization(data) -> None:
         raise ValueError(f"'states' must have shape [{n}, {steps}, "
                          f"{data.prior_mean.size(1)}], got "
                          f"{list(states.shape)}")
+    if states is not None:
+        bad = ~torch.isfinite(states).flatten(1).all(-1)
+        if bool(bad.any()):
+            raise ValueError(f"'states[{_first(bad)}]' holds a non-finite "
+                             f"value")

@@ -1,3 +1,4 @@
+import numbers
 import os
 import pickle
 import re
@@ -9,7 +10,7 @@ import torch
 from torch_geometric.data import InMemoryDataset
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_realization
+from tg_nebp.data.validation import check_positive_int, check_realization
 from tg_nebp.datasets.scenario import Scenario
 from tg_nebp.io import atomic_write, first_line
 
@@ -99,12 +100,16 @@ class CooperativeLocalizationDataset(InMemoryDataset):
         force_reload: bool = False,
         log: bool = True,
     ):
-        if not isinstance(scenario, Scenario):
+        if isinstance(scenario, (str, os.PathLike)):
             scenario = Scenario.load(scenario)
-        if int(num_realizations) < 1:
-            raise ValueError(f"'num_realizations' must be at least 1, got "
-                             f"{num_realizations}")
-        if int(seed) < 0:
+        if not isinstance(scenario, Scenario):
+            raise TypeError(f"'scenario' must be a name, a path or a "
+                            f"Scenario, got {scenario!r}")
+        num_realizations = check_positive_int(num_realizations,
+                                              'num_realizations')
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+            raise TypeError(f"'seed' must be an integer, got {seed!r}")
+        if seed < 0:
             raise ValueError(f"'seed' must be non-negative, got {seed}")
         if os.path.exists(root) and not os.path.isdir(root):
             raise ValueError(f"'root' = '{root}' is not a folder")

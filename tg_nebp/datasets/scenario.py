@@ -126,11 +126,18 @@ class Scenario:
             if field.type is float and not _is_real(value):
                 raise TypeError(f"'{field.name}' must be a number, got "
                                 f"{value!r}")
+            if field.type is float and not math.isfinite(value):
+                raise ValueError(f"'{field.name}' must be finite, got "
+                                 f"{value}")
         if not _is_sequence(self.anchor_positions) or not all(
                 _is_sequence(p) and all(_is_real(c) for c in p)
                 for p in self.anchor_positions):
             raise TypeError(f"'anchor_positions' must be a list of [x, y] "
                             f"number pairs, got {self.anchor_positions!r}")
+        if not all(math.isfinite(c) for p in self.anchor_positions
+                   for c in p):
+            raise ValueError(f"'anchor_positions' must be finite, got "
+                             f"{self.anchor_positions!r}")
         if not _is_sequence(self.prior_var) or not all(
                 _is_real(v) for v in self.prior_var):
             raise TypeError(f"'prior_var' must be a list of 4 numbers, got "

@@ -8,7 +8,10 @@ from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_positive_int, check_realization
+from tg_nebp.data.validation import (check_anchor, check_graph,
+                                     check_particles, check_positive_int,
+                                     check_ranges, check_realization,
+                                     magnitude_limit)
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 from tg_nebp.nn.conv import ParticleBPConv
@@ -26,6 +29,11 @@ def _nodes_per_graph(data: Realization,
     # count of every graph, which must match the generators one to one
     if generator is None or isinstance(generator, torch.Generator):
         return None
+    if not (isinstance(generator, (list, tuple)) and all(
+            isinstance(g, torch.Generator) for g in generator)):
+        raise TypeError(f"'generator' must be a torch.Generator, a list of "
+                        f"them (one per graph) or None, got "
+                        f"{type(generator).__name__}")
     counts = (data.ptr.diff().tolist() if isinstance(data, Batch) else
               [data.num_nodes])
     if len(generator) != len(counts):
@@ -44,6 +52,21 @@ def _draw(draw: Callable, generator: Generators,
         return draw(*tensors, generator)
     slices = zip(*(tensor.split(counts) for tensor in tensors))
     return torch.cat([draw(*part, g) for part, g in zip(slices, generator)])
+
+
+def _check_prediction(particles: Tensor, motion, t: int) -> None:
+    # an unstable motion model (the explicit quadratic drag beyond
+    # |v| = 2 / (drag dt)) would otherwise yield NaN weights first
+    limit = magnitude_limit(particles.dtype)
+    if bool(particles.abs().amax() <= limit):  # one reduction; NaN fails it
+        return
+    bad = ~(particles.abs() <= limit).flatten(1).all(-1)
+    if bool(bad.any()):
+        raise ValueError(f"node {int(bad.nonzero()[0, 0])} at time index "
+                         f"{t}: the motion model {motion} predicted states "
+                         f"beyond {magnitude_limit(particles.dtype):.3g} or "
+                         f"non-finite; its prior or its driving noise makes "
+                         f"the motion model diverge")
 
 
 def _check_belief(log_weights: Tensor, data: Realization, t: int) -> None:
@@ -144,6 +167,9 @@ class ParticleBP(torch.nn.Module):
         super().__init__()
         num_particles = check_positive_int(num_particles, 'num_particles')
         num_iterations = check_positive_int(num_iterations, 'num_iterations')
+        if not (isinstance(resampler, str) or callable(resampler)):
+            raise TypeError(f"'resampler' must be a name or a callable, got "
+                            f"{resampler!r}")
         if isinstance(resampler, str):
             if resampler not in RESAMPLERS:
                 raise ValueError(f"'resampler' must be one of "
@@ -194,12 +220,19 @@ class ParticleBP(torch.nn.Module):
         return torch.where(anchor.view(-1, 1, 1), particles, moved)
 
     def update(self, particles: Tensor, log_weights: Tensor,
-               edge_index: Tensor, edge_attr: Tensor, anchor: Tensor) -> Tensor:
+               edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+               validate: bool = True) -> Tensor:
         r"""The update step: :obj:`num_iterations` message passing
         iterations (:meth:`iterate`); returns normalized log-weights. Edges
         are summed per receiver, so a plain :obj:`edge_index` is sorted by
         receiver first; :meth:`steps` passes an already sorted
-        :class:`~torch_geometric.EdgeIndex`."""
+        :class:`~torch_geometric.EdgeIndex` and :obj:`validate=False` (it
+        checks the whole realization once)."""
+        if validate:
+            check_particles(particles, log_weights)
+            check_graph(edge_index, particles.size(0))
+            check_ranges(edge_attr, edge_index.size(1))
+            check_anchor(anchor, particles.size(0))
         # receiver-sorted edges: the convs sum each receiver's segment
         # (deterministic, unlike CUDA's scatter-add) and BP never
         # materializes its [E, K] messages
@@ -261,8 +294,10 @@ class ParticleBP(torch.nn.Module):
                                    sort_order='col')
             particles = _draw(self.predict, generator, counts, particles,
                               anchor)
+            _check_prediction(particles, self.motion, t)
             log_weights = self.update(particles, log_weights, edge_index,
-                                      edge_attr.to(dtype), anchor)
+                                      edge_attr.to(dtype), anchor,
+                                      validate=False)
             _check_belief(log_weights, data, t)
             mean, cov = weighted_moments(particles, log_weights)
             yield StepOutput(t, mean, cov, particles, log_weights)

@@ -1,6 +1,7 @@
 r"""Resamplers: pure functions from log-weights :math:`(*, K)` to ancestor
 indices :math:`(*, M)`, as in filterpy. They never touch the particles, so
 any tracker (or user) applies them with :func:`torch.gather`."""
+import numbers
 from typing import Optional
 
 import torch
@@ -10,6 +11,9 @@ __all__ = ['multinomial_resample', 'systematic_resample', 'RESAMPLERS']
 
 
 def _probabilities(log_weights: Tensor) -> Tensor:
+    if log_weights.dim() == 0:
+        raise ValueError("'log_weights' must have a particle dimension "
+                         "(*, K), got a scalar")
     if log_weights.size(-1) == 0:
         raise ValueError("'log_weights' holds K = 0 particles")
     for bad, what in ((torch.isnan(log_weights), 'holds NaN'),
@@ -81,7 +85,11 @@ def systematic_resample(log_weights: Tensor,
 def _num_samples(num_samples: Optional[int], probs: Tensor) -> int:
     if num_samples is None:
         return probs.size(-1)
-    if int(num_samples) < 0:
+    if isinstance(num_samples, bool) or not isinstance(num_samples,
+                                                       numbers.Integral):
+        raise TypeError(f"'num_samples' must be an integer, got "
+                        f"{num_samples!r}")
+    if num_samples < 0:
         raise ValueError(f"'num_samples' must be non-negative, got "
                          f"{num_samples}")
     return int(num_samples)

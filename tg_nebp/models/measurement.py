@@ -4,6 +4,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from tg_nebp.data.validation import check_number
+
 __all__ = ['GaussianRange']
 
 
@@ -40,16 +42,13 @@ class GaussianRange:
         - **output:** log-likelihoods :math:`(E, K)`
     """
     def __init__(self, sigma: float = 1.0, max_range: float = 20.0):
-        if not (math.isfinite(sigma) and sigma > 0):
-            raise ValueError(f"'sigma' must be a finite positive number, "
-                             f"got {sigma}")
+        sigma = check_number(sigma, 'sigma')
+        max_range = check_number(max_range, 'max_range')
         # the likelihood scales squared residuals by 1 / (2 sigma^2): an
         # infinite factor would turn a zero residual into NaN
         if not sigma**2 * torch.finfo(torch.float32).max >= 0.5:
             raise ValueError(f"'sigma' = {sigma} is too small: 1 / (2 "
                              f"sigma^2) overflows float32")
-        if not max_range > 0:
-            raise ValueError(f"'max_range' must be positive, got {max_range}")
         self.sigma = sigma
         self.max_range = max_range
 

@@ -1,8 +1,9 @@
-import math
 from typing import Optional
 
 import torch
 from torch import Tensor
+
+from tg_nebp.data.validation import check_number
 
 __all__ = ['ConstantVelocityDrag']
 
@@ -39,12 +40,9 @@ class ConstantVelocityDrag:
 
     def __init__(self, sigma_a: float = 0.05, drag: float = 0.06,
                  dt: float = 1.0):
-        for name, value in (('sigma_a', sigma_a), ('drag', drag), ('dt', dt)):
-            if not math.isfinite(value) or value < 0 or (name == 'dt'
-                                                         and value == 0):
-                raise ValueError(f"'{name}' must be a finite "
-                                 f"{'positive' if name == 'dt' else 'non-negative'}"
-                                 f" number, got {value}")
+        sigma_a = check_number(sigma_a, 'sigma_a', inclusive=True)
+        drag = check_number(drag, 'drag', inclusive=True)
+        dt = check_number(dt, 'dt')
         self.sigma_a = sigma_a
         self.drag = drag
         self.dt = dt

@@ -511,3 +511,25 @@ def test_non_integer_sizes_are_type_errors():
                                                    hidden_dim=True)):
         with pytest.raises(TypeError, match='must be an integer'):
             NEBPConv(**kwargs)
+
+
+def test_half_parameters_and_bad_embeddings_are_named():
+    particles, lw, ei, ea, anchor = random_graph(gen(92), 3, 1, 8,
+                                                 dtype=torch.float32)
+    with pytest.raises(TypeError, match='float32 or float64'):
+        NEBPConv(8, message_dim=4, hidden_dim=4).half()(particles, lw, ei,
+                                                        ea, anchor)
+    conv = NEBPConv(8, message_dim=4, hidden_dim=4)
+    with pytest.raises(ValueError, match=r"'embedding' must have shape "
+                       r"\[4, 20\]"):
+        conv(particles, lw, ei, ea, anchor, embedding=torch.zeros(4, 7))
+    bad = torch.zeros(4, 20)
+    bad[3, 5] = float('nan')
+    with pytest.raises(ValueError, match=r"'embedding\[3\]'"):
+        conv(particles, lw, ei, ea, anchor, embedding=bad)
+    # float64 particles beyond float32's range: named, not NaN
+    wide = particles.double()
+    wide[1, :, :2] += 1e39
+    with pytest.raises(ValueError, match=r"'particles\[1\]' holds a "
+                       r"non-finite value"):
+        conv(wide, lw, ei, ea, anchor)

@@ -9,12 +9,12 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter, segment
 
 from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_particles, check_positive_int,
-                                     check_ranges)
+                                     check_number, check_particles,
+                                     check_positive_int, check_ranges)
 from tg_nebp.models import GaussianRange
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
-from tg_nebp.utils import (compute_dtype, log_normalize, plain_tensor,
-                            weighted_moments)
+from tg_nebp.utils import (compute_dtype, log_normalize, long_edge_index,
+                            plain_tensor, weighted_moments)
 
 __all__ = ['NEBPConv', 'node_embedding']
 
@@ -27,6 +27,18 @@ def node_embedding(particles: Tensor, log_weights: Tensor) -> Tensor:
     weighted particle mean and covariance."""
     mean, cov = weighted_moments(particles, log_weights)
     return torch.cat([mean, cov.flatten(1)], dim=-1)
+
+
+def check_embedding(embedding: Tensor, num_nodes: int) -> None:
+    r"""Checks that node embeddings are finite and of shape :math:`(N,
+    20)`."""
+    if embedding.shape != (num_nodes, EMBEDDING_DIM):
+        raise ValueError(f"'embedding' must have shape [{num_nodes}, "
+                         f"{EMBEDDING_DIM}], got {list(embedding.shape)}")
+    bad = ~torch.isfinite(embedding).all(-1)
+    if bool(bad.any()):
+        raise ValueError(f"'embedding[{int(bad.nonzero()[0, 0])}]' holds a "
+                         f"non-finite value")
 
 
 def _log_relu(x: Tensor) -> Tensor:
@@ -137,9 +149,7 @@ class NEBPConv(MessagePassing):
         num_particles = check_positive_int(num_particles, 'num_particles')
         message_dim = check_positive_int(message_dim, 'message_dim')
         hidden_dim = check_positive_int(hidden_dim, 'hidden_dim')
-        if not feature_scale > 0:
-            raise ValueError(f"'feature_scale' must be positive, got "
-                             f"{feature_scale}")
+        feature_scale = check_number(feature_scale, 'feature_scale')
         self.num_particles = num_particles
         self.correct_anchor_edges = correct_anchor_edges
         self.feature_scale = feature_scale
@@ -195,6 +205,20 @@ class NEBPConv(MessagePassing):
         num_nodes = particles.size(0)
         if sender_log_weights is None:
             sender_log_weights = log_weights
+        # like any torch.nn layer, compute in the parameters' dtype; the
+        # checks see the values as computed (a float64 input may overflow
+        # float32)
+        parameter = next(self.parameters(), None)
+        dtype = (parameter.dtype if parameter is not None else compute_dtype(
+            particles, log_weights, sender_log_weights, edge_attr))
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"NEBPConv computes in float32 or float64, its "
+                            f"parameters are {dtype}")
+        particles, log_weights, sender_log_weights, edge_attr = (
+            t.to(dtype) if t.is_floating_point() else t
+            for t in (particles, log_weights, sender_log_weights, edge_attr))
+        if embedding is not None:
+            embedding = embedding.to(dtype)
         if validate:
             check_particles(particles, log_weights, state_dim=4)
             check_particles(particles, sender_log_weights,
@@ -202,21 +226,13 @@ class NEBPConv(MessagePassing):
             check_graph(edge_index, num_nodes)
             check_ranges(edge_attr, edge_index.size(1))
             check_anchor(anchor, num_nodes)
+            if embedding is not None:
+                check_embedding(embedding, num_nodes)
         if particles.size(1) != self.num_particles:
             raise ValueError(f"'particles' holds K = {particles.size(1)} "
                              f"particles per node but this NEBPConv was "
                              f"built for K = {self.num_particles}")
-        # like any torch.nn layer, compute in the parameters' dtype
-        parameter = next(self.parameters(), None)
-        dtype = (parameter.dtype if parameter is not None else compute_dtype(
-            particles, log_weights, sender_log_weights, edge_attr))
-        particles, log_weights, sender_log_weights, edge_attr = (
-            t.to(dtype)
-            for t in (particles, log_weights, sender_log_weights, edge_attr))
-        if embedding is not None:
-            embedding = embedding.to(dtype)
-        if edge_index.dtype != torch.long:  # PyG's scatter wants int64
-            edge_index = edge_index.to(torch.long)
+        edge_index = long_edge_index(edge_index, particles.size(0))
         if embedding is None:
             embedding = node_embedding(particles, log_weights)
 

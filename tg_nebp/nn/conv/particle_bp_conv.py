@@ -12,7 +12,8 @@ from tg_nebp.data.validation import (check_anchor, check_graph,
                                      check_ranges)
 from tg_nebp.models import GaussianRange
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
-from tg_nebp.utils import compute_dtype, plain_tensor, sort_by_receiver
+from tg_nebp.utils import (compute_dtype, long_edge_index, plain_tensor,
+                            sort_by_receiver)
 
 __all__ = ['ParticleBPConv']
 
@@ -141,8 +142,7 @@ class ParticleBPConv(MessagePassing):
         # contiguous coordinate planes make every gather a dense [E, K] copy
         dtype = compute_dtype(particles, sender_log_weights, edge_attr)
         size = (particles.size(0), particles.size(0))
-        if edge_index.dtype != torch.long:  # PyG's scatter wants int64
-            edge_index = edge_index.to(torch.long)
+        edge_index = long_edge_index(edge_index, particles.size(0))
         node_args = dict(pos_x=particles[..., 0].to(dtype).contiguous(),
                          pos_y=particles[..., 1].to(dtype).contiguous(),
                          sender_log_weights=sender_log_weights.to(dtype),
