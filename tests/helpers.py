@@ -71,3 +71,15 @@ class Shift(torch.nn.Module):
 
     def forward(self, x):
         return self.module(x) + self.offset
+
+
+def mixed_k_checkpoint(path):
+    r"""A checkpoint whose config says K = 8 and whose weights are sized for
+    K = 16 (a foreign or tampered file)."""
+    from tg_nebp import NEBP
+    from tg_nebp.training import save_checkpoint
+    save_checkpoint(path, NEBP(num_particles=8))
+    state = torch.load(path, weights_only=True)
+    state['model'] = NEBP(num_particles=16).state_dict()
+    torch.save(state, path)
+    return path

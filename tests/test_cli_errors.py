@@ -22,6 +22,8 @@ import torch
 from tg_nebp import NEBP
 from tg_nebp.training import save_checkpoint
 
+from helpers import mixed_k_checkpoint
+
 # tiny runs: a case that is not caught early still ends in seconds
 EVALUATE = ['evaluate', '--realizations', '1', '--particles', '8', '--quiet']
 TRAIN = ['train', '--realizations', '1', '--val-realizations', '1',
@@ -121,12 +123,7 @@ def checkpoint_other_k(folder):
 
 
 def checkpoint_weights_of_other_k(folder):
-    # the config says K = 8, the weights are sized for K = 16
-    path = folder / 'mixed.pt'
-    save_checkpoint(path, NEBP(num_particles=8))
-    state = torch.load(path, weights_only=True)
-    state['model'] = NEBP(num_particles=16).state_dict()
-    torch.save(state, path)
+    mixed_k_checkpoint(folder / 'mixed.pt')
     return NEBP_EVALUATE + ['--checkpoint', 'mixed.pt'], ['mixed.pt']
 
 

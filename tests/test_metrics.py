@@ -214,12 +214,14 @@ def test_nan_estimates_give_nan_not_perfect_scores():
     assert torch.isnan(metrics.nees(nan_est, cov, true)).all()
 
 
-def test_nan_covariance_gives_nan_nees():
+def test_nan_or_negative_definite_covariance_gives_nan_nees():
     est, true = random_problem((4, ), 8)
     cov = torch.eye(2, dtype=torch.float64).expand(4, 2, 2).clone()
     cov[1, 0, 0] = float('nan')
+    cov[2] = -cov[2]
     values = metrics.nees(est, cov, true)
-    assert torch.isnan(values[1]) and torch.isfinite(values[[0, 2, 3]]).all()
+    assert torch.isnan(values[[1, 2]]).all()
+    assert torch.isfinite(values[[0, 3]]).all()
 
 
 def test_masked_out_nan_does_not_count():

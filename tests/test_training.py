@@ -17,7 +17,7 @@ from tg_nebp.training import (CHECKPOINT_VERSION, load_checkpoint,
                               save_checkpoint, train)
 from tg_nebp.utils import weighted_moments
 
-from helpers import gen, tiny_scenario
+from helpers import gen, mixed_k_checkpoint, tiny_scenario
 
 SMALL = dict(message_dim=8, hidden_dim=16)
 
@@ -385,12 +385,7 @@ def test_resume_with_other_run_settings_is_refused(tmp_path, change):
 
 
 def test_checkpoint_of_other_shapes_is_refused_on_one_line(tmp_path):
-    # a config that says K = 8 with the weights of a K = 16 model
-    path = tmp_path / 'mixed.pt'
-    save_checkpoint(path, NEBP(num_particles=8))
-    state = torch.load(path, weights_only=True)
-    state['model'] = NEBP(num_particles=16).state_dict()
-    torch.save(state, path)
+    path = mixed_k_checkpoint(tmp_path / 'mixed.pt')
     with pytest.raises(ValueError, match=r"does not match the NEBP model: "
                        r".*size mismatch") as info:
         nebp_from_checkpoint(path)

@@ -105,7 +105,8 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     \hat{\boldsymbol{\Sigma}}_{\mathbf{p}}^{-1} (\hat{\mathbf{p}} -
     \mathbf{p})` for covariances :math:`(*, 2, 2)`. A singular covariance
     gives :math:`+\infty` (or :math:`0` for a zero error); a NaN estimate,
-    truth or covariance gives NaN."""
+    truth or covariance, or a negative value (a covariance that is not
+    positive semi-definite), gives NaN."""
     _check_positions(est_pos, true_pos)
     if pos_cov.shape != est_pos.shape + (2, ):
         raise ValueError(f"'pos_cov' must have shape "
@@ -118,8 +119,10 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     singular = (info != 0) | ~torch.isfinite(value)
     fallback = torch.where(err.abs().sum((-1, -2)) > 0, float('inf'), 0.0)
     value = torch.where(singular, fallback, value)
-    unknown = torch.isnan(err).any(-1).any(-1) | torch.isnan(cov).flatten(
-        -2).any(-1)
+    # NaN in, or a covariance that is no covariance (a negative quadratic
+    # form): NaN out
+    unknown = (torch.isnan(err).any(-1).any(-1)
+               | torch.isnan(cov).flatten(-2).any(-1) | (value < 0))
     return value.masked_fill(unknown, float('nan'))
 
 

@@ -331,14 +331,14 @@ def test_wrong_number_of_generators():
     data = small_realization(seed=9, steps=2)
     batch = Batch.from_data_list([data, data])
     tracker = ParticleBP(num_particles=8)
-    for generators, graphs, given in (([gen(0)], batch, 1),
+    for generators, graphs, count in (([gen(0)], batch, 1),
                                       ([gen(0)] * 3, batch, 3),
                                       ([gen(0), gen(1)], data, 2),
                                       ([], data, 0)):
         with pytest.raises(ValueError) as info:
             tracker(graphs, generators)
         message = str(info.value)
-        assert "'generator'" in message and f'{given} generators' in message
+        assert "'generator'" in message and f'{count} generators' in message
         assert f'{2 if graphs is batch else 1} graphs' in message
 
 
