@@ -58,6 +58,7 @@ __all__ = [
     'RangeModel',
     'MODELS',
     'model_from_config',
+    'redraw_negative',
 ]
 
 # role -> name -> class
@@ -107,9 +108,11 @@ class Model:
     def config(self) -> Dict[str, Any]:
         r""":obj:`{"name": ..., "params": {...}}`, what scenarios, dataset
         file names and checkpoints store."""
-        if not self.name:
+        # a subclass without a name of its own would be stored, and
+        # rebuilt, as its parent
+        if MODELS[self.role].get(self.name) is not type(self):
             raise ValueError(f"{type(self).__name__} has no registered name "
-                             f"(class {type(self).__name__}(..., "
+                             f"of its own (class {type(self).__name__}(..., "
                              f"name='...')): it cannot be stored")
         return {'name': self.name, 'params': self.params()}
 
