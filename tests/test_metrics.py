@@ -224,6 +224,19 @@ def test_nan_or_negative_definite_covariance_gives_nan_nees():
     assert torch.isfinite(values[[0, 3]]).all()
 
 
+def test_rounding_of_a_singular_covariance_is_singular_not_nan():
+    # a float32 cloud collapsed onto a line: eigenvalues -2.6e-9 and 0.33,
+    # and a NEES of -1.4e8 from rounding (seen in tg-nebp evaluate)
+    angle = torch.tensor(1.03, dtype=torch.float64)
+    rotation = torch.stack([torch.stack([angle.cos(), -angle.sin()]),
+                            torch.stack([angle.sin(), angle.cos()])])
+    cov = rotation @ torch.diag(torch.tensor(
+        [-2.6e-9, 0.33], dtype=torch.float64)) @ rotation.t()
+    err = rotation[:, 0] * 1.5  # along the collapsed direction
+    value = metrics.nees(err, cov, torch.zeros(2, dtype=torch.float64))
+    assert value == float('inf')
+
+
 def test_masked_out_nan_does_not_count():
     est, true = random_problem((3, ), 9)
     est[0] = float('nan')

@@ -105,8 +105,9 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     \hat{\boldsymbol{\Sigma}}_{\mathbf{p}}^{-1} (\hat{\mathbf{p}} -
     \mathbf{p})` for covariances :math:`(*, 2, 2)`. A singular covariance
     gives :math:`+\infty` (or :math:`0` for a zero error); a NaN estimate,
-    truth or covariance, or a negative value (a covariance that is not
-    positive semi-definite), gives NaN."""
+    truth or covariance, or a clearly indefinite covariance, gives NaN; a
+    negative value from rounding of a numerically singular covariance
+    counts as singular."""
     _check_positions(est_pos, true_pos)
     if pos_cov.shape != est_pos.shape + (2, ):
         raise ValueError(f"'pos_cov' must have shape "
@@ -118,11 +119,18 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     value = (err * solution).sum((-1, -2))
     singular = (info != 0) | ~torch.isfinite(value)
     fallback = torch.where(err.abs().sum((-1, -2)) > 0, float('inf'), 0.0)
-    value = torch.where(singular, fallback, value)
-    # NaN in, or a covariance that is no covariance (a negative quadratic
-    # form): NaN out
-    unknown = (torch.isnan(err).any(-1).any(-1)
-               | torch.isnan(cov).flatten(-2).any(-1) | (value < 0))
+    # a negative value from a numerically singular PSD covariance (a
+    # collapsed particle cloud in float32) is rounding: singular as well
+    value = torch.where(singular | (value < 0), fallback, value)
+    nan_cov = torch.isnan(cov).flatten(-2).any(-1)
+    eig = torch.linalg.eigvalsh(torch.where(
+        nan_cov.unsqueeze(-1).unsqueeze(-1), torch.eye(2, dtype=cov.dtype,
+                                                       device=cov.device),
+        cov))
+    # NaN in, or a covariance that is no covariance (clearly indefinite):
+    # NaN out
+    indefinite = eig[..., 0] < -1e-6 * eig[..., -1].abs()
+    unknown = torch.isnan(err).any(-1).any(-1) | nan_cov | indefinite
     return value.masked_fill(unknown, float('nan'))
 
 
