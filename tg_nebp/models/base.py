@@ -43,6 +43,7 @@ the fast piece, so a subclass that overrides the likelihood alone can never
 reach a fast path that computes another formula; it gets the generic
 (autograd) path.
 """
+import functools
 import math
 from typing import Any, ClassVar, Dict, Optional, Tuple
 
@@ -65,8 +66,10 @@ __all__ = [
 MODELS: Dict[str, Dict[str, type]] = {'motion': {}, 'measurement': {}}
 
 
+@functools.lru_cache(maxsize=None)
 def _definer(cls: type, attribute: str) -> Optional[type]:
-    # the class in the MRO that defines the attribute
+    # the class in the MRO that defines the attribute (classes do not change
+    # after creation: cached, since the convolution asks per block)
     for klass in cls.__mro__:
         if attribute in vars(klass):
             return klass
