@@ -5,7 +5,9 @@ from tg_nebp.data import Realization
 from tg_nebp.datasets import CooperativeLocalizationDataset, Scenario
 from tg_nebp.filters import (NEBP, ParticleBP, multinomial_resample,
                              systematic_resample)
-from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.models import (ConstantVelocity, ConstantVelocityDrag,
+                            GaussianRange, MeasurementModel, MotionModel,
+                            NLOSRange, RangeModel, StudentTRange)
 from tg_nebp.nn import NEBPConv, ParticleBPConv
 from tg_nebp.utils import weighted_moments
 
@@ -19,8 +21,14 @@ __all__ = [
     'CooperativeLocalizationDataset',
     'Scenario',
     'Realization',
+    'MotionModel',
+    'MeasurementModel',
+    'RangeModel',
     'ConstantVelocityDrag',
+    'ConstantVelocity',
     'GaussianRange',
+    'StudentTRange',
+    'NLOSRange',
     'multinomial_resample',
     'systematic_resample',
     'weighted_moments',

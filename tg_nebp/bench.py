@@ -130,12 +130,12 @@ def _free_bytes(device: str) -> int:
     return 2**62  # pragma: no cover - not Linux
 
 
-def _naive(particles, log_weights, edge_index, ranges, sigma):
-    # the plain eager baseline: gather [E, K, 2], likelihood, scatter-add
+def _naive(particles, log_weights, edge_index, ranges, measurement):
+    # the plain eager baseline: gather [E, K, D], the model's likelihood,
+    # scatter-add
     src, dst = edge_index
-    dist = (particles[src, :, :2] - particles[dst, :, :2]).norm(dim=-1)
-    log_lik = -0.5 * ((ranges - dist) / sigma)**2 - math.log(
-        math.sqrt(2 * math.pi) * sigma)
+    log_lik = measurement.log_likelihood(ranges, particles[src, :, :2],
+                                         particles[dst, :, :2])
     out = torch.zeros_like(log_weights).index_add_(
         0, dst, log_lik + log_weights[src])
     return log_weights + out
@@ -221,10 +221,10 @@ def measure(operation: str, num_agents: int, num_particles: int,
         return position_loss(mean, data.states, 0, data.anchor)
 
     if operation == 'naive':
-        sigma = tracker.measurement.sigma
 
         def forward():
-            return _naive(particles, log_weights, edge_index, ranges, sigma)
+            return _naive(particles, log_weights, edge_index, ranges,
+                          tracker.measurement)
 
         forward_backward = None
     elif operation == 'bp':

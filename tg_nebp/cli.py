@@ -60,8 +60,8 @@ def _evaluate(args) -> int:
     dataset = CooperativeLocalizationDataset(
         args.root, scenario=args.scenario,
         num_realizations=args.realizations, seed=args.seed, log=False)
-    models = dict(motion=dataset.scenario.motion(),
-                  measurement=dataset.scenario.measurement())
+    models = dict(motion=dataset.scenario.motion_model,
+                  measurement=dataset.scenario.measurement_model)
     if args.method == 'nebp':
         if args.checkpoint is None:
             raise ValueError("--method nebp needs --checkpoint PATH")
@@ -117,8 +117,8 @@ def _train_on(args, device: str) -> int:
         dist.barrier()
     scenario = train_set.scenario
     torch.manual_seed(args.seed)  # the GNN's initial weights
-    model = NEBP(args.particles, args.iterations, motion=scenario.motion(),
-                 measurement=scenario.measurement(), compile=args.compile)
+    model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
+                 measurement=scenario.measurement_model, compile=args.compile)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
     with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:

@@ -119,7 +119,7 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
         root, 'paper_test', config['test_realizations'], TEST_SEED,
         log=False)
     scenario = test_set.scenario
-    models = dict(motion=scenario.motion(), measurement=scenario.measurement(),
+    models = dict(motion=scenario.motion_model, measurement=scenario.measurement_model,
                   compile=compile)
 
     log(f'training NEBP (K={k}, {len(train_set)} realizations, '

@@ -28,7 +28,8 @@ __all__ = ['train', 'position_loss', 'save_checkpoint', 'load_checkpoint',
            'nebp_from_checkpoint', 'CHECKPOINT_VERSION']
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
-CHECKPOINT_VERSION = 1
+# 2: models stored as {'name': ..., 'params': ...}
+CHECKPOINT_VERSION = 2
 
 
 def position_loss(mean, states, t, anchor):

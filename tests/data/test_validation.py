@@ -83,12 +83,16 @@ CONV_CORRUPTIONS = [
     ('range_negative', _set('edge_attr', _at((6, 0), -0.5)),
      r"'edge_attr\[6\]' = -0.5 is a negative range"),
     ('range_flat', _set('edge_attr', lambda t: t.view(-1)),
-     r"'edge_attr' must have shape \[7, 1\].*got \(7,\)"),
-    ('range_two_columns', _set('edge_attr', lambda t: t.repeat(1, 2)),
-     r"'edge_attr' must have shape \[7, 1\].*got \(7, 2\)"),
+     r"'edge_attr' must have shape \[7, F\] with the link features "
+     r"\('range',\) first, got \(7,\)"),
+    ('range_no_column', _set('edge_attr', lambda t: t[:, :0]),
+     r"'edge_attr' must have shape \[7, F\].*got \(7, 0\)"),
     ('range_one_too_many', _set('edge_attr',
                                 lambda t: torch.cat([t, t[:1]])),
-     r"'edge_attr' must have shape \[7, 1\].*got \(8, 1\)"),
+     r"'edge_attr' must have shape \[7, F\].*got \(8, 1\)"),
+    ('second_feature_nan', _set('edge_attr', lambda t: torch.cat(
+        [t, torch.zeros_like(t).index_fill_(0, torch.tensor([5]), math.nan)],
+        1)), r"'edge_attr\[5, 1\]' = nan is not finite"),
     ('range_integer', _set('edge_attr', lambda t: t.long()),
      r"'edge_attr' must be a floating point tensor"),
     ('index_too_large', _set('edge_index', _at((1, 4), N)),
@@ -272,7 +276,7 @@ def test_realization_bad_range(realization, value, what):
 def test_realization_range_wrong_shape(realization):
     E = realization.edge_attr.size(0)
     realization.edge_attr = realization.edge_attr.view(-1)
-    check_both(realization, rf"'edge_attr' must have shape \[{E}, 1\]")
+    check_both(realization, rf"'edge_attr' must have shape \[{E}, F\]")
 
 
 def test_realization_edge_index_out_of_range(realization):

@@ -8,6 +8,7 @@ from scipy.stats import kstest
 
 from tg_nebp.data import Realization
 from tg_nebp.datasets import CooperativeLocalizationDataset, Scenario
+from tg_nebp.models import GaussianRange
 
 T = 5
 FIELDS = ('states', 'edge_index', 'edge_attr', 'edge_time', 'anchor',
@@ -85,12 +86,13 @@ def test_changed_parameter_regenerates(tmp_path, monkeypatch):
     original = CooperativeLocalizationDataset.process
 
     def counting(self):
-        calls.append(self.scenario.sigma_r)
+        calls.append(self.scenario.measurement_model.sigma)
         original(self)
 
     monkeypatch.setattr(CooperativeLocalizationDataset, 'process', counting)
     base = make(tmp_path, num_realizations=2)
-    noisy = make(tmp_path, scenario=small().replace(sigma_r=3.0),
+    noisy = make(tmp_path, scenario=small().replace(
+        measurement=GaussianRange(sigma=3.0)),
                  num_realizations=2)
     assert calls == [1.0, 3.0]  # never reuses the other file
     assert base.processed_paths[0] != noisy.processed_paths[0]

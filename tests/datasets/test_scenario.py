@@ -10,6 +10,7 @@ import torch
 from tg_nebp.data import Realization
 from tg_nebp.data.validation import check_realization
 from tg_nebp.datasets import Scenario
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 
 PAPER_TRAIN_ANCHORS = ((10, 10), (50, 10), (10, 50), (50, 50), (30, 30))
 
@@ -26,9 +27,9 @@ def test_load_paper_scenarios_match_the_paper():
     inner = {(float(x), float(y)) for x in (30, 70) for y in (30, 70)}
     assert set(test.anchor_positions) == grid | inner
     for s in (train, test):
-        assert s.num_steps == 50 and s.dt == 1.0
-        assert (s.sigma_a, s.drag, s.sigma_v0) == (0.05, 0.06, 0.1)
-        assert (s.sigma_r, s.max_range) == (1.0, 20.0)
+        assert s.num_steps == 50 and s.sigma_v0 == 0.1
+        assert s.measurement_model == GaussianRange(1.0, 20.0)
+        assert s.motion_model == ConstantVelocityDrag(0.05, 0.06, 1.0)
         assert s.prior_var == (10.0, 10.0, 0.01, 0.01)
 
 
@@ -57,8 +58,8 @@ def test_fingerprint_covers_every_generation_parameter():
     base = Scenario.load('paper_train')
     changes = dict(num_agents=24, anchor_positions=((0, 0), ),
                    agent_start_low=14.0, agent_start_high=46.0, num_steps=49,
-                   dt=0.5, sigma_a=0.04, drag=0.05, sigma_v0=0.2,
-                   sigma_r=2.0, max_range=19.0,
+                   sigma_v0=0.2, motion=ConstantVelocityDrag(dt=0.5).config(),
+                   measurement=GaussianRange(max_range=19.0).config(),
                    prior_var=(9.0, 10.0, 0.01, 0.01), name='other')
     assert set(changes) == {f.name for f in dataclasses.fields(Scenario)
                             } - {'description'}
@@ -78,11 +79,15 @@ def test_fingerprint_covers_every_generation_parameter():
     ('num_steps', 0), ('anchor_positions', ((1.0, 2.0, 3.0), )),
     ('agent_start_low', 50.0), ('prior_var', (1.0, 1.0, 1.0)),
     ('prior_var', (1.0, 1.0, 0.0, 1.0)), ('sigma_v0', -1.0),
-    ('sigma_a', -0.1), ('drag', -0.1), ('dt', 0.0), ('sigma_r', 0.0),
-    ('max_range', -1.0)
+    ('motion', {'name': 'constant-velocity-drag', 'params': {'drag': -1}}),
+    ('motion', {'name': 'no-such-motion', 'params': {}}),
+    ('measurement', {'name': 'gaussian', 'params': {'sigma': 0.0}}),
+    ('measurement', {'name': 'gaussian'}),
 ])
 def test_invalid_parameters_raise(key, value):
-    with pytest.raises(ValueError, match=key):
+    match = key if not isinstance(value, dict) else (
+        'drag|sigma|no-such-motion|configuration')
+    with pytest.raises(ValueError, match=match):
         Scenario.load('paper_train').replace(**{key: value})
 
 
@@ -139,14 +144,15 @@ def test_generate_follows_the_motion_model():
     data = scenario.generate(torch.Generator().manual_seed(1))
     x = data.states[:25].double()
     v, v_next = x[:, :-1, 2:], x[:, 1:, 2:]
-    c = scenario.drag
+    motion = scenario.motion_model
+    c = motion.drag
     # v' = v - c v|v| + a, p' = p + v + (a - c v|v|) / 2 (dt = 1)
     a = v_next - v + c * v * v.abs()
     pos_pred = x[:, :-1, :2] + v + 0.5 * (a - c * v * v.abs())
     assert (pos_pred - x[:, 1:, :2]).abs().max() < 1e-4
     a = a.reshape(-1, 2).numpy()
     n = a.shape[0]
-    sigma = scenario.sigma_a
+    sigma = motion.sigma_a
     assert np.all(np.abs(a.mean(0)) < 5 * sigma / math.sqrt(n))
     assert np.all(np.abs(a.std(0) - sigma) < 5 * sigma / math.sqrt(2 * n))
     # agents start uniformly in [15, 45]^2: after one step within the box
@@ -197,7 +203,8 @@ def test_grown_keeps_the_density(name, num_agents):
     expected = base.num_anchors * scale**2  # same density up to the border
     assert abs(grown.num_anchors - expected) <= 0.5 * expected
     # every other generation parameter is kept, and growing is a no-op at I
-    assert grown.sigma_r == base.sigma_r and grown.max_range == base.max_range
+    assert grown.motion == base.motion
+    assert grown.measurement == base.measurement
     same = base.grown(base.num_agents)
     assert same.replace(name=base.name, description=base.description) == base
 
@@ -209,7 +216,7 @@ def test_grown_rejects_no_agents():
 
 @pytest.mark.parametrize('key,value', [
     ('num_agents', 2.5), ('num_agents', '3'), ('num_agents', True),
-    ('num_steps', 1.0), ('sigma_r', '1.0'), ('dt', None),
+    ('num_steps', 1.0), ('sigma_v0', '1.0'), ('sigma_v0', None),
     ('prior_var', 10.0), ('prior_var', (1.0, '1', 1.0, 1.0)),
     ('anchor_positions', 5.0), ('anchor_positions', ((0.0, 'x'), )),
     ('name', 7), ('description', 3),

@@ -36,7 +36,8 @@ def custom_realization(states, anchor, edges_per_step, seed=0, sigma=1.0):
     pos = states[..., :2]
     dist = (pos[edge_index[0], edge_time] - pos[edge_index[1], edge_time]
             ).norm(dim=-1)
-    ranges = GaussianRange(sigma).sample(dist.double(), g).float()
+    ranges = GaussianRange(sigma).sample_ranges(dist.double(),
+                                                generator=g).float()
     prior_mean = states[:, 0].clone()
     prior_cov = torch.diag(PRIOR_VAR).repeat(n, 1, 1)
     prior_mean[anchor, 2:] = 0
@@ -63,13 +64,14 @@ def test_one_agent_three_anchors_localizes():
                     for a in (math.pi / 2, math.pi * 7 / 6, math.pi * 11 / 6))
     scenario = Scenario(name='one', num_agents=1, anchor_positions=anchors,
                         agent_start_low=28.0, agent_start_high=32.0,
-                        num_steps=20, sigma_r=0.5)
+                        num_steps=20,
+                        measurement=GaussianRange(sigma=0.5))
     data = [scenario.generate(gen(seed)) for seed in range(4)]
     for d in data:  # every anchor measured at every step
         assert d.num_edges == 3 * 20
     batch = next(iter(DataLoader(data, batch_size=4)))
-    tracker = ParticleBP(num_particles=2000, motion=scenario.motion(),
-                         measurement=scenario.measurement())
+    tracker = ParticleBP(num_particles=2000, motion=scenario.motion_model,
+                         measurement=scenario.measurement_model)
     out = tracker(batch, generator=gen(10))
     agents = ~batch.anchor
     est, true = out.mean[agents, 9:20, :2], batch.states[agents, 9:20, :2]

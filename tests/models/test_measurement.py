@@ -5,7 +5,9 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from tg_nebp.models import GaussianRange
+from tg_nebp.models import GaussianRange, NLOSRange, StudentTRange
+
+from helpers import gen
 
 
 @pytest.mark.parametrize('sigma', [1.0, 0.3, 2.5])
@@ -42,8 +44,8 @@ def test_sample_noise_statistics_far_away(sigma):
     n = 100_000
     distances = torch.linspace(15.0, 60.0, n, dtype=torch.float64)
     model = GaussianRange(sigma=sigma)
-    ranges = model.sample(distances,
-                          generator=torch.Generator().manual_seed(1))
+    ranges = model.sample_ranges(
+        distances, generator=torch.Generator().manual_seed(1)).view(-1)
     noise = (ranges - distances).numpy()
     # >= 15 sigma from zero: the redraw never triggers, noise is N(0, sigma^2)
     assert abs(noise.mean()) < 5 * sigma / math.sqrt(n)
@@ -54,8 +56,8 @@ def test_sample_never_negative_for_tiny_distances():
     n = 50_000
     distances = torch.full((n, ), 1e-3, dtype=torch.float64)
     distances[::2] = 0.0
-    ranges = GaussianRange(sigma=1.0).sample(
-        distances, generator=torch.Generator().manual_seed(2))
+    ranges = GaussianRange(sigma=1.0).sample_ranges(
+        distances, generator=torch.Generator().manual_seed(2)).view(-1)
     assert ranges.shape == distances.shape
     assert bool((ranges >= 0).all())
     assert bool(torch.isfinite(ranges).all())
@@ -69,9 +71,9 @@ def test_sample_never_negative_for_tiny_distances():
 def test_sample_is_reproducible():
     model = GaussianRange()
     d = torch.linspace(0.0, 5.0, 100)
-    a = model.sample(d, generator=torch.Generator().manual_seed(5))
-    b = model.sample(d, generator=torch.Generator().manual_seed(5))
-    c = model.sample(d, generator=torch.Generator().manual_seed(6))
+    a = model.sample_ranges(d, generator=torch.Generator().manual_seed(5))
+    b = model.sample_ranges(d, generator=torch.Generator().manual_seed(5))
+    c = model.sample_ranges(d, generator=torch.Generator().manual_seed(6))
     assert torch.equal(a, b) and not torch.equal(a, c)
 
 
@@ -157,8 +159,110 @@ def test_smallest_sigma_gives_no_nan():
     model = GaussianRange(sigma=1e-19)
     ranges = torch.tensor([[3.0], [3.0]])
     distances = torch.tensor([[3.0, 3.5], [3.0, 1e3]])
-    for inplace in (False, True):
-        out = model.log_likelihood_of_distance(ranges, distances.clone(),
-                                               inplace=inplace)
+    for likelihood in (model.log_likelihood_of_distance,
+                       model.log_likelihood_of_distance_):
+        out = likelihood(ranges, distances.clone())
         assert not torch.isnan(out).any()
         assert torch.isfinite(out[:, 0]).all() and torch.isneginf(out[1, 1])
+
+
+# ---- Student-t and NLOS ranges ---------------------------------------------
+
+def residual_grid():
+    z = torch.tensor([[4.0], [10.0], [0.5]], dtype=torch.float64)
+    d = torch.tensor([[4.0, 3.0, 9.0, 0.0],
+                      [2.0, 10.5, 30.0, 7.0],
+                      [0.0, 0.4, 12.0, 1.5]], dtype=torch.float64)
+    return z, d
+
+
+@pytest.mark.parametrize('sigma,nu', [(1.0, 3.0), (0.5, 1.0), (2.0, 30.0)])
+def test_student_t_matches_scipy(sigma, nu):
+    from scipy.stats import t as student_t
+    z, d = residual_grid()
+    out = StudentTRange(sigma, nu).log_likelihood_of_distance(z, d)
+    for e in range(3):
+        for k in range(4):
+            expected = student_t.logpdf(float(z[e, 0] - d[e, k]), nu,
+                                        scale=sigma)
+            assert math.isclose(float(out[e, k]), expected, rel_tol=1e-10,
+                                abs_tol=1e-12)
+
+
+@pytest.mark.parametrize('p_nlos,bias_mean', [(0.2, 3.0), (0.5, 0.7),
+                                              (1.0, 2.0), (0.0, 1.0)])
+def test_nlos_mixture_matches_numerical_integration(p_nlos, bias_mean):
+    from scipy.integrate import quad
+    from scipy.stats import norm as gauss
+    sigma = 0.8
+    z, d = residual_grid()
+    out = NLOSRange(sigma, p_nlos, bias_mean).log_likelihood_of_distance(z, d)
+    rate = 1 / bias_mean
+    for e in range(3):
+        for k in range(4):
+            x = float(z[e, 0] - d[e, k])
+            nlos, _ = quad(lambda b: rate * math.exp(-rate * b) *
+                           gauss.pdf(x - b, scale=sigma), 0, math.inf,
+                           epsabs=1e-300, limit=200)
+            expected = (1 - p_nlos) * gauss.pdf(x, scale=sigma) + \
+                p_nlos * nlos
+            assert math.isclose(float(out[e, k]), math.log(expected),
+                                rel_tol=1e-7, abs_tol=1e-9)
+
+
+def test_nlos_far_residuals_are_finite_with_finite_gradients():
+    model = NLOSRange(0.5, 0.2, 3.0)
+    z = torch.tensor([[1000.0], [0.0]], dtype=torch.float64)
+    d = torch.tensor([[0.0, 1e3, 2e3], [900.0, 0.0, 1e4]],
+                     dtype=torch.float64, requires_grad=True)
+    out = model.log_likelihood_of_distance(z, d)
+    assert torch.isfinite(out).all()
+    out.sum().backward()
+    assert torch.isfinite(d.grad).all()
+
+
+def test_nlos_oracle_reads_the_flag():
+    model = NLOSRange(0.8, 0.3, 2.0, oracle=True)
+    assert model.features == ('range', 'nlos')
+    z, d = residual_grid()
+    los, nlos = NLOSRange(0.8, 0.0, 2.0), NLOSRange(0.8, 1.0, 2.0)
+    flagged = torch.cat([z, torch.tensor([[1.0], [0.0], [1.0]],
+                                         dtype=torch.float64)], 1)
+    out = model.log_likelihood_of_distance(flagged, d)
+    torch.testing.assert_close(out[[0, 2]], nlos.log_likelihood_of_distance(
+        z, d)[[0, 2]])
+    torch.testing.assert_close(out[1], los.log_likelihood_of_distance(z,
+                                                                      d)[1])
+
+
+def test_nlos_generation_statistics():
+    # one realization of many nodes: the pairs' NLOS flags are symmetric,
+    # a fraction p of pairs, and NLOS ranges read long by the bias mean
+    n, p_nlos, bias_mean, sigma = 400, 0.2, 3.0, 0.5
+    model = NLOSRange(sigma, p_nlos, bias_mean)
+    links = model.sample_links(n, gen(4))
+    assert torch.equal(links, links.t()) and not links.diagonal().any()
+    pairs = n * (n - 1) / 2
+    fraction = float(links.triu(1).sum()) / pairs
+    assert abs(fraction - p_nlos) < 5 * math.sqrt(p_nlos * (1 - p_nlos) /
+                                                  pairs)
+    edges = torch.triu_indices(n, n, 1)
+    distances = torch.full((edges.size(1), ), 50.0, dtype=torch.float64)
+    features = model.sample_ranges(distances, links, edges, gen(5))
+    flag = features[:, 1].bool()
+    assert torch.equal(flag, links[edges[0], edges[1]])
+    excess = features[:, 0] - distances
+    m = int(flag.sum())
+    assert abs(float(excess[flag].mean()) - bias_mean) < 5 * math.sqrt(
+        bias_mean**2 + sigma**2) / math.sqrt(m)
+    assert abs(float(excess[~flag].mean())) < 5 * sigma / math.sqrt(
+        int((~flag).sum()))
+
+
+def test_student_t_samples_follow_the_distribution():
+    from scipy.stats import kstest
+    model = StudentTRange(0.7, 3.0)
+    distances = torch.full((20_000, ), 500.0, dtype=torch.float64)
+    excess = (model.sample_ranges(distances, generator=gen(6)).view(-1) -
+              distances) / 0.7
+    assert kstest(excess.numpy(), 't', args=(3.0, )).pvalue > 1e-3

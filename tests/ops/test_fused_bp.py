@@ -12,6 +12,7 @@ triton = pytest.importorskip('triton')
 
 SCRIPT = r'''
 import math, sys, torch
+from tg_nebp.models import GaussianRange
 from tg_nebp.ops.fused_bp import fused_bp_segment_sum
 device = sys.argv[1]
 g = torch.Generator().manual_seed(0)
@@ -28,7 +29,9 @@ ptr = torch.zeros(num_nodes + 1, dtype=torch.long)
 ptr[1:] = torch.bincount(dst, minlength=num_nodes).cumsum(0)
 sigma = 0.7
 args = [t.to(device) for t in (pos_x, pos_y, log_w, ranges, src, ptr)]
-out = fused_bp_segment_sum(*args, sigma, block=16).cpu()
+model = GaussianRange(sigma)
+out = fused_bp_segment_sum(*args, model.fused_log_pdf, model.fused_constants(),
+                           block=16).cpu()
 worst = 0.0
 for i in range(num_nodes):
     for k in range(num_particles):

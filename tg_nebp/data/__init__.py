@@ -1,12 +1,12 @@
 from .realization import Realization, num_steps_of
-from .validation import (check_graph, check_ranges, check_particles,
+from .validation import (check_graph, check_link_features, check_particles,
                          check_prior, check_realization, check_anchor)
 
 __all__ = [
     'Realization',
     'num_steps_of',
     'check_graph',
-    'check_ranges',
+    'check_link_features',
     'check_particles',
     'check_prior',
     'check_realization',

@@ -6,7 +6,7 @@ field and the offending index instead of producing NaNs far downstream.
 """
 import math
 import numbers
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -17,7 +17,7 @@ from tg_nebp.utils import compute_dtype
 
 __all__ = [
     'check_graph',
-    'check_ranges',
+    'check_link_features',
     'check_particles',
     'check_prior',
     'check_realization',
@@ -124,32 +124,40 @@ def _check_edge_index_claims(edge_index: EdgeIndex, num_nodes: int,
                                  f"{int(edge_index[row, e - 1])}")
 
 
-def check_ranges(ranges: Tensor, num_edges: int,
-                 name: str = 'edge_attr') -> None:
-    r"""Checks that the measured ranges are a finite, non-negative
-    :obj:`[E, 1]` tensor."""
-    if not isinstance(ranges, Tensor) or ranges.dim() != 2 \
-            or ranges.size(1) != 1 or ranges.size(0) != num_edges:
-        shape = tuple(ranges.shape) if isinstance(ranges, Tensor) else None
-        raise ValueError(f"'{name}' must have shape [{num_edges}, 1] (one "
-                         f"measured range per edge), got {shape}")
-    if not ranges.is_floating_point():
+def check_link_features(edge_attr: Tensor, num_edges: int,
+                        features: Sequence[str] = ('range', ),
+                        name: str = 'edge_attr') -> None:
+    r"""Checks the link features :obj:`[E, F]`: at least the
+    :obj:`features` that a measurement model reads (the leading columns,
+    the range first), floating point and finite; the range non-negative
+    and small enough for squared distances."""
+    if not isinstance(edge_attr, Tensor) or edge_attr.dim() != 2 \
+            or edge_attr.size(0) != num_edges \
+            or edge_attr.size(1) < len(features):
+        shape = (tuple(edge_attr.shape) if isinstance(edge_attr, Tensor)
+                 else None)
+        raise ValueError(f"'{name}' must have shape [{num_edges}, F] with "
+                         f"the link features {tuple(features)} first, got "
+                         f"{shape}")
+    if not edge_attr.is_floating_point():
         raise ValueError(f"'{name}' must be a floating point tensor, got "
-                         f"{ranges.dtype}")
-    bad = ~torch.isfinite(ranges[:, 0])
+                         f"{edge_attr.dtype}")
+    bad = ~torch.isfinite(edge_attr)
     if bool(bad.any()):
-        e = _first(bad)
-        raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0])} is not "
-                         f"finite")
-    neg = ranges[:, 0] < 0
+        e, f = bad.nonzero()[0].tolist()
+        index = f'{e}' if edge_attr.size(1) == 1 else f'{e}, {f}'
+        raise ValueError(f"'{name}[{index}]' = {float(edge_attr[e, f])} is "
+                         f"not finite")
+    ranges = edge_attr[:, 0]
+    neg = ranges < 0
     if bool(neg.any()):
         e = _first(neg)
-        raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0])} is a "
+        raise ValueError(f"'{name}[{e}]' = {float(ranges[e])} is a "
                          f"negative range")
-    big = _too_large(ranges[:, 0])
+    big = _too_large(ranges)
     if bool(big.any()):
         e = _first(big)
-        raise ValueError(f"'{name}[{e}]' = {float(ranges[e, 0]):.3g} is too "
+        raise ValueError(f"'{name}[{e}]' = {float(ranges[e]):.3g} is too "
                          f"large a range (at most "
                          f"{magnitude_limit(ranges.dtype):.3g}: its square "
                          f"must be finite in {compute_dtype(ranges)})")
@@ -265,8 +273,10 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
                          f"(smallest eigenvalue {float(min_eig[i]):.3g})")
 
 
-def check_realization(data) -> None:
-    r"""Checks a (possibly batched) :class:`~tg_nebp.data.Realization`."""
+def check_realization(data, features: Sequence[str] = ('range', )
+                      ) -> None:
+    r"""Checks a (possibly batched) :class:`~tg_nebp.data.Realization`
+    whose :obj:`edge_attr` holds (at least) the link :obj:`features`."""
     for key in ('edge_index', 'edge_attr', 'edge_time', 'anchor',
                 'prior_mean', 'prior_cov', 'num_steps'):
         if getattr(data, key, None) is None:
@@ -280,7 +290,7 @@ def check_realization(data) -> None:
     if bool(anchor.all()):
         raise ValueError("'anchor': the graph has no agent to localize")
     check_graph(data.edge_index, n)
-    check_ranges(data.edge_attr, data.edge_index.size(1))
+    check_link_features(data.edge_attr, data.edge_index.size(1), features)
     into_anchor = anchor[data.edge_index[1]]
     if bool(into_anchor.any()):
         e = _first(into_anchor)

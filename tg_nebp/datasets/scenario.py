@@ -6,13 +6,15 @@ import numbers
 import re
 from importlib import resources
 from pathlib import Path
-from typing import Optional, Tuple, Union
+from typing import Any, Dict, Optional, Tuple, Union
 
 import torch
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.io import read_json
-from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
+                            MeasurementModel, Model, MotionModel,
+                            model_from_config)
 
 __all__ = ['Scenario']
 
@@ -47,14 +49,15 @@ class Scenario:
             :math:`[\mathrm{low}, \mathrm{high}]^2`.
         agent_start_high (float): See :obj:`agent_start_low`.
         num_steps (int, optional): Time steps :math:`T`. (default: :obj:`50`)
-        dt (float, optional): Time step in seconds. (default: :obj:`1.0`)
-        sigma_a (float, optional): Driving noise std. (default: :obj:`0.05`)
-        drag (float, optional): Drag coefficient. (default: :obj:`0.06`)
         sigma_v0 (float, optional): Std of the initial velocity.
             (default: :obj:`0.1`)
-        sigma_r (float, optional): Range noise std. (default: :obj:`1.0`)
-        max_range (float, optional): Communication range.
-            (default: :obj:`20.0`)
+        motion (dict or MotionModel, optional): The motion model, as a
+            configuration :obj:`{"name": ..., "params": {...}}` or a model
+            (stored as its configuration). (default: the paper's
+            :class:`~tg_nebp.models.ConstantVelocityDrag`)
+        measurement (dict or MeasurementModel, optional): The measurement
+            model that draws the graph and the link features.
+            (default: the paper's :class:`~tg_nebp.models.GaussianRange`)
         prior_var (tuple, optional): Diagonal of the prior covariance
             :math:`\boldsymbol{\Sigma}_0`.
             (default: :obj:`(10.0, 10.0, 0.01, 0.01)`)
@@ -67,12 +70,11 @@ class Scenario:
     agent_start_low: float
     agent_start_high: float
     num_steps: int = 50
-    dt: float = 1.0
-    sigma_a: float = 0.05
-    drag: float = 0.06
     sigma_v0: float = 0.1
-    sigma_r: float = 1.0
-    max_range: float = 20.0
+    motion: Dict[str, Any] = dataclasses.field(
+        default_factory=lambda: ConstantVelocityDrag().config())
+    measurement: Dict[str, Any] = dataclasses.field(
+        default_factory=lambda: GaussianRange().config())
     prior_var: Tuple[float, ...] = (10.0, 10.0, 0.01, 0.01)
     description: str = ''
 
@@ -82,6 +84,12 @@ class Scenario:
         fix(self, 'anchor_positions',
             tuple(tuple(float(c) for c in p) for p in self.anchor_positions))
         fix(self, 'prior_var', tuple(float(v) for v in self.prior_var))
+        # a model is stored as its configuration; building it checks it
+        for role in ('motion', 'measurement'):
+            value = getattr(self, role)
+            if isinstance(value, Model):
+                value = value.config()
+            fix(self, role, model_from_config(value, role).config())
         for key in ('num_agents', 'num_steps'):
             if int(getattr(self, key)) < 1:
                 raise ValueError(f"'{key}' must be at least 1, got "
@@ -99,12 +107,6 @@ class Scenario:
         if not self.sigma_v0 >= 0:
             raise ValueError(f"'sigma_v0' must be non-negative, got "
                              f"{self.sigma_v0}")
-        # the measurement model calls it 'sigma': name the scenario's field
-        if not (math.isfinite(self.sigma_r) and self.sigma_r > 0):
-            raise ValueError(f"'sigma_r' must be a finite positive number, "
-                             f"got {self.sigma_r}")
-        self.motion()  # the models validate their own parameters
-        self.measurement()
 
     def _check_types(self):
         # JSON gives any type: a wrong one must name its field, not fail
@@ -169,7 +171,8 @@ class Scenario:
                              f"{sorted(unknown)}")
         missing = sorted(f.name for f in dataclasses.fields(cls)
                          if f.name not in fields
-                         and f.default is dataclasses.MISSING)
+                         and f.default is dataclasses.MISSING
+                         and f.default_factory is dataclasses.MISSING)
         if missing:
             raise ValueError(f"scenario '{path}' lacks the fields {missing}")
         try:
@@ -208,6 +211,9 @@ class Scenario:
             agent_start_high=self.agent_start_high * scale,
             description=f'{self.name} grown to {num_agents} agents')
 
+    def __hash__(self) -> int:  # the model configurations are dicts
+        return hash(self.fingerprint())
+
     def fingerprint(self) -> str:
         r"""A short hash of every generation parameter."""
         params = dataclasses.asdict(self)
@@ -219,13 +225,16 @@ class Scenario:
     def num_anchors(self) -> int:
         return len(self.anchor_positions)
 
-    def motion(self) -> ConstantVelocityDrag:
-        r"""The scenario's motion model."""
-        return ConstantVelocityDrag(self.sigma_a, self.drag, self.dt)
+    @property
+    def motion_model(self) -> MotionModel:
+        r"""The scenario's motion model, built from :obj:`motion`."""
+        return model_from_config(self.motion, 'motion')
 
-    def measurement(self) -> GaussianRange:
-        r"""The scenario's measurement model."""
-        return GaussianRange(self.sigma_r, self.max_range)
+    @property
+    def measurement_model(self) -> MeasurementModel:
+        r"""The scenario's measurement model, built from
+        :obj:`measurement`."""
+        return model_from_config(self.measurement, 'measurement')
 
     def generate(self, generator: Optional[torch.Generator] = None
                  ) -> Realization:
@@ -236,7 +245,7 @@ class Scenario:
         float64 on the CPU, stored in float32."""
         f64 = dict(dtype=torch.float64, generator=generator)
         num_agents, num_anchors = self.num_agents, self.num_anchors
-        motion, measurement = self.motion(), self.measurement()
+        motion, measurement = self.motion_model, self.measurement_model
         low, high = self.agent_start_low, self.agent_start_high
 
         agent_pos = low + (high - low) * torch.rand(num_agents, 2, **f64)
@@ -255,23 +264,26 @@ class Scenario:
         prior_cov = torch.diag_embed(prior_std.square().expand_as(initial))
         prior_cov[anchor] = 0.0
 
+        # per-link state over the realization (e.g. NLOS pairs); models
+        # without one draw nothing
+        links = measurement.sample_links(num_agents + num_anchors, generator)
         states, edge_index, edge_attr, edge_time = [], [], [], []
         state = initial
         for t in range(self.num_steps):
             moved = motion.sample(state, generator=generator)
             state = torch.where(anchor.view(-1, 1), state, moved)
             edges = measurement.connect(state[:, :2], receiver=~anchor)
-            distances = (state[edges[0], :2] - state[edges[1], :2]).norm(
-                dim=-1)
             states.append(state)
             edge_index.append(edges)
-            edge_attr.append(measurement.sample(distances, generator))
+            edge_attr.append(measurement.sample_features(
+                state[edges[0]], state[edges[1]], links, edges, generator))
             edge_time.append(torch.full((edges.size(1), ), t))
 
         return Realization(
             states=torch.stack(states, dim=1).float(),
             edge_index=torch.cat(edge_index, dim=1),
-            edge_attr=torch.cat(edge_attr).float().view(-1, 1),
+            edge_attr=torch.cat(edge_attr).float().view(
+                -1, len(measurement.generated_features)),
             edge_time=torch.cat(edge_time),
             anchor=anchor,
             prior_mean=prior_mean.float(),

@@ -3,7 +3,7 @@ from typing import Callable, Optional, Union
 from torch import Tensor
 
 from tg_nebp.filters.particle_bp import ParticleBP
-from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
 from tg_nebp.nn.conv import NEBPConv
 
 __all__ = ['NEBP']
@@ -24,9 +24,9 @@ class NEBP(ParticleBP):
         num_particles (int, optional): :math:`K`. (default: :obj:`1000`)
         num_iterations (int, optional): NEBP iterations per time step; more
             than one builds the node update :math:`g_n`. (default: :obj:`1`)
-        motion (ConstantVelocityDrag, optional): Motion model.
+        motion (MotionModel, optional): Motion model.
             (default: :obj:`ConstantVelocityDrag()`)
-        measurement (GaussianRange, optional): Measurement model.
+        measurement (MeasurementModel, optional): Measurement model.
             (default: :obj:`GaussianRange()`)
         resampler (str or callable, optional): See :class:`ParticleBP`.
             (default: :obj:`"multinomial"`)
@@ -47,8 +47,8 @@ class NEBP(ParticleBP):
           covariance :math:`(N, T, 4, 4)`
     """
     def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
-                 motion: Optional[ConstantVelocityDrag] = None,
-                 measurement: Optional[GaussianRange] = None,
+                 motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None,
                  resampler: Union[str, Callable] = 'multinomial',
                  message_dim: int = 32, hidden_dim: int = 64,
                  correct_anchor_edges: bool = False,
@@ -79,16 +79,13 @@ class NEBP(ParticleBP):
         if self.resampler_name is None:
             raise ValueError("a tracker with a custom 'resampler' callable "
                              "cannot be saved; pass its name")
-        motion, measurement = self.motion, self.measurement
         return dict(num_particles=self.num_particles,
                     num_iterations=self.num_iterations,
                     message_dim=self.message_dim, hidden_dim=self.hidden_dim,
                     correct_anchor_edges=self.correct_anchor_edges,
                     resampler=self.resampler_name,
-                    motion=dict(sigma_a=motion.sigma_a, drag=motion.drag,
-                                dt=motion.dt),
-                    measurement=dict(sigma=measurement.sigma,
-                                     max_range=measurement.max_range))
+                    motion=self.motion.config(),
+                    measurement=self.measurement.config())
 
     @classmethod
     def from_config(cls, config: dict, **options) -> 'NEBP':
@@ -96,7 +93,8 @@ class NEBP(ParticleBP):
         run-time arguments that are not part of it (:obj:`chunk_size`,
         :obj:`compile`)."""
         config = dict(config)
-        motion = ConstantVelocityDrag(**config.pop('motion'))
-        measurement = GaussianRange(**config.pop('measurement'))
+        motion = model_from_config(config.pop('motion', None), 'motion')
+        measurement = model_from_config(config.pop('measurement', None),
+                                        'measurement')
         return cls(motion=motion, measurement=measurement, **config,
                    **options)

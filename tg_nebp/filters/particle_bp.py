@@ -10,10 +10,11 @@ from torch_geometric.data import Batch
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_anchor, check_graph,
                                      check_particles, check_positive_int,
-                                     check_ranges, check_realization,
+                                     check_link_features, check_realization,
                                      magnitude_limit)
 from tg_nebp.filters.resampling import RESAMPLERS
-from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
+                            MeasurementModel, MotionModel)
 from tg_nebp.nn.conv import ParticleBPConv
 from tg_nebp.utils import (compute_dtype, log_normalize, sort_by_receiver,
                             weighted_moments)
@@ -138,10 +139,11 @@ class ParticleBP(torch.nn.Module):
         num_particles (int, optional): :math:`K`. (default: :obj:`1000`)
         num_iterations (int, optional): Message passing iterations :math:`T`
             per time step. (default: :obj:`1`)
-        motion (ConstantVelocityDrag, optional): Motion model.
+        motion (MotionModel, optional): Motion model.
             (default: :obj:`ConstantVelocityDrag()`)
-        measurement (GaussianRange, optional): Measurement model.
-            (default: :obj:`GaussianRange()`)
+        measurement (MeasurementModel, optional): Measurement model; its
+            :attr:`features` are the link features the realization must
+            hold. (default: :obj:`GaussianRange()`)
         resampler (str or callable, optional): :obj:`"multinomial"` (the
             paper's), :obj:`"systematic"`, or a function of
             :obj:`(log_weights, num_samples, generator)` returning indices.
@@ -160,8 +162,8 @@ class ParticleBP(torch.nn.Module):
           covariance :math:`(N, T, 4, 4)`
     """
     def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
-                 motion: Optional[ConstantVelocityDrag] = None,
-                 measurement: Optional[GaussianRange] = None,
+                 motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None,
                  resampler: Union[str, Callable] = 'multinomial',
                  chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__()
@@ -180,6 +182,11 @@ class ParticleBP(torch.nn.Module):
         self.num_iterations = num_iterations
         self.motion = motion or ConstantVelocityDrag()
         self.measurement = measurement or GaussianRange()
+        for name, role in (('motion', MotionModel),
+                           ('measurement', MeasurementModel)):
+            if not isinstance(getattr(self, name), role):
+                raise TypeError(f"'{name}' must be a {role.__name__}, got "
+                                f"{getattr(self, name)!r}")
         self.resampler = resampler
         self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size,
                                    compile=compile)
@@ -231,7 +238,8 @@ class ParticleBP(torch.nn.Module):
         if validate:
             check_particles(particles, log_weights)
             check_graph(edge_index, particles.size(0))
-            check_ranges(edge_attr, edge_index.size(1))
+            check_link_features(edge_attr, edge_index.size(1),
+                                self.measurement.features)
             check_anchor(anchor, particles.size(0))
         # receiver-sorted edges: the convs sum each receiver's segment
         # (deterministic, unlike CUDA's scatter-add) and BP never
@@ -275,7 +283,7 @@ class ParticleBP(torch.nn.Module):
                 gets the same result alone as in any batch.
                 (default: :obj:`None`)
         """
-        check_realization(data)
+        check_realization(data, self.measurement.features)
         counts = _nodes_per_graph(data, generator)
         anchor = data.anchor
         # one dtype for the whole loop: half precision is promoted

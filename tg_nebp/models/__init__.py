@@ -1,4 +1,19 @@
-from .motion import ConstantVelocityDrag
-from .measurement import GaussianRange
+from .base import (MODELS, MeasurementModel, Model, MotionModel, RangeModel,
+                   model_from_config, redraw_negative)
+from .motion import ConstantVelocity, ConstantVelocityDrag
+from .measurement import GaussianRange, NLOSRange, StudentTRange
 
-__all__ = ['ConstantVelocityDrag', 'GaussianRange']
+__all__ = [
+    'Model',
+    'MotionModel',
+    'MeasurementModel',
+    'RangeModel',
+    'MODELS',
+    'model_from_config',
+    'redraw_negative',
+    'ConstantVelocityDrag',
+    'ConstantVelocity',
+    'GaussianRange',
+    'StudentTRange',
+    'NLOSRange',
+]

@@ -1,15 +1,33 @@
+r"""Range measurement models: the paper's Gaussian, a heavy-tailed Student-t
+and a non-line-of-sight (NLOS) mixture. Each is one :class:`RangeModel`
+whose formula lives in its :meth:`log_likelihood_of_distance`; the fast
+pieces of :class:`GaussianRange` (in place, closed-form gradient, fused
+kernel) are written next to it and gated by :meth:`Model.provides`."""
 import math
-from typing import Optional
+from typing import Optional, Tuple
 
+import numpy as np
 import torch
+from scipy.stats import t as student_t
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
+from tg_nebp.models.base import LOG_SQRT_2PI, RangeModel, redraw_negative
 
-__all__ = ['GaussianRange']
+__all__ = ['GaussianRange', 'StudentTRange', 'NLOSRange']
 
 
-class GaussianRange:
+def _check_sigma(sigma) -> float:
+    sigma = check_number(sigma, 'sigma')
+    # the likelihoods scale squared residuals by 1 / (2 sigma^2): an
+    # infinite factor would turn a zero residual into NaN
+    if not sigma**2 * torch.finfo(torch.float32).max >= 0.5:
+        raise ValueError(f"'sigma' = {sigma} is too small: 1 / (2 "
+                         f"sigma^2) overflows float32")
+    return sigma
+
+
+class GaussianRange(RangeModel, name='gaussian'):
     r"""Range measurements with additive Gaussian noise, from the `"Neural
     Enhanced Belief Propagation for Cooperative Localization"
     <https://arxiv.org/abs/2105.12903>`_ paper
@@ -26,10 +44,11 @@ class GaussianRange:
         -\frac{(z_{j \to i} - \| \mathbf{p}_j - \mathbf{p}_i \|)^2}
         {2 \sigma_r^2} - \log (\sqrt{2 \pi} \sigma_r).
 
-    A range sensor never reports a negative distance, so :meth:`sample`
-    redraws the noise of the rare measurements that would fall below zero
-    (pairs closer than a few :math:`\sigma_r`); the likelihood keeps the
-    paper's Gaussian form.
+    A range sensor never reports a negative distance, so sampling redraws
+    the noise of the rare measurements that would fall below zero (pairs
+    closer than a few :math:`\sigma_r`); the likelihood keeps the paper's
+    Gaussian form. It provides the fast pieces of the convolution: an
+    in-place variant, the closed-form gradient and the fused-kernel formula.
 
     Args:
         sigma (float, optional): Noise standard deviation :math:`\sigma_r` in
@@ -38,80 +57,218 @@ class GaussianRange:
             farther apart do not measure. (default: :obj:`20.0`)
 
     Shapes:
-        - **input:** ranges :math:`(E, 1)`, distances :math:`(E, K)`
+        - **input:** link features :math:`(E, F)` (range first), distances
+          :math:`(E, K)`
         - **output:** log-likelihoods :math:`(E, K)`
     """
     def __init__(self, sigma: float = 1.0, max_range: float = 20.0):
-        sigma = check_number(sigma, 'sigma')
-        max_range = check_number(max_range, 'max_range')
-        # the likelihood scales squared residuals by 1 / (2 sigma^2): an
-        # infinite factor would turn a zero residual into NaN
-        if not sigma**2 * torch.finfo(torch.float32).max >= 0.5:
-            raise ValueError(f"'sigma' = {sigma} is too small: 1 / (2 "
-                             f"sigma^2) overflows float32")
-        self.sigma = sigma
-        self.max_range = max_range
+        super().__init__(max_range)
+        self.sigma = _check_sigma(sigma)
 
-    def log_likelihood_of_distance(self, ranges: Tensor, distances: Tensor,
-                                   inplace: bool = False) -> Tensor:
-        r"""The log-likelihood of the measured :obj:`ranges` :math:`(E, 1)`
-        given the particle distances :math:`(E, K)`; :obj:`inplace`
-        overwrites :obj:`distances` (no autograd through it)."""
-        log_norm = math.log(math.sqrt(2 * math.pi) * self.sigma)
-        if inplace:
-            return distances.sub_(ranges).square_().mul_(
-                -0.5 / self.sigma**2).sub_(log_norm)
-        scaled = (ranges - distances) / self.sigma
-        return -0.5 * scaled * scaled - log_norm
+    def params(self) -> dict:
+        return dict(sigma=self.sigma, max_range=self.max_range)
 
-    def log_likelihood(self, ranges: Tensor, sender_pos: Tensor,
-                       receiver_pos: Tensor) -> Tensor:
-        r"""The log-likelihood of the measured :obj:`ranges` :math:`(E, 1)`
-        given sender and receiver positions :math:`(E, K, 2)`."""
-        return self.log_likelihood_of_distance(
-            ranges, torch.linalg.vector_norm(sender_pos - receiver_pos,
-                                             dim=-1))
+    def _log_norm(self) -> float:
+        return math.log(math.sqrt(2 * math.pi) * self.sigma)
 
-    def sample(self, distances: Tensor,
-               generator: Optional[torch.Generator] = None) -> Tensor:
-        r"""Draws measured ranges for the true :obj:`distances`, redrawing
-        the noise wherever a range would be negative."""
-        ranges = torch.empty_like(distances)
-        todo = torch.ones_like(distances, dtype=torch.bool)
-        while bool(todo.any()):
-            noise = torch.randn(distances.shape, dtype=distances.dtype,
-                                device=distances.device, generator=generator)
-            ranges = torch.where(todo, distances + self.sigma * noise, ranges)
-            todo = ranges < 0
-        return ranges
+    def log_likelihood_of_distance(self, z: Tensor,
+                                   distances: Tensor) -> Tensor:
+        scaled = (z[:, :1] - distances) / self.sigma
+        return -0.5 * scaled * scaled - self._log_norm()
 
-    def connect(self, pos: Tensor, receiver: Tensor,
-                block_size: int = 2048) -> Tensor:
-        r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
-        from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
-        j` within :obj:`max_range` of it, for positions :obj:`pos`
-        :math:`(N, 2)`, ordered by sender, then receiver. Senders are handled
-        :obj:`block_size` at a time, so memory stays :math:`O(N)` per
-        block."""
-        num_nodes = pos.size(0)
-        blocks = []
-        for start in range(0, num_nodes, block_size):
-            senders = pos[start:start + block_size]
-            # the matrix-multiplication shortcut of cdist cancels
-            # catastrophically: pairs at the boundary would flip, so compute
-            # every difference explicitly
-            within = torch.cdist(
-                senders, pos, compute_mode='donot_use_mm_for_euclid_dist'
-            ) <= self.max_range
-            within &= receiver.view(1, -1)  # column i receives
-            rows = torch.arange(senders.size(0), device=pos.device)
-            within[rows, rows + start] = False  # no self-edges
-            src, dst = within.nonzero(as_tuple=True)
-            blocks.append(torch.stack([src + start, dst]))
-        if not blocks:
-            return torch.empty(2, 0, dtype=torch.long, device=pos.device)
-        return torch.cat(blocks, dim=1)
+    def log_likelihood_of_distance_(self, z: Tensor,
+                                    distances: Tensor) -> Tensor:
+        r""":meth:`log_likelihood_of_distance` written over
+        :obj:`distances` (no autograd): a third of the memory traffic."""
+        return distances.sub_(z[:, :1]).square_().mul_(
+            -0.5 / self.sigma**2).sub_(self._log_norm())
 
-    def __repr__(self) -> str:
-        return (f'{self.__class__.__name__}(sigma={self.sigma}, '
-                f'max_range={self.max_range})')
+    def distance_gradient(self, z: Tensor,
+                          distances: Tensor) -> Tuple[Tensor, Tensor]:
+        r"""The closed-form gradients :math:`(\partial \log p / \partial d,
+        \partial \log p / \partial z)` :math:`(E, K)` each, of the
+        likelihood with respect to the distance and the range."""
+        per_distance = (z[:, :1] - distances) / self.sigma**2
+        return per_distance, -per_distance
+
+    @staticmethod
+    def fused_log_pdf(range_, distance, inv_two_var, log_norm):
+        # arithmetic only: compiled into the fused Triton kernel, which
+        # reads the range column and the constants of fused_constants()
+        residual = range_ - distance
+        return -inv_two_var * residual * residual - log_norm
+
+    def fused_constants(self) -> Tuple[float, float]:
+        return 0.5 / self.sigma**2, self._log_norm()
+
+    def sample_ranges(self, distances: Tensor, link_state=None,
+                      edge_index: Optional[Tensor] = None,
+                      generator: Optional[torch.Generator] = None) -> Tensor:
+        def noise(shape):
+            return self.sigma * torch.randn(shape, dtype=distances.dtype,
+                                            device=distances.device,
+                                            generator=generator)
+
+        return redraw_negative(noise, distances).view(-1, 1)
+
+
+class StudentTRange(RangeModel, name='student-t'):
+    r"""Range measurements with heavy-tailed Student-t noise, a robust
+    likelihood for ranges with outliers (NLOS links, multipath):
+
+    .. math::
+        \log p(z | d) = \log \frac{\Gamma(\frac{\nu + 1}{2})}
+        {\Gamma(\frac{\nu}{2}) \sqrt{\nu \pi} \sigma}
+        - \frac{\nu + 1}{2} \log\Big(1 + \frac{(z - d)^2}{\nu \sigma^2}
+        \Big).
+
+    :math:`\nu \to \infty` gives :class:`GaussianRange`; small :math:`\nu`
+    lets a range far from the distance cost little, so one bad link does not
+    pull an agent away. Sampling redraws negative ranges.
+
+    Args:
+        sigma (float, optional): Scale :math:`\sigma` in metres.
+            (default: :obj:`1.0`)
+        nu (float, optional): Degrees of freedom :math:`\nu`.
+            (default: :obj:`3.0`)
+        max_range (float, optional): Communication range in metres.
+            (default: :obj:`20.0`)
+    """
+    def __init__(self, sigma: float = 1.0, nu: float = 3.0,
+                 max_range: float = 20.0):
+        super().__init__(max_range)
+        self.sigma = _check_sigma(sigma)
+        self.nu = check_number(nu, 'nu')
+
+    def params(self) -> dict:
+        return dict(sigma=self.sigma, nu=self.nu, max_range=self.max_range)
+
+    def log_likelihood_of_distance(self, z: Tensor,
+                                   distances: Tensor) -> Tensor:
+        nu = self.nu
+        log_norm = (math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) -
+                    0.5 * math.log(nu * math.pi) - math.log(self.sigma))
+        scaled = (z[:, :1] - distances) / self.sigma
+        return log_norm - 0.5 * (nu + 1) * torch.log1p(scaled * scaled / nu)
+
+    def sample_ranges(self, distances: Tensor, link_state=None,
+                      edge_index: Optional[Tensor] = None,
+                      generator: Optional[torch.Generator] = None) -> Tensor:
+        def noise(shape):
+            # inverse CDF at the generator's uniforms: reproducible draws
+            uniform = torch.rand(shape, dtype=torch.float64,
+                                 generator=generator).clamp_(1e-300, 1.0)
+            quantile = student_t.ppf(uniform.numpy(), self.nu)
+            return self.sigma * torch.from_numpy(np.asarray(quantile)).to(
+                distances)
+
+        return redraw_negative(noise, distances).view(-1, 1)
+
+
+class NLOSRange(RangeModel, name='nlos'):
+    r"""Ranges with non-line-of-sight (NLOS) links: a link is NLOS with
+    probability :math:`p` and then reads long by a positive bias
+    :math:`b \sim \mathrm{Exp}(\text{mean } \mu)`:
+
+    .. math::
+        z = d + b \, \mathbb{1}_{\mathrm{NLOS}} + r, \quad
+        r \sim \mathcal{N}(0, \sigma^2),
+
+    with the mixture likelihood (an exponentially modified Gaussian for the
+    NLOS component, :math:`\lambda = 1 / \mu`, :math:`x = z - d`)
+
+    .. math::
+        p(z | d) = (1 - p) \, \mathcal{N}(x; 0, \sigma^2) + p \,
+        \frac{\lambda}{2} e^{\frac{\lambda}{2} (\lambda \sigma^2 - 2 x)}
+        \operatorname{erfc}\Big(\frac{\lambda \sigma^2 - x}{\sqrt{2}
+        \sigma}\Big).
+
+    Generation draws, once per realization, which node pairs are NLOS (the
+    same for both directions and all time steps) and writes the true flag as
+    a second link feature :obj:`"nlos"`, which this likelihood does not read
+    (an oracle model may). With :obj:`oracle=True` the likelihood reads the
+    flag and uses the component it names.
+
+    Args:
+        sigma (float, optional): LOS noise standard deviation in metres.
+            (default: :obj:`1.0`)
+        p_nlos (float, optional): Probability :math:`p` that a link is NLOS.
+            (default: :obj:`0.2`)
+        bias_mean (float, optional): Mean :math:`\mu` of the NLOS bias in
+            metres. (default: :obj:`3.0`)
+        oracle (bool, optional): Read the true NLOS flag (second link
+            feature). (default: :obj:`False`)
+        max_range (float, optional): Communication range in metres.
+            (default: :obj:`20.0`)
+    """
+    generated_features = ('range', 'nlos')
+
+    def __init__(self, sigma: float = 1.0, p_nlos: float = 0.2,
+                 bias_mean: float = 3.0, oracle: bool = False,
+                 max_range: float = 20.0):
+        super().__init__(max_range)
+        self.sigma = _check_sigma(sigma)
+        p_nlos = check_number(p_nlos, 'p_nlos', inclusive=True)
+        if p_nlos > 1:
+            raise ValueError(f"'p_nlos' must lie in [0, 1], got {p_nlos}")
+        self.p_nlos = p_nlos
+        self.bias_mean = check_number(bias_mean, 'bias_mean')
+        if not isinstance(oracle, bool):
+            raise TypeError(f"'oracle' must be a bool, got {oracle!r}")
+        self.oracle = oracle
+        self.features = ('range', 'nlos') if oracle else ('range', )
+
+    def params(self) -> dict:
+        return dict(sigma=self.sigma, p_nlos=self.p_nlos,
+                    bias_mean=self.bias_mean, oracle=self.oracle,
+                    max_range=self.max_range)
+
+    def log_likelihood_of_distance(self, z: Tensor,
+                                   distances: Tensor) -> Tensor:
+        sigma, rate = self.sigma, 1.0 / self.bias_mean
+        x = z[:, :1] - distances
+        scaled = x / sigma
+        log_los = -0.5 * scaled * scaled - math.log(sigma) - LOG_SQRT_2PI
+        u = (rate * sigma**2 - x) / (math.sqrt(2) * sigma)
+        # log erfc(u) without underflow: erfcx for u > 0 (inputs clamped to
+        # each branch, so neither branch makes an inf or NaN gradient)
+        positive, negative = u.clamp_min(0.0), u.clamp_max(0.0)
+        log_erfc = torch.where(
+            u > 0,
+            torch.log(torch.special.erfcx(positive)) - positive * positive,
+            torch.log(torch.special.erfc(negative)))
+        log_nlos = (math.log(rate / 2) + 0.5 * rate *
+                    (rate * sigma**2 - 2 * x) + log_erfc)
+        if self.oracle:
+            return torch.where(z[:, 1:2] > 0.5, log_nlos, log_los)
+        p = self.p_nlos
+        if p == 0:
+            return log_los
+        if p == 1:
+            return log_nlos
+        return torch.logaddexp(log_los + math.log1p(-p), log_nlos +
+                               math.log(p))
+
+    def sample_links(self, num_nodes: int,
+                     generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""Which unordered node pairs are NLOS :math:`(N, N)` (symmetric),
+        for a whole realization."""
+        draw = torch.rand(num_nodes, num_nodes, dtype=torch.float64,
+                          generator=generator) < self.p_nlos
+        upper = draw.triu(1)
+        return upper | upper.t()
+
+    def sample_ranges(self, distances: Tensor, link_state: Tensor,
+                      edge_index: Tensor,
+                      generator: Optional[torch.Generator] = None) -> Tensor:
+        nlos = link_state[edge_index[0], edge_index[1]]
+        bias = torch.empty_like(distances).exponential_(
+            1.0 / self.bias_mean, generator=generator) * nlos
+
+        def noise(shape):
+            return self.sigma * torch.randn(shape, dtype=distances.dtype,
+                                            device=distances.device,
+                                            generator=generator)
+
+        ranges = redraw_negative(noise, distances + bias)
+        return torch.stack([ranges, nlos.to(ranges.dtype)], dim=1)

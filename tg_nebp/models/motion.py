@@ -4,11 +4,12 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
+from tg_nebp.models.base import MotionModel
 
-__all__ = ['ConstantVelocityDrag']
+__all__ = ['ConstantVelocityDrag', 'ConstantVelocity']
 
 
-class ConstantVelocityDrag:
+class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
     r"""Constant-velocity motion with drag and Gaussian driving noise, from
     the `"Neural Enhanced Belief Propagation for Cooperative Localization"
     <https://arxiv.org/abs/2105.12903>`_ paper
@@ -36,8 +37,6 @@ class ConstantVelocityDrag:
         - **input:** states :math:`(*, 4)`
         - **output:** states :math:`(*, 4)`
     """
-    state_dim = 4
-
     def __init__(self, sigma_a: float = 0.05, drag: float = 0.06,
                  dt: float = 1.0):
         sigma_a = check_number(sigma_a, 'sigma_a', inclusive=True)
@@ -66,6 +65,28 @@ class ConstantVelocityDrag:
                             device=states.device, generator=generator)
         return self.propagate(states, self.sigma_a * accel)
 
-    def __repr__(self) -> str:
-        return (f'{self.__class__.__name__}(sigma_a={self.sigma_a}, '
-                f'drag={self.drag}, dt={self.dt})')
+    def params(self) -> dict:
+        return dict(sigma_a=self.sigma_a, drag=self.drag, dt=self.dt)
+
+
+class ConstantVelocity(ConstantVelocityDrag, name='constant-velocity'):
+    r"""The nearly-constant-velocity model (white-noise acceleration) of
+    tracking: :class:`ConstantVelocityDrag` without drag, stable at any
+    speed,
+
+    .. math::
+        \mathbf{x}_n = \mathbf{F} \mathbf{x}_{n-1} + \mathbf{W}
+        \mathbf{a}_n, \quad \mathbf{a}_n \sim \mathcal{N}(\mathbf{0},
+        \sigma_a^2 \mathbf{I}_2).
+
+    Args:
+        sigma_a (float, optional): Standard deviation :math:`\sigma_a` of the
+            acceleration noise. (default: :obj:`0.05`)
+        dt (float, optional): Time step :math:`\Delta` in seconds.
+            (default: :obj:`1.0`)
+    """
+    def __init__(self, sigma_a: float = 0.05, dt: float = 1.0):
+        super().__init__(sigma_a, 0.0, dt)
+
+    def params(self) -> dict:
+        return dict(sigma_a=self.sigma_a, dt=self.dt)

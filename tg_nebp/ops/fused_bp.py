@@ -1,17 +1,22 @@
-r"""A fused Triton kernel for the Gaussian-range BP factor summed over each
+r"""A fused Triton kernel for a range model's BP factor summed over each
 receiver's incoming edges, for edges sorted by receiver (CSC):
 
 .. math::
     s_i^{(k)} = \sum_{e = \mathrm{ptr}_i}^{\mathrm{ptr}_{i+1} - 1}
-    \log \mathcal{N}\big(z_e;\, \|\mathbf{p}_{j_e}^{(k)} -
-    \mathbf{p}_i^{(k)}\|, \sigma^2\big) + \log \tilde{w}_{j_e}^{(k)}.
+    \log p\big(z_e \,\big|\, \|\mathbf{p}_{j_e}^{(k)} -
+    \mathbf{p}_i^{(k)}\|\big) + \log \tilde{w}_{j_e}^{(k)}.
+
+The kernel holds no likelihood of its own: it compiles the model's
+:obj:`fused_log_pdf(range, distance, c0, c1)` (an arithmetic function, see
+:class:`~tg_nebp.models.GaussianRange`) with the model's two constants.
 
 One program owns one receiver and a block of particles and walks its
 incoming edges in order: no per-edge tensor is written, no atomics are used,
 so the result is deterministic and the memory traffic is about three reads
 per edge-particle (sender coordinates and log-weight) plus one write per
 node-particle."""
-import math
+import types
+from typing import Any, Callable, Dict, Tuple
 
 import torch
 from torch import Tensor
@@ -34,7 +39,7 @@ if triton is not None:
 
     @triton.jit
     def _bp_csc_kernel(pos_x, pos_y, log_w, ranges, src, ptr, out,
-                       num_particles, inv_two_var, log_norm,
+                       num_particles, c0, c1, log_pdf: tl.constexpr,
                        BLOCK: tl.constexpr):
         node = tl.program_id(0).to(tl.int64)
         offs = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
@@ -50,15 +55,18 @@ if triton is not None:
             z = tl.load(ranges + e)
             dx = tl.load(pos_x + sender + offs, mask=mask, other=0.0) - x_i
             dy = tl.load(pos_y + sender + offs, mask=mask, other=0.0) - y_i
-            residual = z - tl.sqrt(dx * dx + dy * dy)
             acc += tl.load(log_w + sender + offs, mask=mask, other=0.0) \
-                - inv_two_var * residual * residual - log_norm
+                + log_pdf(z, tl.sqrt(dx * dx + dy * dy), c0, c1)
         tl.store(out + row + offs, acc, mask=mask)
+
+
+_COMPILED: Dict[Callable, Any] = {}  # one Triton function per formula
 
 
 def fused_bp_segment_sum(pos_x: Tensor, pos_y: Tensor,
                          sender_log_weights: Tensor, ranges: Tensor,
-                         src: Tensor, ptr: Tensor, sigma: float,
+                         src: Tensor, ptr: Tensor, log_pdf: Callable,
+                         constants: Tuple[float, float],
                          block: int = 1024) -> Tensor:
     r"""The summed log-messages :math:`(N, K)` of edges sorted by receiver.
 
@@ -69,7 +77,9 @@ def fused_bp_segment_sum(pos_x: Tensor, pos_y: Tensor,
         ranges (torch.Tensor): Measured ranges :math:`(E)` or :math:`(E, 1)`.
         src (torch.Tensor): Sender of every edge :math:`(E)`.
         ptr (torch.Tensor): Receiver pointer :math:`(N + 1)`.
-        sigma (float): Range noise standard deviation.
+        log_pdf (callable): The model's arithmetic
+            :obj:`fused_log_pdf(range, distance, c0, c1)`.
+        constants (tuple): Its constants :obj:`(c0, c1)`.
         block (int, optional): Particles per program. (default: :obj:`1024`)
     """
     if triton is None:
@@ -81,10 +91,16 @@ def fused_bp_segment_sum(pos_x: Tensor, pos_y: Tensor,
     pos_x, pos_y = pos_x.contiguous(), pos_y.contiguous()
     log_w = sender_log_weights.contiguous()
     out = torch.empty_like(pos_x)
+    if log_pdf not in _COMPILED:
+        # the model's own function, seeing triton.language as Triton
+        # requires (its module does not import Triton)
+        visible = types.FunctionType(log_pdf.__code__,
+                                     {**log_pdf.__globals__, 'tl': tl},
+                                     log_pdf.__name__)
+        _COMPILED[log_pdf] = triton.jit(visible)
     grid = (num_nodes, triton.cdiv(num_particles, block))
     _bp_csc_kernel[grid](pos_x, pos_y, log_w, ranges.reshape(-1).contiguous(),
                          src.contiguous(), ptr.contiguous(), out,
-                         num_particles, 0.5 / sigma**2,
-                         math.log(math.sqrt(2 * math.pi) * sigma),
-                         BLOCK=block)
+                         num_particles, *map(float, constants),
+                         log_pdf=_COMPILED[log_pdf], BLOCK=block)
     return out

@@ -9,9 +9,9 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter, segment
 
 from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_number, check_particles,
-                                     check_positive_int, check_ranges)
-from tg_nebp.models import GaussianRange
+                                     check_link_features, check_number,
+                                     check_particles, check_positive_int)
+from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
 from tg_nebp.utils import (compute_dtype, log_normalize, long_edge_index,
                             plain_tensor, weighted_moments)
@@ -109,8 +109,8 @@ class NEBPConv(MessagePassing):
             (default: :obj:`False`)
         node_update (bool, optional): Build :math:`g_n` (needed for more than
             one iteration). (default: :obj:`False`)
-        measurement (GaussianRange, optional): Measurement model.
-            (default: :obj:`GaussianRange()`)
+        measurement (MeasurementModel, optional): Measurement model of
+            the BP messages. (default: :obj:`GaussianRange()`)
         feature_scale (float, optional): Divides the embedding features that
             enter :math:`g_e` and :math:`g_n`. (default: :obj:`10.0`)
         chunk_size (int, optional): Edge chunk of the BP messages.
@@ -130,7 +130,7 @@ class NEBPConv(MessagePassing):
           particles :math:`(|\mathcal{V}|, K, 4)`,
           log-weights :math:`(|\mathcal{V}|, K)`,
           edge indices :math:`(2, |\mathcal{E}|)`,
-          measured ranges :math:`(|\mathcal{E}|, 1)`,
+          link features :math:`(|\mathcal{E}|, F)` (the range first),
           anchor mask :math:`(|\mathcal{V}|)`,
           sender log-weights :math:`(|\mathcal{V}|, K)` *(optional)*,
           node embeddings :math:`(|\mathcal{V}|, 20)` *(optional)*
@@ -142,7 +142,7 @@ class NEBPConv(MessagePassing):
     def __init__(self, num_particles: int, message_dim: int = 32,
                  hidden_dim: int = 64, correct_anchor_edges: bool = False,
                  node_update: bool = False,
-                 measurement: Optional[GaussianRange] = None,
+                 measurement: Optional[MeasurementModel] = None,
                  feature_scale: float = 10.0,
                  chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__(aggr='add', node_dim=0)
@@ -191,7 +191,7 @@ class NEBPConv(MessagePassing):
             particles (torch.Tensor): Particles (not differentiated).
             log_weights (torch.Tensor): Prediction log-weights.
             edge_index (torch.Tensor): Edges :math:`j \to i`.
-            edge_attr (torch.Tensor): Measured ranges.
+            edge_attr (torch.Tensor): Link features, the range first.
             anchor (torch.Tensor): Bool mask of anchors.
             sender_log_weights (torch.Tensor, optional): The NEBP beliefs of
                 the previous iteration; :obj:`log_weights` at the first.
@@ -224,7 +224,8 @@ class NEBPConv(MessagePassing):
             check_particles(particles, sender_log_weights,
                             weights_name='sender_log_weights')
             check_graph(edge_index, num_nodes)
-            check_ranges(edge_attr, edge_index.size(1))
+            check_link_features(edge_attr, edge_index.size(1),
+                                self.bp.measurement.features)
             check_anchor(anchor, num_nodes)
             if embedding is not None:
                 check_embedding(embedding, num_nodes)

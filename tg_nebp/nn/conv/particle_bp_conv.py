@@ -8,9 +8,9 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
 
 from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_particles, check_positive_int,
-                                     check_ranges)
-from tg_nebp.models import GaussianRange
+                                     check_link_features, check_particles,
+                                     check_positive_int)
+from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
 from tg_nebp.utils import (compute_dtype, long_edge_index, plain_tensor,
                             sort_by_receiver)
@@ -49,9 +49,13 @@ class ParticleBPConv(MessagePassing):
     takes int32 or int64 edge indices.
 
     Args:
-        measurement (GaussianRange, optional): The measurement model that
-            gives :math:`\log p(z_{j \to i} | \mathbf{x}_j, \mathbf{x}_i)`.
-            (default: :obj:`GaussianRange()`)
+        measurement (MeasurementModel, optional): The measurement model
+            that gives :math:`\log p(\mathbf{z}_{j \to i} | \mathbf{x}_j,
+            \mathbf{x}_i)`. A :class:`~tg_nebp.models.RangeModel` gets the
+            coordinate-plane path and the fast pieces it provides (in-place,
+            closed-form gradient, fused kernel); any other model gets its
+            :meth:`log_likelihood` on the gathered state entries and
+            gradients by autograd. (default: :obj:`GaussianRange()`)
         chunk_size (int, optional): Edges processed at once; bounds the
             temporary memory to about :obj:`chunk_size * K` floats whatever
             :math:`|\mathcal{E}|`. If :obj:`None`, :math:`2^{18} / K` on the
@@ -70,7 +74,7 @@ class ParticleBPConv(MessagePassing):
           particles :math:`(|\mathcal{V}|, K, D)`,
           log-weights :math:`(|\mathcal{V}|, K)`,
           edge indices :math:`(2, |\mathcal{E}|)`,
-          measured ranges :math:`(|\mathcal{E}|, 1)`,
+          link features :math:`(|\mathcal{E}|, F)` (the range first),
           sender log-weights :math:`(|\mathcal{V}|, K)` *(optional)*,
           anchor mask :math:`(|\mathcal{V}|)` *(optional)*
         - **output:** updated log-weights :math:`(|\mathcal{V}|, K)` and
@@ -78,12 +82,15 @@ class ParticleBPConv(MessagePassing):
     """
     SUPPORTS_FUSED_EDGE_INDEX = True
 
-    def __init__(self, measurement: Optional[GaussianRange] = None,
+    def __init__(self, measurement: Optional[MeasurementModel] = None,
                  chunk_size: Optional[int] = None, compile: bool = False):
         super().__init__(aggr='add', node_dim=0)
         if chunk_size is not None:
             chunk_size = check_positive_int(chunk_size, 'chunk_size')
         self.measurement = measurement or GaussianRange()
+        if not isinstance(self.measurement, MeasurementModel):
+            raise TypeError(f"'measurement' must be a MeasurementModel, got "
+                            f"{self.measurement!r}")
         self.chunk_size = chunk_size
         # dynamic: chunk lengths and edge counts change from call to call
         self._messages = torch.compile(
@@ -109,7 +116,8 @@ class ParticleBPConv(MessagePassing):
             log_weights (torch.Tensor): Log-weights :math:`\log w_i^{(k)}`
                 of the prediction message.
             edge_index (torch.Tensor): Edges :math:`j \to i`.
-            edge_attr (torch.Tensor): Measured ranges :math:`z_{j \to i}`.
+            edge_attr (torch.Tensor): Link features
+                :math:`\mathbf{z}_{j \to i}`, the measured range first.
             sender_log_weights (torch.Tensor, optional): Log-weights
                 :math:`\log \tilde{w}_j^{(t-1, k)}` of the beliefs that the
                 senders transmit; :obj:`log_weights` at the first iteration.
@@ -130,120 +138,160 @@ class ParticleBPConv(MessagePassing):
         """
         if sender_log_weights is None:
             sender_log_weights = log_weights
+        model = self.measurement
         if validate:
             check_particles(particles, log_weights)
             check_particles(particles, sender_log_weights,
                             weights_name='sender_log_weights')
             check_graph(edge_index, particles.size(0))
-            check_ranges(edge_attr, edge_index.size(1))
+            check_link_features(edge_attr, edge_index.size(1),
+                                model.features)
             if anchor is not None:
                 check_anchor(anchor, particles.size(0))
         # one dtype for every operand lets the no-grad path work in place;
-        # contiguous coordinate planes make every gather a dense [E, K] copy
+        # contiguous coordinate planes (the state entries that the model
+        # reads) make every gather a dense [E, K] copy
         dtype = compute_dtype(particles, sender_log_weights, edge_attr)
         size = (particles.size(0), particles.size(0))
         edge_index = long_edge_index(edge_index, particles.size(0))
-        node_args = dict(pos_x=particles[..., 0].to(dtype).contiguous(),
-                         pos_y=particles[..., 1].to(dtype).contiguous(),
+        planes = tuple(particles[..., d].to(dtype).contiguous()
+                       for d in model.state_entries)
+        node_args = dict(planes=planes,
                          sender_log_weights=sender_log_weights.to(dtype),
-                         ranges=edge_attr.to(dtype))
-        if return_messages or torch.compiler.is_compiling():
-            # a compiled graph fuses the messages into the scatter itself
+                         link_features=edge_attr.to(dtype))
+        path = self._path(return_messages, planes[0], (
+            *planes, node_args['sender_log_weights'],
+            node_args['link_features']))
+        if path == 'messages':
             log_messages = self.edge_updater(edge_index, size=size,
                                              **node_args)
         else:
-            # receiver-sorted edges let message_and_aggregate sum chunk by
-            # chunk: no [E, K] tensor is ever allocated
+            # receiver-sorted edges let message_and_aggregate sum block by
+            # block: no [E, K] tensor is ever allocated
             log_messages = None
-            edge_index, node_args['ranges'] = sort_by_receiver(
-                edge_index, size[0], node_args['ranges'])
+            edge_index, node_args['link_features'] = sort_by_receiver(
+                edge_index, size[0], node_args['link_features'])
         out = self.propagate(edge_index, log_messages=log_messages,
-                             size=size, **node_args)
+                             path=path, size=size, **node_args)
         if anchor is not None:
             out = out.masked_fill(anchor.view(-1, 1), 0.0)
         return log_weights + out, log_messages if return_messages else None
 
-    def edge_update(self, pos_x: Tensor, pos_y: Tensor,
-                    sender_log_weights: Tensor, ranges: Tensor,
+    def _path(self, return_messages: bool, like: Tensor,
+              inputs: Tuple[Tensor, ...]) -> str:
+        r"""The one place that chooses how the messages are computed:
+        :obj:`"messages"` (materialized :math:`(E, K)`, returned or fused by
+        a compiled graph), :obj:`"fused"` (the model's formula in the Triton
+        kernel: CUDA, float32, no gradient), :obj:`"closed-form"` (blocks
+        with the model's closed-form gradient), :obj:`"autograd"` (blocks
+        differentiated by autograd per block) or :obj:`"blocks"` (blocks, no
+        gradient)."""
+        model = self.measurement
+        if return_messages or torch.compiler.is_compiling():
+            return 'messages'
+        grad = torch.is_grad_enabled() and any(t.requires_grad
+                                               for t in inputs)
+        if grad:
+            return ('closed-form' if isinstance(model, RangeModel)
+                    and model.provides('distance_gradient') else 'autograd')
+        if (fused_bp_available(like) and like.dtype == torch.float32
+                and isinstance(model, RangeModel)
+                and model.provides('fused_log_pdf')):
+            return 'fused'
+        return 'blocks'
+
+    def edge_update(self, planes: Tuple[Tensor, ...],
+                    sender_log_weights: Tensor, link_features: Tensor,
                     edge_index_i: Tensor, edge_index_j: Tensor) -> Tensor:
         # plain tensors (not PyG's Index) into the compiled region
         src, dst = plain_tensor(edge_index_j), plain_tensor(edge_index_i)
         num_edges = dst.numel()
-        chunk = self._chunk_edges(pos_x)
+        chunk = self._chunk_edges(planes[0])
         if chunk >= num_edges or torch.compiler.is_compiling():
             # a compiled graph fuses the chain without temporaries
-            return self._messages(pos_x, pos_y, sender_log_weights, ranges,
+            return self._messages(planes, sender_log_weights, link_features,
                                   src, dst)
-        out = pos_x.new_empty((num_edges, pos_x.size(1)))
+        out = planes[0].new_empty((num_edges, planes[0].size(1)))
         for start in range(0, num_edges, chunk):
             part = slice(start, start + chunk)
-            out[part] = self._messages(pos_x, pos_y, sender_log_weights,
-                                       ranges[part], src[part], dst[part])
+            out[part] = self._messages(planes, sender_log_weights,
+                                       link_features[part], src[part],
+                                       dst[part])
         return out
 
-    def _log_messages(self, pos_x: Tensor, pos_y: Tensor,
-                      sender_log_weights: Tensor, ranges: Tensor,
+    def _log_messages(self, planes: Tuple[Tensor, ...],
+                      sender_log_weights: Tensor, link_features: Tensor,
                       src: Tensor, dst: Tensor) -> Tensor:
-        if torch.is_grad_enabled() and (pos_x.requires_grad
-                                        or pos_y.requires_grad
-                                        or ranges.requires_grad):
-            diff = torch.stack([
-                pos_x.index_select(0, src) - pos_x.index_select(0, dst),
-                pos_y.index_select(0, src) - pos_y.index_select(0, dst),
-            ], dim=-1)
+        # the paired messages log p(z | x_j^(k), x_i^(k)) + log w_j^(k)
+        model = self.measurement
+        grad = torch.is_grad_enabled() and (
+            link_features.requires_grad or any(p.requires_grad
+                                               for p in planes))
+        if not isinstance(model, RangeModel):
+            sender = torch.stack([p.index_select(0, src) for p in planes], -1)
+            receiver = torch.stack([p.index_select(0, dst) for p in planes],
+                                   -1)
+            log_lik = model.log_likelihood(link_features, sender, receiver)
+        elif grad:
+            diff = torch.stack([p.index_select(0, src) - p.index_select(0, dst)
+                                for p in planes[:2]], dim=-1)
             distances = torch.linalg.vector_norm(diff, dim=-1)  # grad 0 at 0
-            log_lik = self.measurement.log_likelihood_of_distance(
-                ranges, distances)
+            log_lik = model.log_likelihood_of_distance(link_features,
+                                                       distances)
         else:  # in place on fresh temporaries: a third of the memory traffic
+            pos_x, pos_y = planes[:2]
             dx = pos_x.index_select(0, src).sub_(pos_x.index_select(0, dst))
             dy = pos_y.index_select(0, src).sub_(pos_y.index_select(0, dst))
             distances = dx.mul_(dx).addcmul_(dy, dy).sqrt_()
-            log_lik = self.measurement.log_likelihood_of_distance(
-                ranges, distances, inplace=True)
+            log_lik = (model.log_likelihood_of_distance_(
+                link_features, distances)
+                       if model.provides('log_likelihood_of_distance_') else
+                       model.log_likelihood_of_distance(link_features,
+                                                        distances))
         # in-place add stays differentiable in the sender log-weights
         return log_lik.add_(sender_log_weights.index_select(0, src))
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages
 
-    def message_and_aggregate(self, edge_index: EdgeIndex, pos_x: Tensor,
-                              pos_y: Tensor, sender_log_weights: Tensor,
-                              ranges: Tensor,
-                              log_messages: Optional[Tensor]) -> Tensor:
+    def message_and_aggregate(self, edge_index: EdgeIndex,
+                              planes: Tuple[Tensor, ...],
+                              sender_log_weights: Tensor,
+                              link_features: Tensor,
+                              log_messages: Optional[Tensor],
+                              path: str) -> Tensor:
         # edges sorted by receiver: a deterministic segment sum (PyG calls
         # this for an EdgeIndex sorted by column)
         (ptr, src), _ = edge_index.get_csc()
         if log_messages is not None:
             return segment(log_messages, ptr, reduce='sum')
         src = plain_tensor(src)
-        if (fused_bp_available(pos_x) and pos_x.dtype == torch.float32
-                and type(self.measurement) is GaussianRange
-                and not (torch.is_grad_enabled() and
-                         (pos_x.requires_grad or pos_y.requires_grad
-                          or sender_log_weights.requires_grad))):
-            return fused_bp_segment_sum(pos_x, pos_y, sender_log_weights,
-                                        ranges, src, ptr,
-                                        self.measurement.sigma)
+        model = self.measurement
+        if path == 'fused':
+            return fused_bp_segment_sum(planes[0], planes[1],
+                                        sender_log_weights,
+                                        link_features[:, 0], src, ptr,
+                                        model.fused_log_pdf,
+                                        model.fused_constants())
         # blocks of whole receivers holding about one chunk of edges each:
         # the peak temporary memory is one chunk, whatever E
         dst = plain_tensor(edge_index[1])
-        bounds = self._receiver_blocks(ptr, self._chunk_edges(pos_x))
-        inputs = (pos_x, pos_y, sender_log_weights, ranges)
-        if len(bounds) > 2 and torch.is_grad_enabled() and any(
-                t.requires_grad for t in inputs):
-            # the Gaussian likelihood has a closed-form gradient; other
-            # measurement models are differentiated by autograd per block
-            sigma = self.measurement.sigma if type(
-                self.measurement) is GaussianRange else None
-            return _BlockwiseMessageSum.apply(self._messages, sigma, bounds,
+        bounds = self._receiver_blocks(ptr, self._chunk_edges(planes[0]))
+        inputs = (*planes, sender_log_weights, link_features)
+        if path in ('closed-form', 'autograd') and len(bounds) > 2:
+            gradients = (_range_block_grads if path == 'closed-form' else
+                         _autograd_block_grads)
+            return _BlockwiseMessageSum.apply(self._messages, model,
+                                              gradients, len(planes), bounds,
                                               src, dst, ptr, *inputs)
-        return _sum_blocks(self._messages, bounds, src, dst, ptr, *inputs)
+        return _sum_blocks(self._messages, len(planes), bounds, src, dst,
+                           ptr, *inputs)
 
-    def _chunk_edges(self, pos_x: Tensor) -> int:
+    def _chunk_edges(self, like: Tensor) -> int:
         if self.chunk_size is not None:
             return self.chunk_size
-        elements = CUDA_CHUNK_ELEMENTS if pos_x.is_cuda else CPU_CHUNK_ELEMENTS
-        return max(1, elements // max(pos_x.size(1), 1))
+        elements = CUDA_CHUNK_ELEMENTS if like.is_cuda else CPU_CHUNK_ELEMENTS
+        return max(1, elements // max(like.size(1), 1))
 
     @staticmethod
     def _receiver_blocks(ptr: Tensor, chunk: int) -> List[int]:
@@ -261,15 +309,18 @@ class ParticleBPConv(MessagePassing):
         return f'{self.__class__.__name__}({self.measurement})'
 
 
-def _sum_blocks(messages: Callable, bounds: List[int], src: Tensor,
-                dst: Tensor, ptr: Tensor, pos_x: Tensor, pos_y: Tensor,
-                sender_log_weights: Tensor, ranges: Tensor) -> Tensor:
-    # the segment sums of the receiver blocks [bounds[b], bounds[b + 1])
+def _sum_blocks(messages: Callable, num_planes: int, bounds: List[int],
+                src: Tensor, dst: Tensor, ptr: Tensor,
+                *inputs: Tensor) -> Tensor:
+    # the segment sums of the receiver blocks [bounds[b], bounds[b + 1]);
+    # inputs: the coordinate planes, the sender log-weights, link features
+    planes, sender = inputs[:num_planes], inputs[num_planes]
+    link_features = inputs[num_planes + 1]
     sums = []
     for first, last in zip(bounds[:-1], bounds[1:]):
         begin, end = int(ptr[first]), int(ptr[last])
-        block = messages(pos_x, pos_y, sender_log_weights,
-                         ranges[begin:end], src[begin:end], dst[begin:end])
+        block = messages(planes, sender, link_features[begin:end],
+                         src[begin:end], dst[begin:end])
         sums.append(segment(block, ptr[first:last + 1] - begin, reduce='sum'))
     return sums[0] if len(sums) == 1 else torch.cat(sums)
 
@@ -280,79 +331,92 @@ class _BlockwiseMessageSum(torch.autograd.Function):
     neither pass holds more than one block of :math:`(\mathrm{chunk}, K)`
     temporaries. (Autograd through the blocks would save them all, and
     recomputing them under plain autograd would allocate a node-sized
-    gradient per block.) With :obj:`sigma` (a Gaussian range likelihood) the
-    block gradients are closed-form; otherwise autograd differentiates the
-    block."""
+    gradient per block.) :obj:`gradients` is :func:`_range_block_grads` (the
+    model's closed-form gradient) or :func:`_autograd_block_grads`."""
     @staticmethod
-    def forward(ctx, messages, sigma, bounds, src, dst, ptr, *inputs):
-        ctx.messages, ctx.sigma, ctx.bounds = messages, sigma, bounds
+    def forward(ctx, messages, model, gradients, num_planes, bounds, src,
+                dst, ptr, *inputs):
+        ctx.messages, ctx.model, ctx.gradients = messages, model, gradients
+        ctx.num_planes, ctx.bounds = num_planes, bounds
         ctx.save_for_backward(src, dst, ptr, *inputs)
-        return _sum_blocks(messages, bounds, src, dst, ptr, *inputs)
+        return _sum_blocks(messages, num_planes, bounds, src, dst, ptr,
+                           *inputs)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out):
         src, dst, ptr, *inputs = ctx.saved_tensors
-        needs = ctx.needs_input_grad[6:]
+        needs = ctx.needs_input_grad[8:]
         grads = [torch.zeros_like(t) if need else None
                  for t, need in zip(inputs, needs)]
-        block_grads = (_gaussian_block_grads if ctx.sigma is not None else
-                       _autograd_block_grads)
         bounds = ctx.bounds
         for first, last in zip(bounds[:-1], bounds[1:]):
             begin, end = int(ptr[first]), int(ptr[last])
             block_src, block_dst = src[begin:end], dst[begin:end]
-            found = block_grads(ctx, inputs, needs, begin, end, block_src,
-                                block_dst, grad_out.index_select(0, block_dst))
+            found = ctx.gradients(ctx, inputs, needs, begin, end, block_src,
+                                  block_dst,
+                                  grad_out.index_select(0, block_dst))
             for grad, (nodes, value) in zip(grads, found):
                 if grad is None:
                     continue
-                if nodes is None:  # per-edge: the ranges
+                if nodes is None:  # per-edge: the link features
                     grad[begin:end] = value
                 else:
                     for index, part in zip(nodes, value):
                         grad.index_add_(0, index, part)
-        return (None, None, None, None, None, None, *grads)
+        return (None, ) * 8 + tuple(grads)
 
 
-# The block gradient functions return, per input (particle x, particle y,
-# sender log-weights, ranges), (row indices, parts) to add at those rows, or
-# (None, block) for the per-edge ranges.
+# The block gradient functions return, per input (the coordinate planes, the
+# sender log-weights, the link features), (row indices, parts) to add at those
+# rows, or (None, block) for the per-edge link features.
 
 
-def _gaussian_block_grads(ctx, inputs, needs, begin, end, src, dst,
-                          grad_messages):
-    # messages m = -(z - d)^2 / (2 sigma^2) - log_norm + w_src with
-    # d = |p_src - p_dst|: dm/dd = (z - d) / sigma^2, dd/dp_src = diff / d
-    pos_x, pos_y, sender, ranges = inputs
+def _range_block_grads(ctx, inputs, needs, begin, end, src, dst,
+                       grad_messages):
+    # messages m = log p(z | d) + w_src with d = |p_src - p_dst|: the model
+    # gives dm/dd and dm/dz in closed form, and dd/dp_src = diff / d
+    num_planes = ctx.num_planes
+    pos_x, pos_y = inputs[:2]
+    link_features = inputs[num_planes + 1][begin:end]
     dx = pos_x.index_select(0, src) - pos_x.index_select(0, dst)
     dy = pos_y.index_select(0, src) - pos_y.index_select(0, dst)
     distances = torch.sqrt(dx * dx + dy * dy)
-    per_distance = grad_messages * (ranges[begin:end] -
-                                    distances) / ctx.sigma**2
+    per_distance, per_range = ctx.model.distance_gradient(link_features,
+                                                          distances)
+    per_distance = grad_messages * per_distance
     # zero (not NaN) where paired particles coincide, as autograd's norm
     per_coordinate = torch.where(distances > 0, per_distance / distances,
                                  torch.zeros_like(distances))
     grad_x, grad_y = per_coordinate * dx, per_coordinate * dy
-    return ((src, dst), (grad_x, -grad_x)), ((src, dst), (grad_y, -grad_y)), \
-        ((src, ), (grad_messages, )), \
-        (None, -per_distance.sum(-1, keepdim=True) if needs[3] else None)
+    planes = [((src, dst), (grad_x, -grad_x)), ((src, dst), (grad_y, -grad_y))]
+    planes += [((src, ), (torch.zeros_like(grad_x), ))] * (num_planes - 2)
+    feature_grad = None
+    if needs[num_planes + 1]:  # the range column; the others are not read
+        feature_grad = torch.zeros_like(link_features)
+        feature_grad[:, 0] = (grad_messages * per_range).sum(-1)
+    return (*planes, ((src, ), (grad_messages, )), (None, feature_grad))
 
 
 def _autograd_block_grads(ctx, inputs, needs, begin, end, src, dst,
                           grad_messages):
     # the block's senders and receivers as 2 * count local nodes
+    num_planes = ctx.num_planes
     count = end - begin
     nodes = torch.cat([src, dst])
     local = torch.arange(2 * count, device=nodes.device)
     with torch.enable_grad():
         leaves = [t.index_select(0, nodes).requires_grad_(need)
-                  for t, need in zip(inputs[:3], needs)]
-        block_ranges = inputs[3][begin:end].detach().requires_grad_(needs[3])
-        block = ctx.messages(*leaves, block_ranges, local[:count],
-                             local[count:])
-        wanted = [t for t in (*leaves, block_ranges) if t.requires_grad]
-        found = iter(torch.autograd.grad(block, wanted, grad_messages))
+                  for t, need in zip(inputs[:num_planes + 1], needs)]
+        block_features = inputs[num_planes + 1][begin:end].detach(
+        ).requires_grad_(needs[num_planes + 1])
+        block = ctx.messages(tuple(leaves[:num_planes]), leaves[num_planes],
+                             block_features, local[:count], local[count:])
+        wanted = [t for t in (*leaves, block_features) if t.requires_grad]
+        found = iter(torch.autograd.grad(block, wanted, grad_messages,
+                                         allow_unused=True))
     grads = [next(found) if need else None for need in needs]
-    return (((nodes, ), (grads[0], )), ((nodes, ), (grads[1], )),
-            ((nodes, ), (grads[2], )), (None, grads[3]))
+    grads = [torch.zeros_like(t) if g is None and need else g
+             for g, t, need in zip(grads, (*leaves, block_features), needs)]
+    return (*(((nodes, ), (g, )) for g in grads[:num_planes + 1]),
+            (None, grads[num_planes + 1]))

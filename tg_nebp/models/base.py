@@ -1,0 +1,306 @@
+r"""The two model roles of :mod:`tg_nebp`, one base class each (as Stone
+Soup has one base per role), and the registry that stores and rebuilds them.
+
+* :class:`MotionModel` samples the transition :math:`p(\mathbf{x}_n |
+  \mathbf{x}_{n-1})` and states its state dimension.
+* :class:`MeasurementModel` gives :math:`\log p(\mathbf{z}_{j \to i} |
+  \mathbf{x}_j, \mathbf{x}_i)` for the link features :math:`\mathbf{z}`
+  that it reads (:attr:`~MeasurementModel.features`, the range first) and
+  paired sender and receiver particle states, and samples the graph and the
+  link features of a scenario.
+  :class:`RangeModel` is the measurement model whose likelihood depends on
+  the states through the distance only; it gets the memory-light
+  coordinate-plane path of :class:`~tg_nebp.nn.conv.ParticleBPConv`.
+
+Every concrete model names itself at class creation, which registers it:
+
+.. code-block:: python
+
+    class LaplaceRange(RangeModel, name='laplace-range'):
+        def __init__(self, scale=1.0, max_range=20.0):
+            super().__init__(max_range)
+            self.scale = check_number(scale, 'scale')
+
+        def params(self):
+            return dict(scale=self.scale, max_range=self.max_range)
+
+        def log_likelihood_of_distance(self, z, distances):
+            return -(z[:, :1] - distances).abs() / self.scale \
+                - math.log(2 * self.scale)
+
+        def sample_features(self, distances, link_state, generator=None):
+            ...
+
+A model's configuration is :obj:`{"name": ..., "params": {...}}`
+(:meth:`Model.config`): scenarios, dataset file names and checkpoints store
+it, :func:`model_from_config` rebuilds it, and a user's own class works
+everywhere once the module that defines it is imported.
+
+A fast path (closed-form gradient, fused kernel) belongs to the model that
+it computes: the model provides it, and :meth:`Model.provides` hands it out
+only while the class that defines the likelihood is the class that defines
+the fast piece, so a subclass that overrides the likelihood alone can never
+reach a fast path that computes another formula; it gets the generic
+(autograd) path.
+"""
+import functools
+import math
+from typing import Any, ClassVar, Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.validation import check_number
+
+__all__ = [
+    'Model',
+    'MotionModel',
+    'MeasurementModel',
+    'RangeModel',
+    'MODELS',
+    'model_from_config',
+    'redraw_negative',
+]
+
+# role -> name -> class
+MODELS: Dict[str, Dict[str, type]] = {'motion': {}, 'measurement': {}}
+
+
+@functools.lru_cache(maxsize=None)
+def _definer(cls: type, attribute: str) -> Optional[type]:
+    # the class in the MRO that defines the attribute (classes do not change
+    # after creation: cached, since the convolution asks per block)
+    for klass in cls.__mro__:
+        if attribute in vars(klass):
+            return klass
+    return None
+
+
+class Model:
+    r"""What both roles share: a registered name, constructor parameters
+    that are JSON values (:meth:`params`), the configuration built from
+    them, equality by configuration, and the fast-path gate
+    (:meth:`provides`)."""
+    role: ClassVar[str] = ''
+    name: ClassVar[str] = ''
+    # the method whose formula the fast pieces compute, per role
+    formula: ClassVar[str] = ''
+
+    def __init_subclass__(cls, name: Optional[str] = None, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if name is None:
+            return
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a model's 'name' must be a non-empty string, "
+                             f"got {name!r}")
+        registry = MODELS[cls.role]
+        known = registry.get(name)
+        # re-running a module (a notebook cell) redefines its class
+        if known is not None and known.__qualname__ != cls.__qualname__:
+            raise ValueError(f"the {cls.role} model name '{name}' is taken "
+                             f"by {known.__module__}.{known.__qualname__}")
+        cls.name = name
+        registry[name] = cls
+
+    def params(self) -> Dict[str, Any]:
+        r"""The constructor arguments as JSON values: :obj:`type(self)(
+        **self.params())` rebuilds the model."""
+        raise NotImplementedError(f'{type(self).__name__} must implement '
+                                  f'params()')
+
+    def config(self) -> Dict[str, Any]:
+        r""":obj:`{"name": ..., "params": {...}}`, what scenarios, dataset
+        file names and checkpoints store."""
+        # a subclass without a name of its own would be stored, and
+        # rebuilt, as its parent
+        if MODELS[self.role].get(self.name) is not type(self):
+            raise ValueError(f"{type(self).__name__} has no registered name "
+                             f"of its own (class {type(self).__name__}(..., "
+                             f"name='...')): it cannot be stored")
+        return {'name': self.name, 'params': self.params()}
+
+    def provides(self, piece: str) -> bool:
+        r"""Whether the fast piece :obj:`piece` (a method name) may be used:
+        it is defined, and by the class that defines this model's formula,
+        so it computes the formula that the model has."""
+        owner = _definer(type(self), piece)
+        return owner is not None and owner is _definer(type(self),
+                                                       self.formula)
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and other.params() == self.params()
+
+    def __hash__(self) -> int:
+        return hash((type(self), repr(sorted(self.params().items()))))
+
+    def __repr__(self) -> str:
+        args = ', '.join(f'{k}={v!r}' for k, v in self.params().items())
+        return f'{type(self).__name__}({args})'
+
+
+def model_from_config(config: Any, role: str) -> 'Model':
+    r"""Rebuilds a model of :obj:`role` (:obj:`"motion"` or
+    :obj:`"measurement"`) from :meth:`Model.config`; an unknown name or bad
+    parameters are a :class:`ValueError` that says which."""
+    registry = MODELS[role]
+    if not (isinstance(config, dict) and set(config) == {'name', 'params'}
+            and isinstance(config['params'], dict)):
+        raise ValueError(f"a {role} model configuration must be "
+                         f"{{'name': ..., 'params': {{...}}}}, got "
+                         f"{config!r}")
+    cls = registry.get(config['name'])
+    if cls is None:
+        raise ValueError(f"unknown {role} model '{config['name']}'; "
+                         f"registered: {sorted(registry)} (import the module "
+                         f"that defines it first)")
+    try:
+        return cls(**config['params'])
+    except TypeError as e:
+        raise ValueError(f"{role} model '{config['name']}': {e}") from None
+
+
+class MotionModel(Model):
+    r"""The motion role: :meth:`sample` draws :math:`\mathbf{x}_n \sim
+    p(\mathbf{x}_n | \mathbf{x}_{n-1})` for states :math:`(*, D)`, with
+    :math:`D` = :attr:`state_dim` and the position in the first two
+    entries."""
+    role = 'motion'
+    formula = 'sample'
+    state_dim: ClassVar[int] = 4
+
+    def sample(self, states: Tensor,
+               generator: Optional[torch.Generator] = None) -> Tensor:
+        raise NotImplementedError
+
+
+class MeasurementModel(Model):
+    r"""The measurement role.
+
+    * :meth:`log_likelihood` :math:`\log p(\mathbf{z}_{j \to i} |
+      \mathbf{x}_j^{(k)}, \mathbf{x}_i^{(k)})` :math:`(E, K)` for link
+      features :math:`(E, F)` and paired sender and receiver states
+      :math:`(E, K, D)`;
+    * :attr:`features`: the names of the link features it reads, the
+      leading columns of :obj:`edge_attr`, the range first (further columns,
+      such as the true NLOS flag of generated data, are carried along);
+    * :attr:`state_entries`: the state entries its likelihood reads (the
+      convolution gathers only those);
+    * :meth:`connect`, :meth:`sample_links` and :meth:`sample_features`
+      generate a scenario's graph and link features.
+    """
+    role = 'measurement'
+    formula = 'log_likelihood'
+    features: ClassVar[Tuple[str, ...]] = ('range', )
+    # the link features that generation writes, a superset of 'features'
+    generated_features: ClassVar[Tuple[str, ...]] = ('range', )
+    state_entries: ClassVar[Tuple[int, ...]] = (0, 1, 2, 3)
+
+    def log_likelihood(self, z: Tensor, sender: Tensor,
+                       receiver: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def connect(self, pos: Tensor, receiver: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def sample_links(self, num_nodes: int,
+                     generator: Optional[torch.Generator] = None):
+        r"""The per-link state of a realization (for example which links
+        are NLOS), drawn once before its time steps; :obj:`None` (and no
+        random draw) for models without one."""
+        return None
+
+    def sample_features(self, states_j: Tensor, states_i: Tensor,
+                        link_state, edge_index: Tensor,
+                        generator: Optional[torch.Generator] = None
+                        ) -> Tensor:
+        raise NotImplementedError
+
+
+class RangeModel(MeasurementModel):
+    r"""A measurement model whose likelihood depends on the states through
+    the distance :math:`d = \|\mathbf{p}_j - \mathbf{p}_i\|` only:
+    subclasses implement :meth:`log_likelihood_of_distance` (and may
+    provide :meth:`distance_gradient`, a closed-form :math:`\partial \log p
+    / \partial d`, and :meth:`log_likelihood_of_distance_`, an in-place
+    variant). Pairs within :obj:`max_range` measure.
+
+    Args:
+        max_range (float, optional): Communication range in metres.
+            (default: :obj:`20.0`)
+    """
+    formula = 'log_likelihood_of_distance'
+    state_entries = (0, 1)
+
+    def __init__(self, max_range: float = 20.0):
+        self.max_range = check_number(max_range, 'max_range')
+
+    def log_likelihood_of_distance(self, z: Tensor,
+                                   distances: Tensor) -> Tensor:
+        r""":math:`\log p(\mathbf{z} | d)` :math:`(E, K)` for link features
+        :math:`(E, F)` and distances :math:`(E, K)`."""
+        raise NotImplementedError
+
+    def log_likelihood(self, z: Tensor, sender: Tensor,
+                       receiver: Tensor) -> Tensor:
+        return self.log_likelihood_of_distance(
+            z, torch.linalg.vector_norm(sender[..., :2] - receiver[..., :2],
+                                        dim=-1))
+
+    def sample_features(self, states_j: Tensor, states_i: Tensor,
+                        link_state, edge_index: Tensor,
+                        generator: Optional[torch.Generator] = None
+                        ) -> Tensor:
+        distances = torch.linalg.vector_norm(states_j[:, :2] - states_i[:, :2],
+                                             dim=-1)
+        return self.sample_ranges(distances, link_state, edge_index,
+                                  generator)
+
+    def sample_ranges(self, distances: Tensor, link_state=None,
+                      edge_index: Optional[Tensor] = None,
+                      generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""Link features :math:`(E, F)` (:attr:`generated_features`)
+        measured at the true :obj:`distances` :math:`(E)` of the links
+        :obj:`edge_index` with the per-link state :obj:`link_state` of
+        :meth:`sample_links`."""
+        raise NotImplementedError
+
+    def connect(self, pos: Tensor, receiver: Tensor,
+                block_size: int = 2048) -> Tensor:
+        r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
+        from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
+        j` within :obj:`max_range` of it, for positions :obj:`pos`
+        :math:`(N, 2)`, ordered by sender, then receiver. Senders are handled
+        :obj:`block_size` at a time, so memory stays :math:`O(N)` per
+        block."""
+        num_nodes = pos.size(0)
+        blocks = []
+        for start in range(0, num_nodes, block_size):
+            senders = pos[start:start + block_size]
+            # the matrix-multiplication shortcut of cdist cancels
+            # catastrophically: pairs at the boundary would flip, so compute
+            # every difference explicitly
+            within = torch.cdist(
+                senders, pos, compute_mode='donot_use_mm_for_euclid_dist'
+            ) <= self.max_range
+            within &= receiver.view(1, -1)  # column i receives
+            rows = torch.arange(senders.size(0), device=pos.device)
+            within[rows, rows + start] = False  # no self-edges
+            src, dst = within.nonzero(as_tuple=True)
+            blocks.append(torch.stack([src + start, dst]))
+        if not blocks:
+            return torch.empty(2, 0, dtype=torch.long, device=pos.device)
+        return torch.cat(blocks, dim=1)
+
+
+def redraw_negative(draw, distances: Tensor) -> Tensor:
+    r"""Ranges :obj:`distances + draw(shape)`, redrawing wherever a range
+    would be negative (a sensor never reports a negative distance)."""
+    ranges = torch.empty_like(distances)
+    todo = torch.ones_like(distances, dtype=torch.bool)
+    while bool(todo.any()):
+        ranges = torch.where(todo, distances + draw(distances.shape), ranges)
+        todo = ranges < 0
+    return ranges
+
+
+LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
