@@ -12,24 +12,9 @@ Soup has one base per role), and the registry that stores and rebuilds them.
   the states through the distance only; it gets the memory-light
   coordinate-plane path of :class:`~tg_nebp.nn.conv.ParticleBPConv`.
 
-Every concrete model names itself at class creation, which registers it:
-
-.. code-block:: python
-
-    class LaplaceRange(RangeModel, name='laplace-range'):
-        def __init__(self, scale=1.0, max_range=20.0):
-            super().__init__(max_range)
-            self.scale = check_number(scale, 'scale')
-
-        def params(self):
-            return dict(scale=self.scale, max_range=self.max_range)
-
-        def log_likelihood_of_distance(self, z, distances):
-            return -(z[:, :1] - distances).abs() / self.scale \
-                - math.log(2 * self.scale)
-
-        def sample_features(self, distances, link_state, generator=None):
-            ...
+Every concrete model names itself at class creation, which registers it
+(:obj:`class LaplaceRange(RangeModel, name='laplace-range')`; a complete
+example is in the README and :obj:`tests/models/test_user_models.py`).
 
 A model's configuration is :obj:`{"name": ..., "params": {...}}`
 (:meth:`Model.config`): scenarios, dataset file names and checkpoints store
@@ -43,7 +28,6 @@ the fast piece, so a subclass that overrides the likelihood alone can never
 reach a fast path that computes another formula; it gets the generic
 (autograd) path.
 """
-import functools
 import math
 from typing import Any, ClassVar, Dict, Optional, Tuple
 
@@ -66,10 +50,9 @@ __all__ = [
 MODELS: Dict[str, Dict[str, type]] = {'motion': {}, 'measurement': {}}
 
 
-@functools.lru_cache(maxsize=None)
 def _definer(cls: type, attribute: str) -> Optional[type]:
-    # the class in the MRO that defines the attribute (classes do not change
-    # after creation: cached, since the convolution asks per block)
+    # the class in the MRO that defines the attribute (a few dict lookups;
+    # no cache wrapper, which torch.compile would warn about)
     for klass in cls.__mro__:
         if attribute in vars(klass):
             return klass
