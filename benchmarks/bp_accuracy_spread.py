@@ -31,10 +31,13 @@ def main():
     tracker = ParticleBP(args.particles, args.iterations,
                          resampler=args.resampler).to(args.device)
     rows = []
-    for r in range(len(dataset)):
-        result = track_dataset(tracker, dataset[r:r + 1], device=args.device,
-                               seed=args.seed + r)
-        s = summarize(result['errors'], result['nees'])
+    # every realization has the same agents and steps: its entries are one
+    # contiguous block of the flat errors and NEES
+    result = track_dataset(tracker, dataset, device=args.device,
+                           seed=args.seed)
+    for errors, nees in zip(result['errors'].view(len(dataset), -1),
+                            result['nees'].view(len(dataset), -1)):
+        s = summarize(errors, nees)
         rows.append([s['outage']['0.5'], s['outage']['1.0'],
                      s['outage']['2.0'], s['accept']['0.95']])
     table = torch.tensor(rows, dtype=torch.float64)

@@ -145,17 +145,19 @@ def network(num_agents: int, batch: int, num_steps: int, seed: int):
     r"""The benchmark graph: :obj:`batch` realizations of the paper's test
     network grown to :obj:`num_agents` agents, :obj:`num_steps` steps each
     (realization :math:`r` drawn as the dataset draws it, with seed
-    :obj:`seed * 1_000_003 + r`)."""
+    :obj:`derive_seed(seed, r)`)."""
     from torch_geometric.data import Batch
 
     from tg_nebp.datasets import Scenario
+    from tg_nebp.utils import derive_seed
 
     scenario = Scenario.load('paper_test')
     if num_agents != scenario.num_agents:
         scenario = scenario.grown(num_agents)
     scenario = scenario.replace(num_steps=num_steps)
     return Batch.from_data_list([
-        scenario.generate(torch.Generator().manual_seed(seed * 1_000_003 + r))
+        scenario.generate(torch.Generator().manual_seed(derive_seed(seed,
+                                                                    r)))
         for r in range(batch)
     ])
 

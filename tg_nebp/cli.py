@@ -12,7 +12,9 @@ from tqdm import tqdm
 
 from tg_nebp.datasets import CooperativeLocalizationDataset
 from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
+from tg_nebp.models import MODELS, model_like
 from tg_nebp.reproduce import PRESETS, evaluate_method, reproduce
 from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
 
@@ -60,11 +62,19 @@ def _evaluate(args) -> int:
     dataset = CooperativeLocalizationDataset(
         args.root, scenario=args.scenario,
         num_realizations=args.realizations, seed=args.seed, log=False)
+    measurement = dataset.scenario.measurement_model
+    if args.measurement is not None:
+        # another likelihood than the data's: the cost of model mismatch
+        measurement = model_like(args.measurement, 'measurement',
+                                 measurement)
     models = dict(motion=dataset.scenario.motion_model,
-                  measurement=dataset.scenario.measurement_model)
+                  measurement=measurement)
     if args.method == 'nebp':
         if args.checkpoint is None:
             raise ValueError("--method nebp needs --checkpoint PATH")
+        if args.measurement is not None:
+            raise ValueError("--measurement is for --method bp; NEBP runs "
+                             "with its checkpoint's measurement model")
         tracker = nebp_from_checkpoint(args.checkpoint, args.particles,
                                        compile=args.compile)
     else:
@@ -177,8 +187,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help='message passing iterations per step (default: 1)')
     ev.add_argument('--batch-size', type=_positive, default=1,
                     help='realizations tracked together (default: 1)')
-    ev.add_argument('--resampler', choices=['multinomial', 'systematic'],
+    ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
                     default='multinomial')
+    ev.add_argument('--measurement', choices=sorted(MODELS['measurement']),
+                    default=None,
+                    help="BP's likelihood (default: the scenario's); it "
+                    "keeps the scenario's sigma and max_range, so "
+                    "'gaussian' on NLOS data shows the cost of mismatch")
     ev.add_argument('--scenario', default='paper_test',
                     help='scenario name or JSON file (default: paper_test)')
     ev.add_argument('--out', default='results/evaluate',

@@ -7,6 +7,7 @@ from torch_geometric.loader import DataLoader
 
 from tg_nebp import metrics
 from tg_nebp.filters import ParticleBP
+from tg_nebp.utils import derive_seed
 
 __all__ = ['track_dataset', 'summarize', 'OUTAGE_THRESHOLDS', 'CONFIDENCE']
 
@@ -23,9 +24,10 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
     first realization (:obj:`"first_mean"`, :obj:`"first_states"`,
     :obj:`"first_anchor"`) for plots.
 
-    Batch :math:`b` draws its particles from a generator seeded with
-    :obj:`seed + b`, so two trackers run with the same :obj:`seed` and
-    :obj:`batch_size` see the same prior particle draws.
+    Realization :math:`r` draws its particles from its own generator,
+    seeded with :obj:`derive_seed(seed, r)`, so two trackers run with the
+    same :obj:`seed` see the same prior particle draws, and the result does
+    not depend on :obj:`batch_size`.
 
     Args:
         tracker (ParticleBP): The tracker (BP or NEBP).
@@ -41,7 +43,10 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
     with torch.no_grad():
         for b, batch in enumerate(DataLoader(dataset, batch_size=batch_size)):
             batch = batch.to(device)
-            generator = torch.Generator(device).manual_seed(seed + b)
+            first = b * batch_size
+            generator = [
+                torch.Generator(device).manual_seed(derive_seed(seed, r))
+                for r in range(first, first + batch.num_graphs)]
             agents = ~batch.anchor
             means = []
             for step in tracker.steps(batch, generator):

@@ -47,6 +47,7 @@ def evaluate_method(method: str, tracker: ParticleBP, dataset,
                  seconds=round(time.perf_counter() - start, 3),
                  device=device, seed=seed,
                  iterations=tracker.num_iterations,
+                 measurement=tracker.measurement.config(),
                  scenario=getattr(getattr(dataset, 'scenario', None), 'name',
                                   None))
     path = out / 'metrics.json'

@@ -7,25 +7,27 @@ the training progress and a format version. It is read with
 file; a corrupt, foreign or mismatched file gets a :class:`ValueError`.
 
 Training runs in one process or, under :obj:`torchrun`, data-parallel in
-several (:class:`~torch.nn.parallel.DistributedDataParallel`), with the same
-result up to float rounding (see :func:`train`)."""
-import contextlib
+several (gradients summed over the ranks), with the same result up to float
+rounding (see :func:`train`)."""
 import math
 import pickle
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import (Callable, Dict, Iterable, List, Optional, Sequence,
+                    Tuple, Union)
 
 import torch
 import torch.distributed as dist
-from torch.nn.parallel import DistributedDataParallel
+from torch import Tensor
 from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP
 from tg_nebp.io import atomic_write, first_line, one_line
+from tg_nebp.utils import derive_seed
 
-__all__ = ['train', 'position_loss', 'save_checkpoint', 'load_checkpoint',
-           'nebp_from_checkpoint', 'CHECKPOINT_VERSION']
+__all__ = ['train', 'train_epoch', 'adam', 'step_loss', 'position_loss',
+           'save_checkpoint', 'load_checkpoint', 'nebp_from_checkpoint',
+           'CHECKPOINT_VERSION']
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
 # 2: models stored as {'name': ..., 'params': ...}
@@ -167,10 +169,7 @@ def _realization_generator(device: str, seed: int, tag: int,
                            index: int) -> torch.Generator:
     # one independent stream per (seed, epoch or -1, realization): a resumed
     # run, any batch and any rank draw what the uninterrupted run drew
-    value = seed
-    for part in (tag, index):
-        value = (value * 1_000_003 + part) % (2**63 - 1)
-    return torch.Generator(device).manual_seed(value)
+    return torch.Generator(device).manual_seed(derive_seed(seed, tag, index))
 
 
 def _batch(dataset, indices: List[int], device: str, seed: int,
@@ -206,27 +205,90 @@ def validation_loss(model: NEBP, dataset, batch_size: int, device: str,
     return total / max(count, 1)
 
 
-@contextlib.contextmanager
-def _synchronized_gradients(model: NEBP,
-                            ddp: Optional[DistributedDataParallel]):
-    # DDP hooks forward(): the tracker calls model.nebp, so the wrapper
-    # stands in for it while training; validation and checkpoints see the
-    # plain module (unchanged state_dict keys)
-    if ddp is None:
-        yield
+def _sum_gradients_over_ranks(model: torch.nn.Module):
+    # every rank's gradient is that of its local loss sum: summed over the
+    # ranks it is the gradient of the global batch's sum, as in a single
+    # process (no wrapper module, so nothing depends on how the tracker
+    # names its learnable parts)
+    if _world()[0] == 1:
         return
-    model.nebp = ddp
-    try:
-        yield
-    finally:
-        model.nebp = ddp.module
+    for parameter in model.parameters():
+        if parameter.grad is not None:
+            dist.all_reduce(parameter.grad)
+
+
+def adam(lr: float) -> Callable[[Iterable[torch.Tensor]],
+                                torch.optim.Optimizer]:
+    r"""The paper's optimizer, as the factory :func:`train` takes."""
+    return lambda parameters: torch.optim.Adam(parameters, lr=lr)
+
+
+def step_loss(step, batch: Batch) -> Tensor:
+    r"""The paper's loss of one time step (:func:`position_loss` of the
+    step's estimate), the default :obj:`loss` of :func:`train`."""
+    return position_loss(step.mean, batch.states, step.t, batch.anchor)
+
+
+def _resume(checkpoint, model: NEBP, optimizer, settings: dict
+            ) -> List[Dict]:
+    # the history so far; the model and optimizer continue where they were
+    if checkpoint is None or not Path(checkpoint).exists():
+        raise ValueError(f"--resume needs an existing checkpoint, got "
+                         f"'{checkpoint}'")
+    state = load_checkpoint(checkpoint)
+    if state['config'] != model.config():
+        raise ValueError(f"checkpoint '{checkpoint}' was written for "
+                         f"another configuration: {state['config']}")
+    saved = state['progress']
+    for key, value in settings.items():
+        if saved.get(key) != value:
+            raise ValueError(f"checkpoint '{checkpoint}' was trained "
+                             f"with {key} = {saved.get(key)}, not "
+                             f"{value}: resuming would not continue "
+                             f"the same run")
+    model.load_state_dict(state['model'])
+    optimizer.load_state_dict(state['optimizer'])
+    return list(saved.get('history', []))
+
+
+def train_epoch(model: NEBP, train_set, optimizer: torch.optim.Optimizer,
+                epoch: int, batch_size: int, seed: int, device: str,
+                loss: Callable = step_loss,
+                progress: Optional[Callable[[dict], None]] = None) -> float:
+    r"""One epoch of :func:`train`: an optimizer step per time step of
+    every batch; returns the mean loss per agent (over all ranks)."""
+    world_size, rank = _world()
+    model.train()
+    total, count, step_index = 0.0, 0, 0
+    for indices in _local_batches(train_set, batch_size, seed, epoch,
+                                  world_size, rank):
+        batch, generators = _batch(train_set, indices, device, seed, epoch)
+        agents = int((~batch.anchor).sum())
+        for step in model.steps(batch, generators):
+            value = loss(step, batch)
+            optimizer.zero_grad()
+            value.backward()
+            _sum_gradients_over_ranks(model)
+            optimizer.step()
+            summed, summed_agents = _sum_over_ranks(
+                [float(value.detach()), agents], device)
+            total += summed
+            count += summed_agents
+            step_index += 1
+            if progress is not None and rank == 0:
+                progress(dict(epoch=epoch, step=step_index,
+                              loss=summed / summed_agents))
+    model.eval()
+    return total / max(count, 1)
 
 
 def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
           batch_size: int = 2, lr: float = 1e-4, seed: int = 0,
           device: str = 'cpu', checkpoint: Optional[Union[str, Path]] = None,
           resume: bool = False,
-          progress: Optional[Callable[[dict], None]] = None) -> List[Dict]:
+          progress: Optional[Callable[[dict], None]] = None,
+          optimizer: Optional[Callable] = None,
+          loss: Callable = step_loss) -> List[Dict]:
     r"""Trains :obj:`model` as in the paper: Adam, one optimizer step per
     time step on :math:`\sum_i \|\hat{\mathbf{p}}_i - \mathbf{p}_i\|^2`
     summed over the batch's agents, resampling cutting the gradient. After
@@ -235,25 +297,26 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     and gives the same final parameters as an uninterrupted run (same seed,
     same device). Every realization draws its particles from its own
     generator, seeded with :obj:`(seed, epoch, index)`, so the result does
-    not depend on how a batch is split.
+    not depend on how a batch is split. The pieces are replaceable: the
+    optimizer (a factory), the loss of a time step, and the per-step hook
+    :obj:`progress`; :func:`train_epoch` is one epoch on its own.
 
     **Distributed training.** Started by :obj:`torchrun` with an initialized
     process group of :math:`W > 1` processes (:obj:`tg-nebp train` does it:
     :obj:`torchrun --nproc_per_node=W -m tg_nebp train ...`; gloo on the
-    CPU, NCCL on GPUs, with :obj:`device` the process's GPU), the GNN is
-    wrapped in :class:`~torch.nn.parallel.DistributedDataParallel` and every
-    global batch of :obj:`batch_size` realizations is split over the ranks
+    CPU, NCCL on GPUs, with :obj:`device` the process's GPU), every global
+    batch of :obj:`batch_size` realizations is split over the ranks
     (:obj:`batch_size // W` each, shuffled by a
-    :class:`~torch.utils.data.distributed.DistributedSampler`). The local
-    loss is scaled by :math:`W`, so DDP's gradient average is the gradient of
-    the sum over the global batch: the parameters, history and checkpoint
-    equal single-process training with the same :obj:`batch_size` up to
-    float rounding (the gradient sums run in another order). Resampling is
-    discontinuous, so over many float32 steps such a rounding difference
-    eventually changes one ancestor draw, after which the two runs are
-    statistically, not numerically, equal (as runs on different thread
-    counts); in float64 they agree far longer.
-    :obj:`batch_size` must be a multiple of :math:`W` and
+    :class:`~torch.utils.data.distributed.DistributedSampler`), and after
+    every backward pass the gradients of all learnable parameters are
+    summed over the ranks: the gradient of the global batch's summed loss.
+    The parameters, history and checkpoint equal single-process training
+    with the same :obj:`batch_size` up to float rounding (the gradient sums
+    run in another order). Resampling is discontinuous, so over many
+    float32 steps such a rounding difference eventually changes one ancestor
+    draw, after which the two runs are statistically, not numerically,
+    equal (as runs on different thread counts); in float64 they agree far
+    longer. :obj:`batch_size` must be a multiple of :math:`W` and
     :obj:`len(train_set)` of :obj:`batch_size`. Only rank 0 writes
     checkpoints and calls :obj:`progress` (all ranks read a checkpoint to
     resume, so it must be on a shared file system); every rank returns the
@@ -268,16 +331,23 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
             (default: :obj:`10`)
         batch_size (int, optional): Realizations per (global) batch.
             (default: :obj:`2`)
-        lr (float, optional): Adam learning rate. (default: :obj:`1e-4`)
+        lr (float, optional): Learning rate of the default optimizer
+            (Adam). (default: :obj:`1e-4`)
         seed (int, optional): Seed of shuffling and particle draws.
             (default: :obj:`0`)
         device (str, optional): Device. (default: :obj:`"cpu"`)
         checkpoint (str, optional): Checkpoint path. (default: :obj:`None`)
         resume (bool, optional): Continue from :obj:`checkpoint`.
             (default: :obj:`False`)
-        progress (callable, optional): Called after every optimizer step
-            with :obj:`{"epoch", "step", "loss"}` (loss per agent of the
-            global batch). (default: :obj:`None`)
+        progress (callable, optional): The per-step hook, called after
+            every optimizer step with :obj:`{"epoch", "step", "loss"}` (loss
+            per agent of the global batch). (default: :obj:`None`)
+        optimizer (callable, optional): Builds the optimizer from the
+            parameters. (default: :obj:`adam(lr)`)
+        loss (callable, optional): The loss of a time step from the
+            tracker's :class:`~tg_nebp.filters.particle_bp.StepOutput` and
+            the batch, a sum over the batch's agents.
+            (default: :func:`step_loss`)
 
     Returns:
         The history: one :obj:`{"epoch", "train_loss", "val_loss"}` per
@@ -289,68 +359,23 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     world_size, rank = _world()
     _check_global_batches(len(train_set), batch_size, world_size)
     model.to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
-    history, start_epoch = [], 0
-    if resume:
-        if checkpoint is None or not Path(checkpoint).exists():
-            raise ValueError(f"--resume needs an existing checkpoint, got "
-                             f"'{checkpoint}'")
-        state = load_checkpoint(checkpoint)
-        if state['config'] != model.config():
-            raise ValueError(f"checkpoint '{checkpoint}' was written for "
-                             f"another configuration: {state['config']}")
-        saved = state['progress']
-        for key, value in (('seed', seed), ('batch_size', batch_size),
-                           ('lr', lr)):
-            if saved.get(key) != value:
-                raise ValueError(f"checkpoint '{checkpoint}' was trained "
-                                 f"with {key} = {saved.get(key)}, not "
-                                 f"{value}: resuming would not continue "
-                                 f"the same run")
-        model.load_state_dict(state['model'])
-        optimizer.load_state_dict(state['optimizer'])
-        history = list(state['progress'].get('history', []))
-        start_epoch = len(history)
-    # no device_ids: the module and its inputs are on the process's device
-    ddp = DistributedDataParallel(model.nebp) if world_size > 1 else None
-    for epoch in range(start_epoch, epochs):
-        model.train()
-        total, count, step_index = 0.0, 0, 0
-        with _synchronized_gradients(model, ddp):
-            for indices in _local_batches(train_set, batch_size, seed, epoch,
-                                          world_size, rank):
-                batch, generators = _batch(train_set, indices, device, seed,
-                                           epoch)
-                agents = int((~batch.anchor).sum())
-                for step in model.steps(batch, generators):
-                    loss = position_loss(step.mean, batch.states, step.t,
-                                         batch.anchor)
-                    optimizer.zero_grad()
-                    # DDP averages the gradients over the W ranks but the
-                    # loss is a sum over the global batch: W times each
-                    # local sum makes the average the single-process sum
-                    (loss * world_size).backward()
-                    optimizer.step()
-                    step_loss, step_agents = _sum_over_ranks(
-                        [float(loss.detach()), agents], device)
-                    total += step_loss
-                    count += step_agents
-                    step_index += 1
-                    if progress is not None and rank == 0:
-                        progress(dict(epoch=epoch, step=step_index,
-                                      loss=step_loss / step_agents))
-        model.eval()
-        record = dict(epoch=epoch, train_loss=total / max(count, 1),
-                      val_loss=(validation_loss(model, val_set, batch_size,
-                                                device, seed)
-                                if val_set is not None else math.nan))
-        history.append(record)
+    optimizer = (optimizer or adam(lr))(model.parameters())
+    settings = dict(seed=seed, batch_size=batch_size, lr=lr)
+    history = (_resume(checkpoint, model, optimizer, settings)
+               if resume else [])
+    for epoch in range(len(history), epochs):
+        train_loss = train_epoch(model, train_set, optimizer, epoch,
+                                 batch_size, seed, device, loss, progress)
+        history.append(dict(
+            epoch=epoch, train_loss=train_loss,
+            val_loss=(validation_loss(model, val_set, batch_size, device,
+                                      seed)
+                      if val_set is not None else math.nan)))
         if checkpoint is not None:
             if rank == 0:
                 save_checkpoint(checkpoint, model, optimizer,
                                 dict(history=history, epochs=epochs,
-                                     seed=seed, batch_size=batch_size,
-                                     lr=lr))
+                                     **settings))
             if world_size > 1:  # every rank returns with the file written
                 dist.barrier()
     return history

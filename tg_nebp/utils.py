@@ -6,7 +6,8 @@ from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
 __all__ = ['weighted_moments', 'log_normalize', 'compute_dtype', 'plain_tensor',
-           'sort_by_receiver', 'as_edge_index', 'long_edge_index']
+           'sort_by_receiver', 'as_edge_index', 'long_edge_index',
+           'derive_seed']
 
 
 def compute_dtype(*tensors: Tensor) -> torch.dtype:
@@ -107,3 +108,17 @@ def long_edge_index(edge_index: Tensor, num_nodes: int) -> Tensor:
     if edge_index.dtype != torch.long:
         edge_index = edge_index.to(torch.long)
     return edge_index
+
+
+def derive_seed(seed: int, *parts: int) -> int:
+    r"""The seed of one independent random stream, derived from a base
+    :obj:`seed` and integer :obj:`parts` (a realization's index; an epoch
+    and an index), the one formula for all of them: :math:`s \leftarrow (s
+    \cdot 1\,000\,003 + p) \bmod (2^{63} - 1)` for every part, so
+    realization :math:`r` of seed :math:`s` uses :math:`1\,000\,003 s +
+    r`. Streams depend only on their own parts: a realization draws the
+    same numbers in any batch, on any rank and after a resume."""
+    value = int(seed)
+    for part in parts:
+        value = (value * 1_000_003 + int(part)) % (2**63 - 1)
+    return value

@@ -31,7 +31,7 @@ def edge_set(edge_index, edge_attr):
 
 def test_snapshot_single(pair):
     data = pair[0]
-    assert data.steps == T
+    assert data.num_time_steps == T
     for t in range(T):
         snap = data.snapshot(t)
         mask = [int(data.edge_time[e]) == t for e in range(data.num_edges)]
@@ -87,7 +87,7 @@ def test_batch_snapshot_matches_graphs_with_offsets(pair):
     a, b = pair
     batch = loader_batch(pair)
     assert batch.num_nodes == a.num_nodes + b.num_nodes
-    assert batch.steps == T
+    assert batch.num_time_steps == T
     offset = a.num_nodes
     for t in range(T):
         snap = batch.snapshot(t)

@@ -243,13 +243,13 @@ def test_valid_realizations_pass(realization):
         check_realization(data)
         out = ParticleBP(num_particles=16)(data,
                                            torch.Generator().manual_seed(1))
-        assert out.mean.shape == (data.num_nodes, data.steps, 4)
+        assert out.mean.shape == (data.num_nodes, data.num_time_steps, 4)
         assert bool(torch.isfinite(out.mean).all())
         anchor = data.anchor
         # anchors are tracked at their known position
         torch.testing.assert_close(
             out.mean[anchor], data.prior_mean[anchor].unsqueeze(1).expand(
-                -1, data.steps, -1))
+                -1, data.num_time_steps, -1))
 
 
 def test_generated_realization_is_what_the_checks_assume(realization):
@@ -303,7 +303,7 @@ def test_realization_edge_into_anchor(realization):
 
 @pytest.mark.parametrize('offset', [0, 1, 5])
 def test_realization_edge_time_too_large(realization, offset):
-    T = realization.steps
+    T = realization.num_time_steps
     realization.edge_time[9] = T + offset
     check_both(realization,
                rf"'edge_time\[9\]' = {T + offset} is outside \[0, {T}\)")

@@ -39,7 +39,7 @@ def test_items_are_realizations(dataset):
     assert len(dataset) == 4
     for data in dataset:
         assert isinstance(data, Realization)
-        assert data.num_nodes == 30 and data.steps == T
+        assert data.num_nodes == 30 and data.num_time_steps == T
         assert data.states.shape == (30, T, 4)
     assert 'paper_train' in repr(dataset)
 
@@ -179,7 +179,7 @@ def test_scenario_by_name(tmp_path):
     ds = CooperativeLocalizationDataset(str(tmp_path), 'paper_train',
                                         num_realizations=1, log=False)
     assert ds.scenario == Scenario.load('paper_train')
-    assert ds[0].steps == 50 and ds[0].num_nodes == 30
+    assert ds[0].num_time_steps == 50 and ds[0].num_nodes == 30
 
 
 # ---- statistics of the generated data ---------------------------------------

@@ -102,7 +102,7 @@ def test_generate_layout(realization):
     assert isinstance(data, Realization)
     check_realization(data)
     n = scenario.num_agents + scenario.num_anchors
-    assert data.num_nodes == n and data.steps == 8
+    assert data.num_nodes == n and data.num_time_steps == 8
     assert data.states.shape == (n, 8, 4)
     assert data.states.dtype == torch.float32
     assert data.anchor.tolist() == [False] * 25 + [True] * 5  # agents first
@@ -122,7 +122,7 @@ def test_generate_layout(realization):
 def test_generate_edges_are_all_pairs_within_range(realization):
     scenario, data = realization
     pos = data.states[..., :2].double()
-    for t in range(data.steps):
+    for t in range(data.num_time_steps):
         mask = data.edge_time == t
         got = set(map(tuple, data.edge_index[:, mask].t().tolist()))
         expected = set()
@@ -178,7 +178,7 @@ def test_generate_without_anchors_and_single_agent():
     data = s.generate(torch.Generator().manual_seed(0))
     assert data.num_nodes == 1 and data.edge_index.shape == (2, 0)
     assert data.edge_attr.shape == (0, 1)
-    assert data.steps == 4 and len(data.edges_by_step()) == 4
+    assert data.num_time_steps == 4 and len(data.edges_by_step()) == 4
 
 
 @pytest.mark.parametrize('name,num_agents', [('paper_test', 900),

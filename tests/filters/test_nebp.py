@@ -46,7 +46,7 @@ def test_gradients_reach_every_parameter(num_iterations):
     model = NEBP(num_particles=32, num_iterations=num_iterations,
                  message_dim=8, hidden_dim=16)
     mlps = ['g_e', 'g_s', 'g_v'] + (['g_n'] if num_iterations > 1 else [])
-    assert (model.nebp.g_n is not None) == (num_iterations > 1)
+    assert (model.conv.g_n is not None) == (num_iterations > 1)
     loss = sequence_loss(model, data, gen(1))
     assert loss.requires_grad
     loss.backward()
@@ -64,7 +64,7 @@ def test_no_nan_gradient_when_g_v_is_negative_everywhere():
     torch.manual_seed(2)
     model = NEBP(num_particles=32, num_iterations=2, message_dim=8,
                  hidden_dim=16)
-    model.nebp.g_v = Shift(model.nebp.g_v, -1e3)  # relu = 0: log g_v = -inf
+    model.conv.g_v = Shift(model.conv.g_v, -1e3)  # relu = 0: log g_v = -inf
     loss = sequence_loss(model, data, gen(3))
     assert bool(torch.isfinite(loss))
     loss.backward()
@@ -103,8 +103,8 @@ def test_identity_correction_tracks_like_particle_bp(num_iterations):
     nebp = NEBP(num_particles=K, num_iterations=num_iterations,
                 message_dim=8, hidden_dim=16, correct_anchor_edges=True,
                 resampler=keep_all)
-    nebp.nebp.g_s = Const(1, 1e4)
-    nebp.nebp.g_v = Const(K, -1.0)
+    nebp.conv.g_s = Const(1, 1e4)
+    nebp.conv.g_v = Const(K, -1.0)
     bp = ParticleBP(num_particles=K, num_iterations=num_iterations,
                     resampler=keep_all)
     with torch.no_grad():
@@ -135,7 +135,7 @@ def test_update_chains_two_conv_iterations():
     ei, ea = data.edges_by_step()[0]
     with torch.no_grad():
         got = model.update(particles, lw, ei, ea, data.anchor)
-        conv = model.nebp
+        conv = model.conv
         out1, emb1 = conv(particles, lw, ei, ea, data.anchor)
         sender = out1 - out1.logsumexp(-1, keepdim=True)
         out2, _ = conv(particles, lw, ei, ea, data.anchor,
@@ -274,8 +274,8 @@ def test_config_round_trip():
     rebuilt = NEBP.from_config(config)
     assert rebuilt.config() == config
     assert rebuilt.num_particles == 24 and rebuilt.num_iterations == 2
-    assert rebuilt.nebp.correct_anchor_edges is True
-    assert rebuilt.nebp.g_n is not None
+    assert rebuilt.conv.correct_anchor_edges is True
+    assert rebuilt.conv.g_n is not None
     assert rebuilt.motion.dt == 0.5 and rebuilt.motion.drag == 0.02
     assert {k: v.shape for k, v in rebuilt.state_dict().items()} == \
         {k: v.shape for k, v in model.state_dict().items()}

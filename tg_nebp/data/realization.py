@@ -80,8 +80,10 @@ class Realization(Data):
         super().__setattr__(key, value)
 
     @property
-    def steps(self) -> int:
-        r"""The number of time steps :math:`T`."""
+    def num_time_steps(self) -> int:
+        r"""The number of time steps :math:`T` as an :obj:`int`
+        (:obj:`num_steps` stores it as a tensor, one entry per graph of a
+        batch)."""
         return num_steps_of(self)
 
     def snapshot(self, t: int) -> Data:

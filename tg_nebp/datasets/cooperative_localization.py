@@ -13,6 +13,7 @@ from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_positive_int, check_realization
 from tg_nebp.datasets.scenario import Scenario
 from tg_nebp.io import atomic_write, first_line
+from tg_nebp.utils import derive_seed
 
 __all__ = ['CooperativeLocalizationDataset']
 
@@ -38,7 +39,8 @@ class CooperativeLocalizationDataset(InMemoryDataset):
     them.
 
     Generation is deterministic in :obj:`seed` (realization :math:`r` uses
-    the seed :obj:`seed * 1_000_003 + r`, so a longer dataset extends a
+    the seed :obj:`derive_seed(seed, r)` :math:`= 1\,000\,003 \cdot`
+    :obj:`seed` :math:`+ r`, so a longer dataset extends a
     shorter one). The processed file name holds the scenario name, the number
     of realizations, the seed and a hash of every generation parameter:
     changing any of them generates new data, never reusing stale files.
@@ -193,8 +195,8 @@ class CooperativeLocalizationDataset(InMemoryDataset):
     def process(self):
         data_list = []
         for r in range(self.num_realizations):
-            generator = torch.Generator().manual_seed(self.seed * 1_000_003 +
-                                                      r)
+            generator = torch.Generator().manual_seed(derive_seed(self.seed,
+                                                                  r))
             data = self.scenario.generate(generator)
             check_realization(data)
             if self.pre_transform is not None:

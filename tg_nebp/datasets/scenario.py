@@ -270,6 +270,8 @@ class Scenario:
         states, edge_index, edge_attr, edge_time = [], [], [], []
         state = initial
         for t in range(self.num_steps):
+            if t > 0:
+                links = measurement.step_links(links, generator)
             moved = motion.sample(state, generator=generator)
             state = torch.where(anchor.view(-1, 1), state, moved)
             edges = measurement.connect(state[:, :2], receiver=~anchor)

@@ -16,7 +16,8 @@ class NEBP(ParticleBP):
     :class:`ParticleBP` (prior, prediction, update, estimate, resampling;
     shared, not copied) with :class:`~tg_nebp.nn.conv.NEBPConv` in place of
     :class:`~tg_nebp.nn.conv.ParticleBPConv`. Its learnable parameters are
-    those of :obj:`self.nebp`; train it with :func:`tg_nebp.training.train`
+    those of :obj:`self.conv` (the :class:`~tg_nebp.nn.conv.NEBPConv` in
+    place of BP's); train it with :func:`tg_nebp.training.train`
     (the loss :math:`\sum_i \|\hat{\mathbf{p}}_i - \mathbf{p}_i\|^2` at every
     time step; resampling cuts the gradient).
 
@@ -57,7 +58,8 @@ class NEBP(ParticleBP):
                          resampler, chunk_size)
         self.resampler_name = resampler if isinstance(resampler,
                                                       str) else None
-        self.nebp = NEBPConv(num_particles, message_dim, hidden_dim,
+        # the NEBP layer in place of BP's (it holds BP's conv itself)
+        self.conv = NEBPConv(num_particles, message_dim, hidden_dim,
                              correct_anchor_edges,
                              node_update=num_iterations > 1,
                              measurement=self.measurement,
@@ -69,7 +71,7 @@ class NEBP(ParticleBP):
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
                 sender_log_weights: Tensor, state=None):
-        return self.nebp(particles, log_weights, edge_index, edge_attr,
+        return self.conv(particles, log_weights, edge_index, edge_attr,
                          anchor, sender_log_weights=sender_log_weights,
                          embedding=state, validate=False)
 

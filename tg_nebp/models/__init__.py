@@ -1,5 +1,5 @@
 from .base import (MODELS, MeasurementModel, Model, MotionModel, RangeModel,
-                   model_from_config, redraw_negative)
+                   model_from_config, model_like, redraw_negative)
 from .motion import ConstantVelocity, ConstantVelocityDrag
 from .measurement import GaussianRange, NLOSRange, StudentTRange
 
@@ -10,6 +10,7 @@ __all__ = [
     'RangeModel',
     'MODELS',
     'model_from_config',
+    'model_like',
     'redraw_negative',
     'ConstantVelocityDrag',
     'ConstantVelocity',

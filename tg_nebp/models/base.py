@@ -28,6 +28,7 @@ the fast piece, so a subclass that overrides the likelihood alone can never
 reach a fast path that computes another formula; it gets the generic
 (autograd) path.
 """
+import inspect
 import math
 from typing import Any, ClassVar, Dict, Optional, Tuple
 
@@ -43,6 +44,7 @@ __all__ = [
     'RangeModel',
     'MODELS',
     'model_from_config',
+    'model_like',
     'redraw_negative',
 ]
 
@@ -121,6 +123,28 @@ class Model:
         return f'{type(self).__name__}({args})'
 
 
+def model_like(name: str, role: str, like: Optional[Model] = None
+               ) -> 'Model':
+    r"""The registered model :obj:`name` of :obj:`role`, with the
+    constructor parameters it shares with :obj:`like` (for example the
+    :obj:`sigma` and :obj:`max_range` of a scenario's range model) and its
+    own defaults otherwise; :obj:`like` itself if it is that model. Used to
+    run a tracker with another likelihood than the one that generated the
+    data."""
+    registry = MODELS[role]
+    if name not in registry:
+        raise ValueError(f"unknown {role} model '{name}'; registered: "
+                         f"{sorted(registry)}")
+    if like is not None and like.name == name:
+        return like
+    cls = registry[name]
+    accepted = inspect.signature(cls.__init__).parameters
+    shared = {} if like is None else {
+        key: value for key, value in like.params().items()
+        if key in accepted}
+    return cls(**shared)
+
+
 def model_from_config(config: Any, role: str) -> 'Model':
     r"""Rebuilds a model of :obj:`role` (:obj:`"motion"` or
     :obj:`"measurement"`) from :meth:`Model.config`; an unknown name or bad
@@ -192,10 +216,19 @@ class MeasurementModel(Model):
         random draw) for models without one."""
         return None
 
+    def step_links(self, link_state,
+                   generator: Optional[torch.Generator] = None):
+        r"""The per-link state one time step later (unchanged, and no
+        random draw, for models whose links do not switch)."""
+        return link_state
+
     def sample_features(self, states_j: Tensor, states_i: Tensor,
                         link_state, edge_index: Tensor,
                         generator: Optional[torch.Generator] = None
                         ) -> Tensor:
+        r"""Link features :math:`(E, F)` (:attr:`generated_features`) of the
+        links :obj:`edge_index` between true states :obj:`states_j` and
+        :obj:`states_i` :math:`(E, D)`."""
         raise NotImplementedError
 
 

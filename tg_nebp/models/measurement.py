@@ -183,11 +183,15 @@ class NLOSRange(RangeModel, name='nlos'):
         \operatorname{erfc}\Big(\frac{\lambda \sigma^2 - x}{\sqrt{2}
         \sigma}\Big).
 
-    Generation draws, once per realization, which node pairs are NLOS (the
-    same for both directions and all time steps) and writes the true flag as
-    a second link feature :obj:`"nlos"`, which this likelihood does not read
-    (an oracle model may). With :obj:`oracle=True` the likelihood reads the
-    flag and uses the component it names.
+    Generation draws, at the start of a realization, which node pairs are
+    NLOS (the same for both directions), and writes the true flag as a
+    second link feature :obj:`"nlos"`, which this likelihood does not read.
+    With :obj:`switch_prob` :math:`s > 0` the pairs' states form a
+    two-state Markov chain: at every further time step a pair's state is
+    redrawn with probability :math:`s` (stationary NLOS probability
+    :math:`p`, mean sojourn :math:`1 / (s (1 - p))` steps in LOS). With
+    :obj:`oracle=True` the likelihood reads the flag and uses the component
+    it names (a bound on what knowing the NLOS links is worth).
 
     Args:
         sigma (float, optional): LOS noise standard deviation in metres.
@@ -198,6 +202,9 @@ class NLOSRange(RangeModel, name='nlos'):
             metres. (default: :obj:`3.0`)
         oracle (bool, optional): Read the true NLOS flag (second link
             feature). (default: :obj:`False`)
+        switch_prob (float, optional): Per-step probability :math:`s` that
+            a pair's NLOS state is redrawn in generation; :obj:`0` keeps it
+            for the whole realization. (default: :obj:`0.0`)
         max_range (float, optional): Communication range in metres.
             (default: :obj:`20.0`)
     """
@@ -205,7 +212,7 @@ class NLOSRange(RangeModel, name='nlos'):
 
     def __init__(self, sigma: float = 1.0, p_nlos: float = 0.2,
                  bias_mean: float = 3.0, oracle: bool = False,
-                 max_range: float = 20.0):
+                 max_range: float = 20.0, switch_prob: float = 0.0):
         super().__init__(max_range)
         self.sigma = _check_sigma(sigma)
         p_nlos = check_number(p_nlos, 'p_nlos', inclusive=True)
@@ -217,11 +224,16 @@ class NLOSRange(RangeModel, name='nlos'):
             raise TypeError(f"'oracle' must be a bool, got {oracle!r}")
         self.oracle = oracle
         self.features = ('range', 'nlos') if oracle else ('range', )
+        switch_prob = check_number(switch_prob, 'switch_prob', inclusive=True)
+        if switch_prob > 1:
+            raise ValueError(f"'switch_prob' must lie in [0, 1], got "
+                             f"{switch_prob}")
+        self.switch_prob = switch_prob
 
     def params(self) -> dict:
         return dict(sigma=self.sigma, p_nlos=self.p_nlos,
                     bias_mean=self.bias_mean, oracle=self.oracle,
-                    max_range=self.max_range)
+                    max_range=self.max_range, switch_prob=self.switch_prob)
 
     def log_likelihood_of_distance(self, z: Tensor,
                                    distances: Tensor) -> Tensor:
@@ -257,6 +269,19 @@ class NLOSRange(RangeModel, name='nlos'):
                           generator=generator) < self.p_nlos
         upper = draw.triu(1)
         return upper | upper.t()
+
+    def step_links(self, link_state: Tensor,
+                   generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""The pairs' NLOS states one time step later: each pair redrawn
+        with probability :obj:`switch_prob` (no draw when it is zero)."""
+        if self.switch_prob == 0:
+            return link_state
+        num_nodes = link_state.size(0)
+        redraw = torch.rand(num_nodes, num_nodes, dtype=torch.float64,
+                            generator=generator) < self.switch_prob
+        redraw = (redraw.triu(1) | redraw.triu(1).t())
+        fresh = self.sample_links(num_nodes, generator)
+        return torch.where(redraw, fresh, link_state)
 
     def sample_ranges(self, distances: Tensor, link_state: Tensor,
                       edge_index: Tensor,
