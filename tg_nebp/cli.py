@@ -10,12 +10,13 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from tg_nebp.datasets import CooperativeLocalizationDataset
+from tg_nebp.datasets import load_datasets
 from tg_nebp.filters import NEBP, ParticleBP
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
 from tg_nebp.models import MODELS, model_like
-from tg_nebp.reproduce import PRESETS, evaluate_method, reproduce
+from tg_nebp.evaluation import evaluate_method
+from tg_nebp.reproduce import PRESETS, reproduce
 from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
 
 __all__ = ['main']
@@ -59,9 +60,8 @@ def _bar(total: int, desc: str, quiet: bool = False):
 
 
 def _evaluate(args) -> int:
-    dataset = CooperativeLocalizationDataset(
-        args.root, scenario=args.scenario,
-        num_realizations=args.realizations, seed=args.seed, log=False)
+    dataset, = load_datasets(args.root, (args.scenario, args.realizations,
+                                         args.seed))
     measurement = dataset.scenario.measurement_model
     if args.measurement is not None:
         # another likelihood than the data's: the cost of model mismatch
@@ -114,17 +114,10 @@ def _train(args) -> int:
 
 
 def _train_on(args, device: str) -> int:
-    distributed = dist.is_initialized()
-    rank = dist.get_rank() if distributed else 0
-    if rank > 0:  # rank 0 generates the data once, the others load it
-        dist.barrier()
-    train_set = CooperativeLocalizationDataset(
-        args.root, 'paper_train', args.realizations, args.seed, log=False)
-    val_set = CooperativeLocalizationDataset(
-        args.root, 'paper_train', args.val_realizations, args.seed + 1,
-        log=False)
-    if rank == 0 and distributed:
-        dist.barrier()
+    rank = dist.get_rank() if dist.is_initialized() else 0
+    train_set, val_set = load_datasets(
+        args.root, (args.scenario, args.realizations, args.seed),
+        (args.scenario, args.val_realizations, args.seed + 1))
     scenario = train_set.scenario
     torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
@@ -203,15 +196,19 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(run=_evaluate)
 
     tr = sub.add_parser(
-        'train', help='train NEBP on the paper\'s training network; writes '
-        'DIR/nebp.pt', description='Trains NEBP on the paper\'s training '
-        'network and writes DIR/nebp.pt. Data-parallel on N processes: '
+        'train', help='train NEBP (default: on the paper\'s training '
+        'network); writes DIR/nebp.pt', description='Trains NEBP on a '
+        'scenario (default: the paper\'s training network) and writes '
+        'DIR/nebp.pt. Data-parallel on N processes: '
         '"torchrun --nproc_per_node=N -m tg_nebp train ..." (gloo on the '
         'CPU; NCCL with --device cuda, one GPU per process); the same result '
         'as one process up to float rounding. Rank 0 generates the data, '
         'writes the checkpoint and prints; the others are quiet.')
     tr.add_argument('--particles', type=_positive, default=1000,
                     help='particles K (default: 1000; the paper: 50000)')
+    tr.add_argument('--scenario', default='paper_train',
+                    help='scenario name or JSON file of the training and '
+                    'validation data (default: paper_train)')
     tr.add_argument('--realizations', type=_positive, default=100,
                     help='training realizations (default: 100)')
     tr.add_argument('--val-realizations', type=_positive, default=10,

@@ -1,5 +1,7 @@
 r"""Running a tracker over a dataset and summarizing its accuracy and
 consistency, shared by the CLI, the notebooks and the benchmarks."""
+import time
+from pathlib import Path
 from typing import Callable, Dict, Iterable, Optional, Sequence
 
 import torch
@@ -7,9 +9,11 @@ from torch_geometric.loader import DataLoader
 
 from tg_nebp import metrics
 from tg_nebp.filters import ParticleBP
+from tg_nebp.io import read_json, write_json
 from tg_nebp.utils import derive_seed
 
-__all__ = ['track_dataset', 'summarize', 'OUTAGE_THRESHOLDS', 'CONFIDENCE']
+__all__ = ['track_dataset', 'summarize', 'evaluate_method',
+           'OUTAGE_THRESHOLDS', 'CONFIDENCE']
 
 OUTAGE_THRESHOLDS = (0.5, 1.0, 2.0)
 CONFIDENCE = (0.50, 0.95, 0.99)
@@ -84,3 +88,27 @@ def summarize(errors: torch.Tensor, nees: torch.Tensor,
         'outage': {f'{t:.1f}': float(p) for t, p in zip(thresholds, outage)},
         'accept': {f'{c:.2f}': float(p) for c, p in zip(confidence, accept)},
     }
+
+
+def evaluate_method(method: str, tracker: ParticleBP, dataset,
+                    batch_size: int, device: str, seed: int, out: Path,
+                    progress: Optional[Callable] = None) -> dict:
+    r"""Tracks :obj:`dataset`, merges the :obj:`method`'s entry into
+    :obj:`out/metrics.json` and returns the raw errors and NEES."""
+    start = time.perf_counter()
+    result = track_dataset(tracker, dataset, batch_size, device, seed,
+                           progress=progress)
+    entry = summarize(result['errors'], result['nees'])
+    entry.update(particles=tracker.num_particles, realizations=len(dataset),
+                 seconds=round(time.perf_counter() - start, 3),
+                 device=device, seed=seed,
+                 iterations=tracker.num_iterations,
+                 measurement=tracker.measurement.config(),
+                 scenario=getattr(getattr(dataset, 'scenario', None), 'name',
+                                  None))
+    path = out / 'metrics.json'
+    everything = read_json(path) if path.exists() else {}
+    everything[method] = entry  # BP and NEBP share one file
+    write_json(path, everything)
+    result['entry'] = entry
+    return result

@@ -8,14 +8,14 @@ from typing import Callable, Optional
 
 import torch
 
-from tg_nebp.datasets import CooperativeLocalizationDataset
-from tg_nebp.evaluation import summarize, track_dataset
+from tg_nebp.datasets import load_datasets
+from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import NEBP, ParticleBP
-from tg_nebp.io import read_json, write_json, write_text
+from tg_nebp.io import read_json, write_text
 from tg_nebp.reference import PAPER_TABLE
 from tg_nebp.training import train
 
-__all__ = ['PRESETS', 'reproduce', 'evaluate_method']
+__all__ = ['PRESETS', 'reproduce']
 
 # Seeds of the three disjoint data sets; evaluation draws particles from
 # the test seed so that BP and NEBP see the same prior particles.
@@ -32,30 +32,6 @@ PRESETS = {
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
                   test_realizations=400, eval_batch_size=4),
 }
-
-
-def evaluate_method(method: str, tracker: ParticleBP, dataset,
-                    batch_size: int, device: str, seed: int, out: Path,
-                    progress: Optional[Callable] = None) -> dict:
-    r"""Tracks :obj:`dataset`, merges the :obj:`method`'s entry into
-    :obj:`out/metrics.json` and returns the raw errors and NEES."""
-    start = time.perf_counter()
-    result = track_dataset(tracker, dataset, batch_size, device, seed,
-                           progress=progress)
-    entry = summarize(result['errors'], result['nees'])
-    entry.update(particles=tracker.num_particles, realizations=len(dataset),
-                 seconds=round(time.perf_counter() - start, 3),
-                 device=device, seed=seed,
-                 iterations=tracker.num_iterations,
-                 measurement=tracker.measurement.config(),
-                 scenario=getattr(getattr(dataset, 'scenario', None), 'name',
-                                  None))
-    path = out / 'metrics.json'
-    everything = read_json(path) if path.exists() else {}
-    everything[method] = entry  # BP and NEBP share one file
-    write_json(path, everything)
-    result['entry'] = entry
-    return result
 
 
 def _report(metrics: dict, preset: str, config: dict, device: str,
@@ -111,17 +87,13 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
     start = time.perf_counter()
     k = config['particles']
 
-    train_set = CooperativeLocalizationDataset(
-        root, 'paper_train', config['train_realizations'], TRAIN_SEED,
-        log=False)
-    val_set = CooperativeLocalizationDataset(
-        root, 'paper_train', config['val_realizations'], VAL_SEED, log=False)
-    test_set = CooperativeLocalizationDataset(
-        root, 'paper_test', config['test_realizations'], TEST_SEED,
-        log=False)
+    train_set, val_set, test_set = load_datasets(
+        root, ('paper_train', config['train_realizations'], TRAIN_SEED),
+        ('paper_train', config['val_realizations'], VAL_SEED),
+        ('paper_test', config['test_realizations'], TEST_SEED))
     scenario = test_set.scenario
-    models = dict(motion=scenario.motion_model, measurement=scenario.measurement_model,
-                  compile=compile)
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model, compile=compile)
 
     log(f'training NEBP (K={k}, {len(train_set)} realizations, '
         f"{config['epochs']} epochs)")

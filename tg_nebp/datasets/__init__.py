@@ -1,4 +1,5 @@
 from .scenario import Scenario
-from .cooperative_localization import CooperativeLocalizationDataset
+from .cooperative_localization import (CooperativeLocalizationDataset,
+                                       load_datasets)
 
-__all__ = ['Scenario', 'CooperativeLocalizationDataset']
+__all__ = ['Scenario', 'CooperativeLocalizationDataset', 'load_datasets']

@@ -4,9 +4,10 @@ import pickle
 import re
 import sys
 import warnings
-from typing import Callable, List, Optional, Union
+from typing import Callable, List, Optional, Tuple, Union
 
 import torch
+import torch.distributed as dist
 from torch_geometric.data import InMemoryDataset
 
 from tg_nebp.data.realization import Realization
@@ -15,7 +16,7 @@ from tg_nebp.datasets.scenario import Scenario
 from tg_nebp.io import atomic_write, first_line
 from tg_nebp.utils import derive_seed
 
-__all__ = ['CooperativeLocalizationDataset']
+__all__ = ['CooperativeLocalizationDataset', 'load_datasets']
 
 # bump when the generator or the file layout changes, so old processed files
 # are not reused (3: a dictionary of tensors and primitives, no classes)
@@ -220,3 +221,22 @@ def _describe(transform: Optional[Callable]) -> str:
     # repr without memory addresses, which change from run to run
     return re.sub(r' at 0x[0-9a-fA-F]+', '', repr(transform))
 
+
+
+def load_datasets(root: str, *specs: Tuple[Union[str, Scenario], int, int]
+                  ) -> List[CooperativeLocalizationDataset]:
+    r"""The datasets :obj:`(scenario, num_realizations, seed)`, generated
+    once: under an initialized :mod:`torch.distributed` process group rank
+    0 generates (or finds) the files first and the other ranks then read
+    them, so concurrent processes never write the same file. Used by
+    :obj:`tg-nebp train`, :obj:`evaluate` and :obj:`reproduce`."""
+    distributed = dist.is_available() and dist.is_initialized()
+    rank = dist.get_rank() if distributed else 0
+    if rank > 0:
+        dist.barrier()
+    datasets = [CooperativeLocalizationDataset(root, scenario, count, seed,
+                                               log=False)
+                for scenario, count, seed in specs]
+    if rank == 0 and distributed:
+        dist.barrier()
+    return datasets
