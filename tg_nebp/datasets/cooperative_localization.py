@@ -165,10 +165,9 @@ class CooperativeLocalizationDataset(InMemoryDataset):
                                  f"again)") from None
             raise _UnreadableFile(f"processed file '{path}' is corrupt: "
                                   f"{first_line(e)}") from None
-        except (RuntimeError, EOFError, OSError) as e:
-            if isinstance(e, (FileNotFoundError, PermissionError,
-                              IsADirectoryError)):
-                raise
+        except (FileNotFoundError, PermissionError, IsADirectoryError):
+            raise
+        except Exception as e:  # damaged bytes raise many kinds
             raise _UnreadableFile(f"processed file '{path}' is cut short "
                                   f"or corrupt: {first_line(e)}") from None
         if not (isinstance(state, dict)
