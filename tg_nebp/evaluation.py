@@ -47,10 +47,10 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
     with torch.no_grad():
         for b, batch in enumerate(DataLoader(dataset, batch_size=batch_size)):
             batch = batch.to(device)
-            first = b * batch_size
+            offset = b * batch_size  # the batch's first realization
             generator = [
                 torch.Generator(device).manual_seed(derive_seed(seed, r))
-                for r in range(first, first + batch.num_graphs)]
+                for r in range(offset, offset + batch.num_graphs)]
             agents = ~batch.anchor
             means = []
             for step in tracker.steps(batch, generator):

@@ -52,7 +52,7 @@ def test_gradients_reach_every_parameter(num_iterations):
     loss.backward()
     names = [name for name, _ in model.named_parameters()]
     for mlp in mlps:
-        assert any(n.startswith(f'nebp.{mlp}.') for n in names), mlp
+        assert any(n.startswith(f'conv.{mlp}.') for n in names), mlp
     for name, p in model.named_parameters():
         assert p.grad is not None, name
         assert bool(torch.isfinite(p.grad).all()), name
