@@ -12,9 +12,9 @@ import torch
 
 from tg_nebp.datasets import Scenario
 from tg_nebp.filters import NEBP
-from tg_nebp.training import (CHECKPOINT_VERSION, load_checkpoint,
+from tg_nebp.training import (CHECKPOINT_VERSION, adam, load_checkpoint,
                               nebp_from_checkpoint, position_loss,
-                              save_checkpoint, train)
+                              save_checkpoint, step_loss, train)
 from tg_nebp.utils import weighted_moments
 
 from helpers import gen, mixed_k_checkpoint, tiny_scenario
@@ -390,3 +390,26 @@ def test_checkpoint_of_other_shapes_is_refused_on_one_line(tmp_path):
                        r".*size mismatch") as info:
         nebp_from_checkpoint(path)
     assert '\n' not in str(info.value) and '\t' not in str(info.value)
+
+
+def test_optimizer_and_loss_can_be_replaced():
+    data = tiny_data(2)
+    calls = []
+
+    def counted_loss(step, batch):
+        calls.append(step.t)
+        return step_loss(step, batch)
+
+    # a zero learning rate leaves the parameters where they are
+    model = make_model()
+    before = copy.deepcopy(model.state_dict())
+    train(model, data, epochs=1, batch_size=1,
+          optimizer=lambda p: torch.optim.SGD(p, lr=0.0), loss=counted_loss)
+    assert states_equal(model.state_dict(), before)
+    assert calls == [0, 1, 0, 1]  # one loss per time step of every batch
+    # the default is the paper's Adam with 'lr' on step_loss
+    a, b = make_model(), make_model()
+    train(a, data, epochs=1, batch_size=1, lr=1e-3)
+    train(b, data, epochs=1, batch_size=1, optimizer=adam(1e-3),
+          loss=step_loss)
+    assert states_equal(a.state_dict(), b.state_dict())

@@ -258,3 +258,21 @@ def test_missing_or_malformed_json_scenario_names_the_file(tmp_path):
     listed.write_text('[1, 2]')
     with pytest.raises(ValueError, match='must be a JSON object'):
         Scenario.load(listed)
+
+
+@pytest.mark.parametrize('name', ['paper_train_nlos', 'paper_test_nlos'])
+def test_nlos_scenarios_are_the_paper_networks_with_nlos_links(name):
+    nlos = Scenario.load(name)
+    clean = Scenario.load(name.replace('_nlos', ''))
+    assert nlos.replace(name=clean.name, description=clean.description,
+                        measurement=clean.measurement) == clean
+    model = nlos.measurement_model
+    assert (model.p_nlos, model.bias_mean, model.sigma) == (0.2, 3.0, 1.0)
+    data = nlos.replace(num_steps=2).generate(torch.Generator().manual_seed(0))
+    check_realization(data, model.features)
+    flags = data.edge_attr[:, 1]
+    assert set(flags.unique().tolist()) == {0.0, 1.0}
+    # one state per pair: both directions of a pair carry the same flag
+    state = {}
+    for (j, i), flag in zip(data.edge_index.t().tolist(), flags.tolist()):
+        assert state.setdefault((min(i, j), max(i, j)), flag) == flag

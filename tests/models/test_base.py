@@ -7,7 +7,7 @@ import torch
 import tg_nebp.nn.conv.particle_bp_conv as conv_module
 from tg_nebp.models import (MODELS, ConstantVelocity, ConstantVelocityDrag,
                             GaussianRange, NLOSRange, RangeModel,
-                            StudentTRange, model_from_config)
+                            StudentTRange, model_from_config, model_like)
 from tg_nebp.nn.conv import ParticleBPConv
 
 from helpers import gen, random_graph
@@ -103,3 +103,14 @@ def test_subclass_never_reaches_the_parents_fast_path(monkeypatch, grad):
                                             anchor=anchor,
                                             return_messages=False)
         assert calls == [GaussianRange.fused_log_pdf]
+
+
+def test_model_like_keeps_shared_parameters():
+    nlos = NLOSRange(0.7, 0.3, 2.0, max_range=15.0)
+    gaussian = model_like('gaussian', 'measurement', nlos)
+    assert gaussian == GaussianRange(0.7, 15.0)
+    assert model_like('nlos', 'measurement', nlos) is nlos
+    assert model_like('student-t', 'measurement', gaussian) == StudentTRange(
+        0.7, 3.0, 15.0)  # nu: the model's default
+    with pytest.raises(ValueError, match="unknown measurement model 'x'"):
+        model_like('x', 'measurement', nlos)

@@ -266,3 +266,33 @@ def test_student_t_samples_follow_the_distribution():
     excess = (model.sample_ranges(distances, generator=gen(6)).view(-1) -
               distances) / 0.7
     assert kstest(excess.numpy(), 't', args=(3.0, )).pvalue > 1e-3
+
+
+def test_nlos_links_switch_as_a_markov_chain():
+    # redrawn with probability s per step: stationary fraction p, and a
+    # pair keeps its state from one step to the next with probability
+    # 1 - s + s (p^2 + (1 - p)^2)
+    n, p_nlos, s = 300, 0.2, 0.1
+    model = NLOSRange(p_nlos=p_nlos, switch_prob=s)
+    g = gen(7)
+    links = model.sample_links(n, g)
+    kept, fractions = [], []
+    upper = torch.triu_indices(n, n, 1)
+    for _ in range(20):
+        following = model.step_links(links, g)
+        assert torch.equal(following, following.t())
+        kept.append(float((following == links)[upper[0], upper[1]].float()
+                          .mean()))
+        fractions.append(float(following[upper[0], upper[1]].float().mean()))
+        links = following
+    pairs = upper.size(1)
+    expected_kept = 1 - s + s * (p_nlos**2 + (1 - p_nlos)**2)
+    assert abs(sum(kept) / 20 - expected_kept) < 5 * math.sqrt(
+        expected_kept * (1 - expected_kept) / (20 * pairs))
+    assert abs(sum(fractions) / 20 - p_nlos) < 0.01
+    # without switching nothing is drawn: the generator is untouched
+    fixed = NLOSRange(p_nlos=p_nlos)
+    g1, g2 = gen(8), gen(8)
+    assert fixed.step_links(links, g1) is links
+    assert torch.equal(torch.rand(3, generator=g1), torch.rand(3,
+                                                               generator=g2))

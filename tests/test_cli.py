@@ -1,0 +1,49 @@
+r"""Tests of the :obj:`tg-nebp` commands in process (the user errors are
+in :mod:`test_cli_errors`)."""
+import json
+
+import pytest
+
+from tg_nebp.cli import main
+from tg_nebp.models import NLOSRange
+
+from helpers import tiny_scenario
+
+
+def nlos_scenario_file(folder):
+    scenario = tiny_scenario(steps=3).replace(
+        name='tiny-nlos', measurement=NLOSRange(0.8, 0.3, 2.0))
+    path = folder / 'tiny_nlos.json'
+    fields = {k: v for k, v in vars(scenario).items()}
+    path.write_text(json.dumps(fields))
+    return path
+
+
+@pytest.mark.parametrize('measurement,expected', [
+    (None, {'name': 'nlos', 'params': NLOSRange(0.8, 0.3, 2.0).params()}),
+    ('gaussian', {'name': 'gaussian',
+                  'params': {'sigma': 0.8, 'max_range': 20.0}}),
+    ('student-t', {'name': 'student-t',
+                   'params': {'sigma': 0.8, 'nu': 3.0, 'max_range': 20.0}}),
+])
+def test_evaluate_with_another_likelihood(tmp_path, measurement, expected):
+    path = nlos_scenario_file(tmp_path)
+    out = tmp_path / 'out'
+    argv = ['evaluate', '--scenario', str(path), '--realizations', '2',
+            '--particles', '16', '--root', str(tmp_path / 'data'), '--out',
+            str(out), '--quiet']
+    if measurement is not None:
+        argv += ['--measurement', measurement]
+    assert main(argv) == 0
+    entry = json.loads((out / 'metrics.json').read_text())['bp']
+    assert entry['measurement'] == expected
+    assert entry['scenario'] == 'tiny-nlos'
+
+
+def test_measurement_is_for_bp_only(tmp_path, capsys):
+    argv = ['evaluate', '--method', 'nebp', '--checkpoint', 'x.pt',
+            '--measurement', 'gaussian', '--realizations', '1',
+            '--root', str(tmp_path / 'data'), '--out', str(tmp_path / 'o'),
+            '--quiet']
+    assert main(argv) == 2
+    assert '--measurement is for --method bp' in capsys.readouterr().err
