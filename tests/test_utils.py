@@ -23,7 +23,7 @@ def test_plain_tensor_strips_pyg_subclasses_without_copying():
     assert plain_tensor(edges) is edges  # plain tensors pass through
 
 
-# ---------------------------------------------------------------- log_normalize
+# --------------------------------------------------------------- log_normalize
 
 def reference_normalized(row):
     r"""Normalized weights of one row with plain float64 loops."""

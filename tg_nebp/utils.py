@@ -5,9 +5,16 @@ import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
-__all__ = ['weighted_moments', 'log_normalize', 'compute_dtype', 'plain_tensor',
-           'sort_by_receiver', 'as_edge_index', 'long_edge_index',
-           'derive_seed']
+__all__ = [
+    'weighted_moments',
+    'log_normalize',
+    'compute_dtype',
+    'plain_tensor',
+    'sort_by_receiver',
+    'as_edge_index',
+    'long_edge_index',
+    'derive_seed',
+]
 
 
 def compute_dtype(*tensors: Tensor) -> torch.dtype:

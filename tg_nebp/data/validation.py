@@ -25,6 +25,7 @@ __all__ = [
     'magnitude_limit',
     'check_positive_int',
     'check_number',
+    'check_layer_inputs',
 ]
 
 
@@ -331,3 +332,24 @@ def check_realization(data, features: Sequence[str] = ('range', )
         if bool(bad.any()):
             raise ValueError(f"'states[{_first(bad)}]' holds a non-finite "
                              f"value")
+
+
+def check_layer_inputs(particles: Tensor, log_weights: Tensor,
+                       edge_index: Tensor, edge_attr: Tensor,
+                       features: Sequence[str],
+                       anchor: Optional[Tensor] = None,
+                       sender_log_weights: Optional[Tensor] = None,
+                       state_dim: Optional[int] = None) -> None:
+    r"""The checks of one message passing step's inputs, shared by the
+    convolutions and the trackers' :meth:`update`: particles and
+    (sender) log-weights, the graph, the link :obj:`features` that the
+    measurement model reads, and the anchor mask."""
+    num_nodes = particles.size(0) if isinstance(particles, Tensor) else None
+    check_particles(particles, log_weights, state_dim=state_dim)
+    if sender_log_weights is not None:
+        check_particles(particles, sender_log_weights,
+                        weights_name='sender_log_weights')
+    check_graph(edge_index, num_nodes)
+    check_link_features(edge_attr, edge_index.size(1), features)
+    if anchor is not None:
+        check_anchor(anchor, num_nodes)

@@ -8,10 +8,8 @@ from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_particles, check_positive_int,
-                                     check_link_features, check_realization,
-                                     magnitude_limit)
+from tg_nebp.data.validation import (check_layer_inputs, check_positive_int,
+                                     check_realization, magnitude_limit)
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, MotionModel)
@@ -236,11 +234,8 @@ class ParticleBP(torch.nn.Module):
         :class:`~torch_geometric.EdgeIndex` and :obj:`validate=False` (it
         checks the whole realization once)."""
         if validate:
-            check_particles(particles, log_weights)
-            check_graph(edge_index, particles.size(0))
-            check_link_features(edge_attr, edge_index.size(1),
-                                self.measurement.features)
-            check_anchor(anchor, particles.size(0))
+            check_layer_inputs(particles, log_weights, edge_index, edge_attr,
+                               self.measurement.features, anchor)
         # receiver-sorted edges: the convs sum each receiver's segment
         # (deterministic, unlike CUDA's scatter-add) and BP never
         # materializes its [E, K] messages

@@ -8,9 +8,8 @@ from torch_geometric.nn import MLP
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter, segment
 
-from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_link_features, check_number,
-                                     check_particles, check_positive_int)
+from tg_nebp.data.validation import (check_layer_inputs, check_number,
+                                     check_positive_int)
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
 from tg_nebp.utils import (compute_dtype, log_normalize, long_edge_index,
@@ -220,13 +219,11 @@ class NEBPConv(MessagePassing):
         if embedding is not None:
             embedding = embedding.to(dtype)
         if validate:
-            check_particles(particles, log_weights, state_dim=4)
-            check_particles(particles, sender_log_weights,
-                            weights_name='sender_log_weights')
-            check_graph(edge_index, num_nodes)
-            check_link_features(edge_attr, edge_index.size(1),
-                                self.bp.measurement.features)
-            check_anchor(anchor, num_nodes)
+            check_layer_inputs(particles, log_weights, edge_index, edge_attr,
+                               self.bp.measurement.features, anchor,
+                               sender_log_weights, state_dim=4)
+            if anchor is None:
+                raise ValueError("'anchor' is required by NEBPConv")
             if embedding is not None:
                 check_embedding(embedding, num_nodes)
         if particles.size(1) != self.num_particles:

@@ -7,9 +7,7 @@ from torch_geometric import EdgeIndex
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
 
-from tg_nebp.data.validation import (check_anchor, check_graph,
-                                     check_link_features, check_particles,
-                                     check_positive_int)
+from tg_nebp.data.validation import check_layer_inputs, check_positive_int
 from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
 from tg_nebp.utils import (compute_dtype, long_edge_index, plain_tensor,
@@ -140,14 +138,8 @@ class ParticleBPConv(MessagePassing):
             sender_log_weights = log_weights
         model = self.measurement
         if validate:
-            check_particles(particles, log_weights)
-            check_particles(particles, sender_log_weights,
-                            weights_name='sender_log_weights')
-            check_graph(edge_index, particles.size(0))
-            check_link_features(edge_attr, edge_index.size(1),
-                                model.features)
-            if anchor is not None:
-                check_anchor(anchor, particles.size(0))
+            check_layer_inputs(particles, log_weights, edge_index, edge_attr,
+                               model.features, anchor, sender_log_weights)
         # one dtype for every operand lets the no-grad path work in place;
         # contiguous coordinate planes (the state entries that the model
         # reads) make every gather a dense [E, K] copy
