@@ -548,3 +548,22 @@ def test_resampler_of_wrong_type():
     with pytest.raises(TypeError, match="'resampler' must be a name or a "
                        "callable"):
         ParticleBP(8, resampler=5)
+
+
+def test_motion_model_of_another_state_dimension():
+    class Planar(ConstantVelocityDrag):  # states [p_x, p_y, v_x, v_y, z]
+        state_dim = 5
+
+    with pytest.raises(ValueError, match=r"'prior_mean' holds states of size "
+                       r"4 but the motion model .* has state dimension 5"):
+        ParticleBP(8, motion=Planar())(static_network(1, 3, 2, seed=9),
+                                       gen(0))
+
+
+@pytest.mark.parametrize('model', ['gaussian', 'motion'])
+def test_models_of_the_wrong_role(model):
+    kwargs = ({'measurement': ConstantVelocityDrag()} if model == 'gaussian'
+              else {'motion': GaussianRange()})
+    with pytest.raises(TypeError, match="must be a (MeasurementModel|"
+                       "MotionModel)"):
+        ParticleBP(8, **kwargs)

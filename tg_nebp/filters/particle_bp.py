@@ -279,6 +279,11 @@ class ParticleBP(torch.nn.Module):
                 (default: :obj:`None`)
         """
         check_realization(data, self.measurement.features)
+        if data.prior_mean.size(1) != self.motion.state_dim:
+            raise ValueError(f"'prior_mean' holds states of size "
+                             f"{data.prior_mean.size(1)} but the motion model "
+                             f"{self.motion} has state dimension "
+                             f"{self.motion.state_dim}")
         counts = _nodes_per_graph(data, generator)
         anchor = data.anchor
         # one dtype for the whole loop: half precision is promoted
