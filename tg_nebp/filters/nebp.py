@@ -104,11 +104,11 @@ class NEBP(ParticleBP):
     @classmethod
     def from_config(cls, config: dict, **options) -> 'NEBP':
         r"""Rebuilds a tracker from :meth:`config`; :obj:`options` are
-        run-time arguments that are not part of it (:obj:`chunk_size`,
-        :obj:`compile`)."""
-        config = dict(config)
+        run-time arguments (:obj:`chunk_size`, :obj:`compile`) or replace
+        entries that do not size the GNN (:obj:`num_samples`: the GNN reads
+        the BP message, however many sender samples estimate it)."""
+        config = {**config, **options}
         motion = model_from_config(config.pop('motion', None), 'motion')
         measurement = model_from_config(config.pop('measurement', None),
                                         'measurement')
-        return cls(motion=motion, measurement=measurement, **config,
-                   **options)
+        return cls(motion=motion, measurement=measurement, **config)

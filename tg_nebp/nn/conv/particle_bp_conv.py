@@ -308,21 +308,22 @@ class ParticleBPConv(MessagePassing):
         if shifts is None:
             return self._paired_log_messages(planes, link_features, src,
                                              dst, planes, sender_log_weights)
-        # M-sample messages: for each m the sender's particles rolled by
-        # the sender's shift s_(j,m), accumulated by logaddexp
-        num_particles = planes[0].size(1)
-        position = torch.arange(num_particles, device=src.device)
+        # M-sample messages: for each m the sender rows rolled by the
+        # sender's shift s_(j,m), accumulated by logaddexp; the block's rows
+        # are gathered once
         edge_shifts = shifts.index_select(0, src)
+        # each sender row written twice: every rolled row is a window of it
+        senders = [_doubled(p.index_select(0, src)) for p in planes]
+        sender_weights = _doubled(sender_log_weights.index_select(0, src))
+        receivers = tuple(p.index_select(0, dst) for p in planes)
+        rows = torch.arange(src.numel(), device=src.device)
         total = None
         for m in range(shifts.size(1)):
-            index = (position + edge_shifts[:, m:m + 1]) % num_particles
-            rolled = tuple(p.index_select(0, src).gather(1, index)
-                           for p in planes)
-            rolled_weights = sender_log_weights.index_select(0, src).gather(
-                1, index)
-            local = torch.arange(src.numel(), device=src.device)
-            sample = self._paired_log_messages(planes, link_features, local,
-                                               dst, rolled, rolled_weights)
+            shift = edge_shifts[:, m]
+            sample = self._paired_log_messages(
+                receivers, link_features, None, None,
+                tuple(windows[rows, shift] for windows in senders),
+                sender_weights[rows, shift])
             total = sample if total is None else torch.logaddexp(total,
                                                                  sample)
         return total
@@ -333,21 +334,22 @@ class ParticleBPConv(MessagePassing):
                              sender_weights: Tensor) -> Tensor:
         # the paired messages log p(z | x_j^(k), x_i^(k)) + log w_j^(k):
         # receivers from 'planes' at dst, senders from 'sender_planes' and
-        # 'sender_weights' at src (the node planes, or edge rows already
-        # rolled for one sample)
+        # 'sender_weights' at src; a None index means that the tensors are
+        # edge rows already (fresh sender rows, which may be overwritten)
+        def at(tensor, index):
+            return tensor if index is None else tensor.index_select(0, index)
+
         model = self.measurement
         grad = torch.is_grad_enabled() and (
             link_features.requires_grad or any(
                 p.requires_grad for p in (*planes, *sender_planes)))
         if not isinstance(model, RangeModel):
-            sender = torch.stack([p.index_select(0, src)
-                                  for p in sender_planes], -1)
-            receiver = torch.stack([p.index_select(0, dst) for p in planes],
-                                   -1)
+            sender = torch.stack([at(p, src) for p in sender_planes], -1)
+            receiver = torch.stack([at(p, dst) for p in planes], -1)
             log_lik = model.log_likelihood(link_features, sender, receiver)
         elif grad:
             diff = torch.stack([
-                s.index_select(0, src) - p.index_select(0, dst)
+                at(s, src) - at(p, dst)
                 for s, p in zip(sender_planes[:2], planes[:2])], dim=-1)
             distances = torch.linalg.vector_norm(diff, dim=-1)  # grad 0 at 0
             log_lik = model.log_likelihood_of_distance(link_features,
@@ -355,8 +357,8 @@ class ParticleBPConv(MessagePassing):
         else:  # in place on fresh temporaries: a third of the memory traffic
             (sender_x, sender_y), (pos_x, pos_y) = sender_planes[:2], \
                 planes[:2]
-            dx = sender_x.index_select(0, src).sub_(pos_x.index_select(0, dst))
-            dy = sender_y.index_select(0, src).sub_(pos_y.index_select(0, dst))
+            dx = at(sender_x, src).sub_(at(pos_x, dst))
+            dy = at(sender_y, src).sub_(at(pos_y, dst))
             distances = dx.mul_(dx).addcmul_(dy, dy).sqrt_()
             log_lik = (model.log_likelihood_of_distance_(
                 link_features, distances)
@@ -364,7 +366,7 @@ class ParticleBPConv(MessagePassing):
                        model.log_likelihood_of_distance(link_features,
                                                         distances))
         # in-place add stays differentiable in the sender log-weights
-        return log_lik.add_(sender_weights.index_select(0, src))
+        return log_lik.add_(at(sender_weights, src))
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages
@@ -425,6 +427,14 @@ class ParticleBPConv(MessagePassing):
 
     def __repr__(self) -> str:
         return f'{self.__class__.__name__}({self.measurement})'
+
+
+def _doubled(rows: Tensor) -> Tensor:
+    # the windows [E, K + 1, K] of every row written twice: window s of row
+    # e is rows[e, (k + s) mod K], and indexing [e, s] copies it as one
+    # contiguous run (no [E, K] index tensor)
+    num_particles = rows.size(1)
+    return torch.cat([rows, rows], dim=1).unfold(1, num_particles, 1)
 
 
 def _sum_blocks(messages: Callable, num_planes: int, bounds: List[int],
