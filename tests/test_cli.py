@@ -47,3 +47,19 @@ def test_measurement_is_for_bp_only(tmp_path, capsys):
             '--quiet']
     assert main(argv) == 2
     assert '--measurement is for --method bp' in capsys.readouterr().err
+
+
+def test_samples_flag(tmp_path):
+    path = nlos_scenario_file(tmp_path)
+    out = tmp_path / 'out'
+    argv = ['evaluate', '--scenario', str(path), '--realizations', '1',
+            '--particles', '16', '--root', str(tmp_path / 'data'), '--out',
+            str(out), '--quiet']
+    assert main(argv + ['--samples', '4']) == 0
+    sampled = json.loads((out / 'metrics.json').read_text())['bp']
+    assert main(argv + ['--samples', 'all']) == 0
+    exact = json.loads((out / 'metrics.json').read_text())['bp']
+    assert sampled['rmse'] != exact['rmse']
+    with pytest.raises(SystemExit) as info:
+        main(argv + ['--samples', 'some'])
+    assert info.value.code == 2

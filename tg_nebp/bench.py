@@ -52,6 +52,11 @@ def add_arguments(parser):
     parser.add_argument('--ops', nargs='+', choices=OPERATIONS,
                         default=list(OPERATIONS),
                         help='what to measure (default: all)')
+    parser.add_argument('--samples', type=int, nargs='+', default=[1],
+                        metavar='M', help='sender particles per receiver '
+                        'particle in every BP message (ops bp, nebp, '
+                        'tracker; naive pairs them); rates count '
+                        'edge-particle-samples E*K*M (default: 1)')
     parser.add_argument('--batch', type=int, default=1,
                         help='realizations batched into one graph '
                         '(default: 1)')
@@ -165,7 +170,8 @@ def network(num_agents: int, batch: int, num_steps: int, seed: int):
 def measure(operation: str, num_agents: int, num_particles: int,
             device: str = 'cpu', batch: int = 1, repeats: int = 10,
             steps: int = 5, seed: int = 0, chunk_size: Optional[int] = None,
-            compile: bool = False, backward: bool = True) -> dict:
+            compile: bool = False, backward: bool = True,
+            num_samples: int = 1) -> dict:
     r"""Runs one measurement in this process; returns a dict of figures."""
     from torch_geometric import EdgeIndex
 
@@ -176,13 +182,16 @@ def measure(operation: str, num_agents: int, num_particles: int,
     data = network(num_agents, batch, steps + 2, seed).to(device)
     edge_index, ranges = data.edges_by_step()[0]
     num_nodes, num_edges = data.num_nodes, edge_index.size(1)
-    edge_particles = num_edges * num_particles
+    # the work: edge-particle-samples (the naive baseline pairs them)
+    samples = 1 if operation == 'naive' else num_samples
+    edge_particles = num_edges * num_particles * samples
     figures = dict(operation=operation, agents=num_agents, batch=batch,
                    nodes=num_nodes, edges=num_edges, particles=num_particles,
-                   edge_particles=edge_particles, device=device,
-                   compile=compile)
+                   samples=samples, edge_particles=edge_particles,
+                   device=device, compile=compile)
     need = 4 * (_FLOATS_PER_EDGE_PARTICLE.get(operation, 0.0) *
-                edge_particles + _FLOATS_PER_NODE_PARTICLE[operation] *
+                num_edges * num_particles +
+                _FLOATS_PER_NODE_PARTICLE[operation] *
                 num_nodes * num_particles)
     if need > 0.9 * _free_bytes(device):
         figures['skipped'] = (f'needs about {need / 2**30:.1f} GiB, '
@@ -190,7 +199,7 @@ def measure(operation: str, num_agents: int, num_particles: int,
         return figures
 
     tracker = ParticleBP(num_particles, chunk_size=chunk_size,
-                         compile=compile).to(device)
+                         compile=compile, num_samples=samples).to(device)
     generator = torch.Generator(device).manual_seed(seed)
     if operation == 'tracker':
         peak = _Peak(device)
@@ -243,7 +252,7 @@ def measure(operation: str, num_agents: int, num_particles: int,
     else:  # nebp
         torch.manual_seed(seed)
         conv = NEBPConv(num_particles, chunk_size=chunk_size,
-                        compile=compile).to(device)
+                        compile=compile, num_samples=samples).to(device)
 
         def forward():
             return conv(particles, log_weights, sorted_edges, ranges,
@@ -298,8 +307,8 @@ def _row(f: dict) -> str:
         return format(f[key], fmt) if key in f else '-'.rjust(width)
 
     head = (f"{f['agents']:>7} {f['batch']:>3} {f['edges']:>8} "
-            f"{f['particles']:>7} {f['edge_particles']:>9.2e} "
-            f"{f['operation']:>8}")
+            f"{f['particles']:>7} {f.get('samples', 1):>4} "
+            f"{f['edge_particles']:>9.2e} {f['operation']:>8}")
     if 'skipped' in f or 'failed' in f:
         return f"{head}  {f.get('skipped') or f.get('failed')}"
     if f['operation'] == 'tracker':
@@ -316,7 +325,7 @@ def _row(f: dict) -> str:
 def run_bench(args) -> int:
     r"""Runs :func:`measure` for every (agents, :math:`K`, operation), each
     in a fresh process, and prints a table (or JSON lines)."""
-    for name in ('agents', 'particles'):
+    for name in ('agents', 'particles', 'samples'):
         if any(v < 1 for v in getattr(args, name)):
             raise ValueError(f"'--{name}' must be positive, got "
                              f"{getattr(args, name)}")
@@ -325,27 +334,31 @@ def run_bench(args) -> int:
                          "positive")
     context = multiprocessing.get_context('spawn')
     if not args.json:
-        print(f"{'agents':>7} {'B':>3} {'E':>8} {'K':>7} {'E*K':>9} "
-              f"{'op':>8} {'fwd ms':>10} {'fwd EK/s':>10} "
-              f"{'fwd peakMB':>11} {'f+b ms':>10} {'f+b EK/s':>10} "
+        print(f"{'agents':>7} {'B':>3} {'E':>8} {'K':>7} {'M':>4} "
+              f"{'E*K*M':>9} {'op':>8} {'fwd ms':>10} {'fwd EKM/s':>10} "
+              f"{'fwd peakMB':>11} {'f+b ms':>10} {'f+b EKM/s':>10} "
               f"{'f+b peakMB':>11} {'s/step':>9}")
-    for num_agents in args.agents:
-        for num_particles in args.particles:
-            for operation in args.ops:
-                queue = context.Queue()
-                child = context.Process(
-                    target=_child,
-                    args=(queue, operation, num_agents, num_particles,
-                          args.device, args.batch, args.repeats, args.steps,
-                          args.seed, args.chunk_size, args.compile,
-                          not args.forward_only))
-                child.start()
-                figures = _result(queue, child)
-                child.join()
-                figures = dict(dict(operation=operation, agents=num_agents,
-                                    batch=args.batch, particles=num_particles,
-                                    edges=0, edge_particles=0.0,
-                                    device=args.device), **figures)
-                print(json.dumps(figures) if args.json else _row(figures),
-                      flush=True)
+    grid = [(agents, particles, samples, operation)
+            for agents in args.agents for particles in args.particles
+            for samples in args.samples for operation in args.ops
+            # the naive baseline pairs: measured once per K
+            if not (operation == 'naive' and samples != args.samples[0])]
+    for num_agents, num_particles, num_samples, operation in grid:
+        queue = context.Queue()
+        child = context.Process(
+            target=_child,
+            args=(queue, operation, num_agents, num_particles, args.device,
+                  args.batch, args.repeats, args.steps, args.seed,
+                  args.chunk_size, args.compile, not args.forward_only,
+                  num_samples))
+        child.start()
+        figures = _result(queue, child)
+        child.join()
+        figures = dict(dict(operation=operation, agents=num_agents,
+                            batch=args.batch, particles=num_particles,
+                            samples=num_samples, edges=0,
+                            edge_particles=0.0, device=args.device),
+                       **figures)
+        print(json.dumps(figures) if args.json else _row(figures),
+              flush=True)
     return 0

@@ -36,6 +36,20 @@ def _non_negative(text: str) -> int:
     return value
 
 
+def _samples(text: str):
+    if text == 'all':
+        return text
+    return _positive(text)
+
+
+def _add_samples(parser: argparse.ArgumentParser, default):
+    parser.add_argument('--samples', type=_samples, default=default,
+                        metavar='M', help='sender particles per receiver '
+                        "particle in every BP message: 1 is the paper's "
+                        "pairing, 'all' the exact message (default: "
+                        f"{default if default is not None else 1})")
+
+
 def _device(name: str) -> str:
     if name not in ('cpu', 'cuda') and not name.startswith('cuda:'):
         raise argparse.ArgumentTypeError(f"must be 'cpu' or 'cuda', got "
@@ -76,11 +90,12 @@ def _evaluate(args) -> int:
             raise ValueError("--measurement is for --method bp; NEBP runs "
                              "with its checkpoint's measurement model")
         tracker = nebp_from_checkpoint(args.checkpoint, args.particles,
-                                       compile=args.compile)
+                                       compile=args.compile,
+                                       num_samples=args.samples)
     else:
         tracker = ParticleBP(args.particles or 1000, args.iterations,
                              resampler=args.resampler, compile=args.compile,
-                             **models)
+                             num_samples=args.samples or 1, **models)
     with _bar(len(dataset) * dataset.scenario.num_steps,
               f'{args.method} K={tracker.num_particles}', args.quiet) as bar:
         result = evaluate_method(args.method, tracker.to(args.device).eval(),
@@ -121,7 +136,8 @@ def _train_on(args, device: str) -> int:
     scenario = train_set.scenario
     torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
-                 measurement=scenario.measurement_model, compile=args.compile)
+                 measurement=scenario.measurement_model, compile=args.compile,
+                 num_samples=args.samples)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
     with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
@@ -149,7 +165,8 @@ def _train_on(args, device: str) -> int:
 def _reproduce(args) -> int:
     metrics = reproduce(args.preset, args.device, args.out, args.root,
                         progress_factory=lambda total, desc: _bar(
-                            total, desc, args.quiet), compile=args.compile)
+                            total, desc, args.quiet), compile=args.compile,
+                        num_samples=args.samples)
     print(f"report -> {Path(args.out) / 'report.md'}")
     for method, entry in metrics.items():
         print(f"{method}: outage {entry['outage']}, P(accept) "
@@ -193,6 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
+    _add_samples(ev, None)
     ev.set_defaults(run=_evaluate)
 
     tr = sub.add_parser(
@@ -229,6 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help='continue from DIR/nebp.pt')
     tr.add_argument('--quiet', action='store_true')
     _add_common(tr)
+    _add_samples(tr, 1)
     tr.set_defaults(run=_train)
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
@@ -237,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument('--out', default='results/reproduce')
     rp.add_argument('--quiet', action='store_true')
     _add_common(rp)
+    _add_samples(rp, 1)
     rp.set_defaults(run=_reproduce)
 
     from tg_nebp.bench import add_arguments, run_bench

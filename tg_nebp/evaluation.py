@@ -104,6 +104,7 @@ def evaluate_method(method: str, tracker: ParticleBP, dataset,
                  device=device, seed=seed,
                  iterations=tracker.num_iterations,
                  measurement=tracker.measurement.config(),
+                 samples=tracker.num_samples,
                  scenario=getattr(getattr(dataset, 'scenario', None), 'name',
                                   None))
     path = out / 'metrics.json'

@@ -4,7 +4,7 @@ draws, and write :obj:`metrics.json`, :obj:`report.md` and the figures
 :obj:`tracks.png`, :obj:`outage.png`, :obj:`consistency.png`."""
 import time
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, Union
 
 import torch
 
@@ -71,10 +71,13 @@ def _report(metrics: dict, preset: str, config: dict, device: str,
 def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
               root: str = 'datasets', log: Callable = print,
               progress_factory: Optional[Callable] = None,
-              compile: bool = False) -> dict:
+              compile: bool = False, num_samples: Union[int, str] = 1
+              ) -> dict:
     r"""Runs the whole experiment of :obj:`preset` (see :obj:`PRESETS`) and
     writes its results to :obj:`out`; returns :obj:`metrics.json`'s
-    content. :obj:`compile` fuses the trackers' per-edge work with
+    content. :obj:`num_samples` is both trackers' number of sender samples
+    per BP message (see :class:`~tg_nebp.filters.ParticleBP`).
+    :obj:`compile` fuses the trackers' per-edge work with
     :func:`torch.compile` (see :class:`~tg_nebp.nn.conv.NEBPConv`)."""
     from tg_nebp.plot import plot_consistency, plot_outage, plot_tracks
 
@@ -93,7 +96,8 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
         ('paper_test', config['test_realizations'], TEST_SEED))
     scenario = test_set.scenario
     models = dict(motion=scenario.motion_model,
-                  measurement=scenario.measurement_model, compile=compile)
+                  measurement=scenario.measurement_model, compile=compile,
+                  num_samples=num_samples)
 
     log(f'training NEBP (K={k}, {len(train_set)} realizations, '
         f"{config['epochs']} epochs)")

@@ -86,7 +86,9 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
 
 def nebp_from_checkpoint(path: Union[str, Path],
                          num_particles: Optional[int] = None,
-                         compile: bool = False) -> NEBP:
+                         compile: bool = False,
+                         num_samples: Optional[Union[int, str]] = None
+                         ) -> NEBP:
     r"""Rebuilds an :class:`NEBP` tracker from a checkpoint (with
     :obj:`compile`, see :class:`NEBP`). The paper's :math:`g_e` and
     :math:`g_v` are sized by :math:`K`, so a different :obj:`num_particles`
@@ -98,7 +100,10 @@ def nebp_from_checkpoint(path: Union[str, Path],
                          f"checkpoint '{path}', trained with K = {trained} "
                          f"(g_e and g_v are sized by K)")
     try:
-        model = NEBP.from_config(state['config'], compile=compile)
+        options = dict(compile=compile)
+        if num_samples is not None:  # else the checkpoint's
+            options['num_samples'] = num_samples
+        model = NEBP.from_config(state['config'], **options)
         model.load_state_dict(state['model'])
     except (TypeError, RuntimeError, KeyError) as e:
         raise ValueError(f"checkpoint '{path}' does not match the NEBP "

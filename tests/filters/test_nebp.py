@@ -360,3 +360,15 @@ def test_data_and_model_of_different_dtypes(model_dtype, data_dtype):
         model_dtype)
     out = model(data, gen(2))
     assert torch.isfinite(out.mean).all()
+
+
+def test_sampled_nebp_trains_and_is_stored():
+    data = small_realization(seed=7)
+    model = NEBP(num_particles=16, message_dim=4, hidden_dim=8,
+                 num_samples=4)
+    loss = sequence_loss(model, data, gen(1))
+    loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all()
+               for p in model.parameters())
+    rebuilt = NEBP.from_config(model.config())
+    assert rebuilt.num_samples == 4 and rebuilt.conv.bp.num_samples == 4

@@ -11,11 +11,11 @@ def _force_edge_index(tracker):
     update = tracker.update
 
     def sorted_update(particles, log_weights, edge_index, edge_attr, anchor,
-                      validate=True):
+                      **options):
         n = particles.size(0)
         edges = EdgeIndex(edge_index, sparse_size=(n, n), sort_order='col')
         return update(particles, log_weights, edges, edge_attr, anchor,
-                      validate)
+                      **options)
 
     tracker.update = sorted_update
 

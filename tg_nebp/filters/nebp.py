@@ -4,7 +4,7 @@ from torch import Tensor
 
 from tg_nebp.filters.particle_bp import ParticleBP
 from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
-from tg_nebp.nn.conv import NEBPConv
+from tg_nebp.nn.conv import NEBPConv, ParticleBPConv
 
 __all__ = ['NEBP']
 
@@ -37,6 +37,9 @@ class NEBP(ParticleBP):
             too. (default: :obj:`False`)
         chunk_size (int, optional): Edge chunk of the BP messages.
             (default: :obj:`None`)
+        num_samples (int or str, optional): Sender particles per receiver
+            particle in the BP messages (see :class:`ParticleBP`).
+            (default: :obj:`1`)
         compile (bool, optional): Fuse the per-edge work of
             :class:`~tg_nebp.nn.conv.NEBPConv` with :func:`torch.compile`
             (training and inference; not part of :meth:`config`).
@@ -53,9 +56,10 @@ class NEBP(ParticleBP):
                  resampler: Union[str, Callable] = 'multinomial',
                  message_dim: int = 32, hidden_dim: int = 64,
                  correct_anchor_edges: bool = False,
-                 chunk_size: Optional[int] = None, compile: bool = False):
+                 chunk_size: Optional[int] = None, compile: bool = False,
+                 num_samples: Union[int, str] = 1):
         super().__init__(num_particles, num_iterations, motion, measurement,
-                         resampler, chunk_size)
+                         resampler, chunk_size, num_samples=num_samples)
         self.resampler_name = resampler if isinstance(resampler,
                                                       str) else None
         # the NEBP layer in place of BP's (it holds BP's conv itself)
@@ -63,17 +67,24 @@ class NEBP(ParticleBP):
                              correct_anchor_edges,
                              node_update=num_iterations > 1,
                              measurement=self.measurement,
-                             chunk_size=chunk_size, compile=compile)
+                             chunk_size=chunk_size, compile=compile,
+                             num_samples=num_samples)
         self.message_dim = message_dim
         self.hidden_dim = hidden_dim
         self.correct_anchor_edges = correct_anchor_edges
 
+    @property
+    def bp_conv(self) -> ParticleBPConv:
+        return self.conv.bp
+
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
-                sender_log_weights: Tensor, state=None):
+                sender_log_weights: Tensor, state=None,
+                sample_shifts: Optional[Tensor] = None):
         return self.conv(particles, log_weights, edge_index, edge_attr,
                          anchor, sender_log_weights=sender_log_weights,
-                         embedding=state, validate=False)
+                         embedding=state, validate=False,
+                         sample_shifts=sample_shifts)
 
     def config(self) -> dict:
         r"""Everything needed to rebuild this tracker (saved in
@@ -86,17 +97,18 @@ class NEBP(ParticleBP):
                     message_dim=self.message_dim, hidden_dim=self.hidden_dim,
                     correct_anchor_edges=self.correct_anchor_edges,
                     resampler=self.resampler_name,
+                    num_samples=self.num_samples,
                     motion=self.motion.config(),
                     measurement=self.measurement.config())
 
     @classmethod
     def from_config(cls, config: dict, **options) -> 'NEBP':
         r"""Rebuilds a tracker from :meth:`config`; :obj:`options` are
-        run-time arguments that are not part of it (:obj:`chunk_size`,
-        :obj:`compile`)."""
-        config = dict(config)
+        run-time arguments (:obj:`chunk_size`, :obj:`compile`) or replace
+        entries that do not size the GNN (:obj:`num_samples`: the GNN reads
+        the BP message, however many sender samples estimate it)."""
+        config = {**config, **options}
         motion = model_from_config(config.pop('motion', None), 'motion')
         measurement = model_from_config(config.pop('measurement', None),
                                         'measurement')
-        return cls(motion=motion, measurement=measurement, **config,
-                   **options)
+        return cls(motion=motion, measurement=measurement, **config)

@@ -148,6 +148,11 @@ class ParticleBP(torch.nn.Module):
             (default: :obj:`"multinomial"`)
         chunk_size (int, optional): Edge chunk of the convolution.
             (default: :obj:`None`)
+        num_samples (int or str, optional): Sender particles :math:`M` per
+            receiver particle in every message (see
+            :class:`~tg_nebp.nn.conv.ParticleBPConv`): :obj:`1` is the
+            paper's pairing, :obj:`"all"` the exact message; the samples are
+            drawn from :obj:`generator`. (default: :obj:`1`)
         compile (bool, optional): Fuse the convolution's per-edge work with
             :func:`torch.compile` (see :class:`ParticleBPConv`); for BP on
             CUDA the fused Triton kernel is used either way.
@@ -163,7 +168,8 @@ class ParticleBP(torch.nn.Module):
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
                  resampler: Union[str, Callable] = 'multinomial',
-                 chunk_size: Optional[int] = None, compile: bool = False):
+                 chunk_size: Optional[int] = None, compile: bool = False,
+                 num_samples: Union[int, str] = 1):
         super().__init__()
         num_particles = check_positive_int(num_particles, 'num_particles')
         num_iterations = check_positive_int(num_iterations, 'num_iterations')
@@ -187,7 +193,14 @@ class ParticleBP(torch.nn.Module):
                                 f"{getattr(self, name)!r}")
         self.resampler = resampler
         self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size,
-                                   compile=compile)
+                                   compile=compile, num_samples=num_samples)
+        self.num_samples = num_samples
+
+    @property
+    def bp_conv(self) -> ParticleBPConv:
+        r"""The :class:`~tg_nebp.nn.conv.ParticleBPConv` that computes the
+        BP messages (inside NEBP's layer for :class:`NEBP`)."""
+        return self.conv
 
     def sample_prior(self, data: Realization,
                      generator: Generators = None) -> Tensor:
@@ -226,13 +239,16 @@ class ParticleBP(torch.nn.Module):
 
     def update(self, particles: Tensor, log_weights: Tensor,
                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
-               validate: bool = True) -> Tensor:
+               validate: bool = True,
+               sample_shifts: Optional[Tensor] = None) -> Tensor:
         r"""The update step: :obj:`num_iterations` message passing
         iterations (:meth:`iterate`); returns normalized log-weights. Edges
         are summed per receiver, so a plain :obj:`edge_index` is sorted by
         receiver first; :meth:`steps` passes an already sorted
         :class:`~torch_geometric.EdgeIndex` and :obj:`validate=False` (it
-        checks the whole realization once)."""
+        checks the whole realization once) and the shifts of
+        :math:`M`-sample messages drawn from its generators (drawn from the
+        global generator if :obj:`None`)."""
         if validate:
             check_layer_inputs(particles, log_weights, edge_index, edge_attr,
                                self.measurement.features, anchor)
@@ -244,7 +260,8 @@ class ParticleBP(torch.nn.Module):
         sender, state = log_weights, None
         for _ in range(self.num_iterations):
             belief, state = self.iterate(particles, log_weights, edge_index,
-                                         edge_attr, anchor, sender, state)
+                                         edge_attr, anchor, sender, state,
+                                         sample_shifts)
             # normalizing scales each message by a per-node constant: the
             # beliefs are unchanged and the log-weights stay bounded
             sender = log_normalize(belief)
@@ -252,14 +269,16 @@ class ParticleBP(torch.nn.Module):
 
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
-                sender_log_weights: Tensor, state=None):
+                sender_log_weights: Tensor, state=None,
+                sample_shifts: Optional[Tensor] = None):
         r"""One message passing iteration: returns the unnormalized belief
         log-weights and a state carried to the next iteration (none for
         BP; NEBP's node embeddings)."""
         belief, _ = self.conv(particles, log_weights, edge_index, edge_attr,
                               sender_log_weights=sender_log_weights,
                               anchor=anchor, validate=False,
-                              return_messages=False)
+                              return_messages=False,
+                              sample_shifts=sample_shifts)
         return belief, None
 
     def steps(self, data: Realization,
@@ -295,6 +314,14 @@ class ParticleBP(torch.nn.Module):
         def resample(log_weights: Tensor, g: Optional[torch.Generator]):
             return self.resampler(log_weights, self.num_particles, g)
 
+        # the M-sample shifts of every step, per graph from its generator
+        # (none drawn for the paper's pairing: its random stream is as is)
+        sampled = self.bp_conv.samples_for(self.num_particles)
+
+        def draw_shifts(part: Tensor, g: Optional[torch.Generator]):
+            return self.bp_conv.draw_shifts(part.size(0), self.num_particles,
+                                            g, part.device)
+
         size = (data.num_nodes, data.num_nodes)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
             # edges_by_step sorts by receiver: no check, no sort per step
@@ -303,9 +330,11 @@ class ParticleBP(torch.nn.Module):
             particles = _draw(self.predict, generator, counts, particles,
                               anchor)
             _check_prediction(particles, self.motion, t)
+            shifts = (None if sampled == 1 else _draw(
+                draw_shifts, generator, counts, particles))
             log_weights = self.update(particles, log_weights, edge_index,
                                       edge_attr.to(dtype), anchor,
-                                      validate=False)
+                                      validate=False, sample_shifts=shifts)
             _check_belief(log_weights, data, t)
             mean, cov = weighted_moments(particles, log_weights)
             yield StepOutput(t, mean, cov, particles, log_weights)

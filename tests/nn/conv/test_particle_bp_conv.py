@@ -528,9 +528,10 @@ def test_without_messages_works_block_by_block(monkeypatch):
     blocks = []
     original = ParticleBPConv._log_messages
 
-    def spy(self, planes, sender, link_features, src, dst):
+    def spy(self, planes, sender, link_features, src, dst, shifts=None):
         blocks.append((src.clone(), dst.clone()))
-        return original(self, planes, sender, link_features, src, dst)
+        return original(self, planes, sender, link_features, src, dst,
+                        shifts)
 
     monkeypatch.setattr(ParticleBPConv, '_log_messages', spy)
     conv = ParticleBPConv(chunk_size=chunk)

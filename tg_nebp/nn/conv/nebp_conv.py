@@ -1,5 +1,5 @@
 import math
-from typing import Optional, Tuple
+from typing import Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -114,6 +114,9 @@ class NEBPConv(MessagePassing):
             enter :math:`g_e` and :math:`g_n`. (default: :obj:`10.0`)
         chunk_size (int, optional): Edge chunk of the BP messages.
             (default: :obj:`None`)
+        num_samples (int or str, optional): Sender particles per receiver
+            particle in the BP messages (see :class:`ParticleBPConv`).
+            (default: :obj:`1`)
         compile (bool, optional): Run the per-edge work (the BP messages
             and :meth:`corrected_messages`) through :func:`torch.compile`
             (fused kernels; the first calls compile). The aggregation stays
@@ -143,7 +146,8 @@ class NEBPConv(MessagePassing):
                  node_update: bool = False,
                  measurement: Optional[MeasurementModel] = None,
                  feature_scale: float = 10.0,
-                 chunk_size: Optional[int] = None, compile: bool = False):
+                 chunk_size: Optional[int] = None, compile: bool = False,
+                 num_samples: Union[int, str] = 1):
         super().__init__(aggr='add', node_dim=0)
         num_particles = check_positive_int(num_particles, 'num_particles')
         message_dim = check_positive_int(message_dim, 'message_dim')
@@ -153,7 +157,7 @@ class NEBPConv(MessagePassing):
         self.correct_anchor_edges = correct_anchor_edges
         self.feature_scale = feature_scale
         self.bp = ParticleBPConv(measurement, chunk_size=chunk_size,
-                                 compile=compile)
+                                 compile=compile, num_samples=num_samples)
         # dynamic: the number of edges changes at every time step
         self._corrected_messages = torch.compile(
             self.corrected_messages,
@@ -183,6 +187,8 @@ class NEBPConv(MessagePassing):
         sender_log_weights: Optional[Tensor] = None,
         embedding: Optional[Tensor] = None,
         validate: bool = True,
+        sample_shifts: Optional[Tensor] = None,
+        generator: Optional[torch.Generator] = None,
     ) -> Tuple[Tensor, Tensor]:
         r"""Runs one NEBP iteration.
 
@@ -200,6 +206,11 @@ class NEBPConv(MessagePassing):
                 (default: :obj:`None`)
             validate (bool, optional): Check the inputs.
                 (default: :obj:`True`)
+            sample_shifts (torch.Tensor, optional): Shifts of the
+                :math:`M`-sample BP messages (see :class:`ParticleBPConv`).
+                (default: :obj:`None`)
+            generator (torch.Generator, optional): Source of the shifts
+                when they are not given. (default: :obj:`None`)
         """
         num_nodes = particles.size(0)
         if sender_log_weights is None:
@@ -237,7 +248,8 @@ class NEBPConv(MessagePassing):
         # 1. classical BP messages
         _, log_phi = self.bp(particles, log_weights, edge_index, edge_attr,
                              sender_log_weights=sender_log_weights,
-                             validate=False)
+                             validate=False, sample_shifts=sample_shifts,
+                             generator=generator)
         # 2. GNN messages and 3. corrected messages, per edge (the compiled
         # region takes plain tensors; aggregation stays a segment sum)
         log_corrected, message = self._corrected_messages(

@@ -1,4 +1,4 @@
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -38,7 +38,28 @@ class ParticleBPConv(MessagePassing):
 
     where particle :math:`k` of the sender is paired with particle :math:`k`
     of the receiver (the message multiplication scheme of Meyer et al.), so
-    the cost is :math:`O(|\mathcal{E}| K)`. The sum over incoming edges is a
+    the cost is :math:`O(|\mathcal{E}| K)`: a one-sample estimate of the
+    marginalized message :math:`\phi_{j \to i}(\mathbf{x}_i^{(k)}) =
+    \sum_{l} \tilde{w}_j^{(l)} p(z_{j \to i} | \mathbf{x}_j^{(l)},
+    \mathbf{x}_i^{(k)})`. With :obj:`num_samples` :math:`M > 1` each
+    receiver particle averages over :math:`M` sender particles
+    :math:`l_m = (k + s_{j,m}) \bmod K`,
+
+    .. math::
+        \log \hat{\phi}_{j \to i}^{(k)} = \log \frac{K}{M}
+        \sum_{m=1}^{M} \tilde{w}_j^{(l_m)} \, p\big(z_{j \to i} \,\big|\,
+        \mathbf{x}_j^{(l_m)}, \mathbf{x}_i^{(k)}\big),
+
+    with shifts :math:`\{s_{j,1}, \dots, s_{j,M}\}` a uniformly random
+    :math:`M`-subset of :math:`\{0, \dots, K - 1\}` per sender and step
+    (:meth:`draw_shifts`). For every :math:`k` the indices :math:`l_m` are
+    then a uniformly random :math:`M`-subset of the sender's particles, each
+    included with probability :math:`M / K`, so :math:`\mathbb{E}
+    \hat{\phi} = \phi` (sampling without replacement): unbiased, at cost
+    :math:`O(|\mathcal{E}| K M)`. :math:`M = K` (:obj:`"all"`) takes all
+    shifts and is the exact message; the constant :math:`\log (K / M)` is
+    dropped (normalization removes it). :math:`M = 1` is the paper's pairing
+    (:math:`s = 0`). The sum over incoming edges is a
     scatter (or, for an :class:`~torch_geometric.EdgeIndex` sorted by
     receiver, a deterministic segment) sum. Anchors send their known position
     (all :math:`K` particles at it) and never receive: their log-weights are
@@ -59,6 +80,9 @@ class ParticleBPConv(MessagePassing):
             :math:`|\mathcal{E}|`. If :obj:`None`, :math:`2^{18} / K` on the
             CPU (cache-sized blocks) and :math:`2^{25} / K` on CUDA.
             (default: :obj:`None`)
+        num_samples (int or str, optional): Sender particles :math:`M` per
+            receiver particle; :obj:`1` is the paper's pairing,
+            :obj:`"all"` the exact message. (default: :obj:`1`)
         compile (bool, optional): Compute the messages of each chunk with a
             :func:`torch.compile`-fused kernel (the first calls compile);
             equal to the eager path within float tolerance. On CUDA without
@@ -81,10 +105,14 @@ class ParticleBPConv(MessagePassing):
     SUPPORTS_FUSED_EDGE_INDEX = True
 
     def __init__(self, measurement: Optional[MeasurementModel] = None,
-                 chunk_size: Optional[int] = None, compile: bool = False):
+                 chunk_size: Optional[int] = None, compile: bool = False,
+                 num_samples: Union[int, str] = 1):
         super().__init__(aggr='add', node_dim=0)
         if chunk_size is not None:
             chunk_size = check_positive_int(chunk_size, 'chunk_size')
+        if num_samples != 'all':
+            num_samples = check_positive_int(num_samples, 'num_samples')
+        self.num_samples = num_samples
         self.measurement = measurement or GaussianRange()
         if not isinstance(self.measurement, MeasurementModel):
             raise TypeError(f"'measurement' must be a MeasurementModel, got "
@@ -105,6 +133,8 @@ class ParticleBPConv(MessagePassing):
         anchor: Optional[Tensor] = None,
         validate: bool = True,
         return_messages: bool = True,
+        sample_shifts: Optional[Tensor] = None,
+        generator: Optional[torch.Generator] = None,
     ) -> Tuple[Tensor, Optional[Tensor]]:
         r"""Runs the forward pass.
 
@@ -133,6 +163,13 @@ class ParticleBPConv(MessagePassing):
                 output stays about :obj:`chunk_size * K` floats; on CUDA a
                 fused Triton kernel computes and sums them in one pass.
                 Either way the sum is deterministic. (default: :obj:`True`)
+            sample_shifts (torch.Tensor, optional): The shifts
+                :math:`s_{j,m}` :math:`(|\mathcal{V}|, M)` of the
+                :math:`M`-sample messages (the trackers draw them per graph);
+                drawn with :obj:`generator` by :meth:`draw_shifts` if
+                :obj:`None`. (default: :obj:`None`)
+            generator (torch.Generator, optional): Source of the shifts.
+                (default: :obj:`None`)
         """
         if sender_log_weights is None:
             sender_log_weights = log_weights
@@ -148,12 +185,21 @@ class ParticleBPConv(MessagePassing):
         edge_index = long_edge_index(edge_index, particles.size(0))
         planes = tuple(particles[..., d].to(dtype).contiguous()
                        for d in model.state_entries)
+        if sample_shifts is None:
+            sample_shifts = self.draw_shifts(particles.size(0),
+                                             particles.size(1),
+                                             generator=generator,
+                                             device=particles.device)
+        elif validate:
+            self._check_shifts(sample_shifts, particles.size(0),
+                               particles.size(1))
         node_args = dict(planes=planes,
                          sender_log_weights=sender_log_weights.to(dtype),
-                         link_features=edge_attr.to(dtype))
+                         link_features=edge_attr.to(dtype),
+                         shifts=sample_shifts)
         path = self._path(return_messages, planes[0], (
             *planes, node_args['sender_log_weights'],
-            node_args['link_features']))
+            node_args['link_features']), sample_shifts is not None)
         if path == 'messages':
             log_messages = self.edge_updater(edge_index, size=size,
                                              **node_args)
@@ -169,8 +215,49 @@ class ParticleBPConv(MessagePassing):
             out = out.masked_fill(anchor.view(-1, 1), 0.0)
         return log_weights + out, log_messages if return_messages else None
 
+    def samples_for(self, num_particles: int) -> int:
+        r"""The number of sender samples :math:`M` for :math:`K` =
+        :obj:`num_particles`."""
+        if self.num_samples == 'all':
+            return num_particles
+        if self.num_samples > num_particles:
+            raise ValueError(f"'num_samples' = {self.num_samples} exceeds "
+                             f"the K = {num_particles} particles per node")
+        return self.num_samples
+
+    def draw_shifts(self, num_nodes: int, num_particles: int,
+                    generator: Optional[torch.Generator] = None,
+                    device=None) -> Optional[Tensor]:
+        r"""The shifts :math:`(N, M)` of the :math:`M`-sample messages: per
+        node a uniformly random :math:`M`-subset of :math:`\{0, \dots,
+        K - 1\}` (all of them for :math:`M = K`, with no random draw);
+        :obj:`None` for the paper's pairing (:math:`M = 1`)."""
+        samples = self.samples_for(num_particles)
+        if samples == 1:
+            return None
+        if samples == num_particles:
+            return torch.arange(num_particles, device=device).expand(
+                num_nodes, -1)
+        keys = torch.rand(num_nodes, num_particles, generator=generator,
+                          device=device)
+        return keys.argsort(dim=1)[:, :samples]
+
+    def _check_shifts(self, shifts: Tensor, num_nodes: int,
+                      num_particles: int) -> None:
+        samples = self.samples_for(num_particles)
+        if samples == 1:
+            raise ValueError("'sample_shifts' given, but num_samples = 1 "
+                             "pairs the particles")
+        if shifts.shape != (num_nodes, samples) or shifts.is_floating_point():
+            raise ValueError(f"'sample_shifts' must be an integer tensor of "
+                             f"shape [{num_nodes}, {samples}], got "
+                             f"{shifts.dtype} {list(shifts.shape)}")
+        if bool(((shifts < 0) | (shifts >= num_particles)).any()):
+            raise ValueError(f"'sample_shifts' must lie in [0, "
+                             f"{num_particles})")
+
     def _path(self, return_messages: bool, like: Tensor,
-              inputs: Tuple[Tensor, ...]) -> str:
+              inputs: Tuple[Tensor, ...], sampled: bool = False) -> str:
         r"""The one place that chooses how the messages are computed:
         :obj:`"messages"` (materialized :math:`(E, K)`, returned or fused by
         a compiled graph), :obj:`"fused"` (the model's formula in the Triton
@@ -185,8 +272,10 @@ class ParticleBPConv(MessagePassing):
                                                for t in inputs)
         if grad:
             return ('closed-form' if isinstance(model, RangeModel)
-                    and model.provides('distance_gradient') else 'autograd')
-        if (fused_bp_available(like) and like.dtype == torch.float32
+                    and model.provides('distance_gradient') and not sampled
+                    else 'autograd')
+        if (not sampled and fused_bp_available(like)
+                and like.dtype == torch.float32
                 and isinstance(model, RangeModel)
                 and model.provides('fused_log_pdf')):
             return 'fused'
@@ -194,7 +283,8 @@ class ParticleBPConv(MessagePassing):
 
     def edge_update(self, planes: Tuple[Tensor, ...],
                     sender_log_weights: Tensor, link_features: Tensor,
-                    edge_index_i: Tensor, edge_index_j: Tensor) -> Tensor:
+                    shifts: Optional[Tensor], edge_index_i: Tensor,
+                    edge_index_j: Tensor) -> Tensor:
         # plain tensors (not PyG's Index) into the compiled region
         src, dst = plain_tensor(edge_index_j), plain_tensor(edge_index_i)
         num_edges = dst.numel()
@@ -202,38 +292,73 @@ class ParticleBPConv(MessagePassing):
         if chunk >= num_edges or torch.compiler.is_compiling():
             # a compiled graph fuses the chain without temporaries
             return self._messages(planes, sender_log_weights, link_features,
-                                  src, dst)
+                                  src, dst, shifts)
         out = planes[0].new_empty((num_edges, planes[0].size(1)))
         for start in range(0, num_edges, chunk):
             part = slice(start, start + chunk)
             out[part] = self._messages(planes, sender_log_weights,
                                        link_features[part], src[part],
-                                       dst[part])
+                                       dst[part], shifts)
         return out
 
     def _log_messages(self, planes: Tuple[Tensor, ...],
                       sender_log_weights: Tensor, link_features: Tensor,
-                      src: Tensor, dst: Tensor) -> Tensor:
-        # the paired messages log p(z | x_j^(k), x_i^(k)) + log w_j^(k)
+                      src: Tensor, dst: Tensor,
+                      shifts: Optional[Tensor] = None) -> Tensor:
+        if shifts is None:
+            return self._paired_log_messages(planes, link_features, src,
+                                             dst, planes, sender_log_weights)
+        # M-sample messages: for each m the sender rows rolled by the
+        # sender's shift s_(j,m), accumulated by logaddexp; the block's rows
+        # are gathered once
+        edge_shifts = shifts.index_select(0, src)
+        # each sender row written twice: every rolled row is a window of it
+        senders = [_doubled(p.index_select(0, src)) for p in planes]
+        sender_weights = _doubled(sender_log_weights.index_select(0, src))
+        receivers = tuple(p.index_select(0, dst) for p in planes)
+        rows = torch.arange(src.numel(), device=src.device)
+        total = None
+        for m in range(shifts.size(1)):
+            shift = edge_shifts[:, m]
+            sample = self._paired_log_messages(
+                receivers, link_features, None, None,
+                tuple(windows[rows, shift] for windows in senders),
+                sender_weights[rows, shift])
+            total = sample if total is None else torch.logaddexp(total,
+                                                                 sample)
+        return total
+
+    def _paired_log_messages(self, planes: Tuple[Tensor, ...],
+                             link_features: Tensor, src: Tensor, dst: Tensor,
+                             sender_planes: Tuple[Tensor, ...],
+                             sender_weights: Tensor) -> Tensor:
+        # the paired messages log p(z | x_j^(k), x_i^(k)) + log w_j^(k):
+        # receivers from 'planes' at dst, senders from 'sender_planes' and
+        # 'sender_weights' at src; a None index means that the tensors are
+        # edge rows already (fresh sender rows, which may be overwritten)
+        def at(tensor, index):
+            return tensor if index is None else tensor.index_select(0, index)
+
         model = self.measurement
         grad = torch.is_grad_enabled() and (
-            link_features.requires_grad or any(p.requires_grad
-                                               for p in planes))
+            link_features.requires_grad or any(
+                p.requires_grad for p in (*planes, *sender_planes)))
         if not isinstance(model, RangeModel):
-            sender = torch.stack([p.index_select(0, src) for p in planes], -1)
-            receiver = torch.stack([p.index_select(0, dst) for p in planes],
-                                   -1)
+            sender = torch.stack([at(p, src) for p in sender_planes], -1)
+            receiver = torch.stack([at(p, dst) for p in planes], -1)
             log_lik = model.log_likelihood(link_features, sender, receiver)
         elif grad:
-            diff = torch.stack([p.index_select(0, src) - p.index_select(0, dst)
-                                for p in planes[:2]], dim=-1)
+            diff = torch.stack([
+                at(s, src) - at(p, dst)
+                for s, p in zip(sender_planes[:2], planes[:2])], dim=-1)
             distances = torch.linalg.vector_norm(diff, dim=-1)  # grad 0 at 0
             log_lik = model.log_likelihood_of_distance(link_features,
                                                        distances)
         else:  # in place on fresh temporaries: a third of the memory traffic
-            pos_x, pos_y = planes[:2]
-            dx = pos_x.index_select(0, src).sub_(pos_x.index_select(0, dst))
-            dy = pos_y.index_select(0, src).sub_(pos_y.index_select(0, dst))
+            (sender_x, sender_y), (pos_x, pos_y) = sender_planes[:2], \
+                planes[:2]
+            dx = at(sender_x, src).sub_(at(pos_x, dst))
+            dy = at(sender_y, src).sub_(at(pos_y, dst))
             distances = dx.mul_(dx).addcmul_(dy, dy).sqrt_()
             log_lik = (model.log_likelihood_of_distance_(
                 link_features, distances)
@@ -241,7 +366,7 @@ class ParticleBPConv(MessagePassing):
                        model.log_likelihood_of_distance(link_features,
                                                         distances))
         # in-place add stays differentiable in the sender log-weights
-        return log_lik.add_(sender_log_weights.index_select(0, src))
+        return log_lik.add_(at(sender_weights, src))
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages
@@ -250,6 +375,7 @@ class ParticleBPConv(MessagePassing):
                               planes: Tuple[Tensor, ...],
                               sender_log_weights: Tensor,
                               link_features: Tensor,
+                              shifts: Optional[Tensor],
                               log_messages: Optional[Tensor],
                               path: str) -> Tensor:
         # edges sorted by receiver: a deterministic segment sum (PyG calls
@@ -269,7 +395,9 @@ class ParticleBPConv(MessagePassing):
         # the peak temporary memory is one chunk, whatever E
         dst = plain_tensor(edge_index[1])
         bounds = self._receiver_blocks(ptr, self._chunk_edges(planes[0]))
-        inputs = (*planes, sender_log_weights, link_features)
+        # the shifts of M-sample messages ride last (no gradient)
+        inputs = (*planes, sender_log_weights, link_features) + (
+            () if shifts is None else (shifts, ))
         if path in ('closed-form', 'autograd') and len(bounds) > 2:
             gradients = (_range_block_grads if path == 'closed-form' else
                          _autograd_block_grads)
@@ -301,18 +429,28 @@ class ParticleBPConv(MessagePassing):
         return f'{self.__class__.__name__}({self.measurement})'
 
 
+def _doubled(rows: Tensor) -> Tensor:
+    # the windows [E, K + 1, K] of every row written twice: window s of row
+    # e is rows[e, (k + s) mod K], and indexing [e, s] copies it as one
+    # contiguous run (no [E, K] index tensor)
+    num_particles = rows.size(1)
+    return torch.cat([rows, rows], dim=1).unfold(1, num_particles, 1)
+
+
 def _sum_blocks(messages: Callable, num_planes: int, bounds: List[int],
                 src: Tensor, dst: Tensor, ptr: Tensor,
                 *inputs: Tensor) -> Tensor:
     # the segment sums of the receiver blocks [bounds[b], bounds[b + 1]);
     # inputs: the coordinate planes, the sender log-weights, link features
+    # and, for M-sample messages, the shifts
     planes, sender = inputs[:num_planes], inputs[num_planes]
     link_features = inputs[num_planes + 1]
+    shifts = inputs[num_planes + 2] if len(inputs) > num_planes + 2 else None
     sums = []
     for first, last in zip(bounds[:-1], bounds[1:]):
         begin, end = int(ptr[first]), int(ptr[last])
         block = messages(planes, sender, link_features[begin:end],
-                         src[begin:end], dst[begin:end])
+                         src[begin:end], dst[begin:end], shifts)
         sums.append(segment(block, ptr[first:last + 1] - begin, reduce='sum'))
     return sums[0] if len(sums) == 1 else torch.cat(sums)
 
@@ -402,11 +540,15 @@ def _autograd_block_grads(ctx, inputs, needs, begin, end, src, dst,
                   for t, need in zip(inputs[:num_planes + 1], needs)]
         block_features = inputs[num_planes + 1][begin:end].detach(
         ).requires_grad_(needs[num_planes + 1])
+        shifts = (inputs[num_planes + 2].index_select(0, nodes)
+                  if len(inputs) > num_planes + 2 else None)
         block = ctx.messages(tuple(leaves[:num_planes]), leaves[num_planes],
-                             block_features, local[:count], local[count:])
+                             block_features, local[:count], local[count:],
+                             shifts)
         wanted = [t for t in (*leaves, block_features) if t.requires_grad]
         found = iter(torch.autograd.grad(block, wanted, grad_messages,
                                          allow_unused=True))
+    needs = needs[:num_planes + 2]  # the shifts have no gradient
     grads = [next(found) if need else None for need in needs]
     grads = [torch.zeros_like(t) if g is None and need else g
              for g, t, need in zip(grads, (*leaves, block_features), needs)]
