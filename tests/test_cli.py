@@ -63,3 +63,22 @@ def test_samples_flag(tmp_path):
     with pytest.raises(SystemExit) as info:
         main(argv + ['--samples', 'some'])
     assert info.value.code == 2
+
+
+def test_resampling_flags(tmp_path):
+    path = nlos_scenario_file(tmp_path)
+    out = tmp_path / 'out'
+    argv = ['evaluate', '--scenario', str(path), '--realizations', '1',
+            '--particles', '16', '--root', str(tmp_path / 'data'), '--out',
+            str(out), '--quiet', '--resampler', 'residual']
+    assert main(argv + ['--regularize', '--ess-threshold', '0.5']) == 0
+    entry = json.loads((out / 'metrics.json').read_text())['bp']
+    assert (entry['regularize'], entry['ess_threshold']) == ('silverman',
+                                                             0.5)
+    assert main(argv + ['--regularize', '0.2']) == 0
+    assert json.loads((out / 'metrics.json').read_text())['bp'][
+        'regularize'] == 0.2
+    for bad in (['--ess-threshold', '2'], ['--regularize', 'wide']):
+        with pytest.raises(SystemExit) as info:
+            main(argv + bad)
+        assert info.value.code == 2

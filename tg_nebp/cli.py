@@ -1,6 +1,7 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 :obj:`reproduce` and :obj:`bench`."""
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -40,6 +41,38 @@ def _samples(text: str):
     if text == 'all':
         return text
     return _positive(text)
+
+
+def _bandwidth(text: str):
+    if text == 'silverman':
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number or 'silverman', "
+                                         f"got '{text}'") from None
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f'must lie in (0, 1], got {text}')
+    return value
+
+
+def _add_resampling(parser: argparse.ArgumentParser):
+    parser.add_argument('--regularize', type=_bandwidth, nargs='?',
+                        const='silverman', default=None, metavar='H',
+                        help='regularized resampling: Gaussian jitter with '
+                        'H^2 times the particle covariance (H from '
+                        "Silverman's rule without a value)")
+    parser.add_argument('--ess-threshold', type=_fraction, default=None,
+                        metavar='T', help='resample a node only when its '
+                        'effective sample size is below T * K (default: '
+                        'every step, as the paper)')
 
 
 def _add_samples(parser: argparse.ArgumentParser, default):
@@ -89,13 +122,19 @@ def _evaluate(args) -> int:
         if args.measurement is not None:
             raise ValueError("--measurement is for --method bp; NEBP runs "
                              "with its checkpoint's measurement model")
+        if args.regularize is not None or args.ess_threshold is not None:
+            raise ValueError("--regularize and --ess-threshold are for "
+                             "--method bp; NEBP resamples as it was "
+                             "trained")
         tracker = nebp_from_checkpoint(args.checkpoint, args.particles,
                                        compile=args.compile,
                                        num_samples=args.samples)
     else:
         tracker = ParticleBP(args.particles or 1000, args.iterations,
                              resampler=args.resampler, compile=args.compile,
-                             num_samples=args.samples or 1, **models)
+                             num_samples=args.samples or 1,
+                             regularize=args.regularize,
+                             ess_threshold=args.ess_threshold, **models)
     with _bar(len(dataset) * dataset.scenario.num_steps,
               f'{args.method} K={tracker.num_particles}', args.quiet) as bar:
         result = evaluate_method(args.method, tracker.to(args.device).eval(),
@@ -137,7 +176,8 @@ def _train_on(args, device: str) -> int:
     torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
                  measurement=scenario.measurement_model, compile=args.compile,
-                 num_samples=args.samples)
+                 num_samples=args.samples, regularize=args.regularize,
+                 ess_threshold=args.ess_threshold)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
     with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
@@ -211,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
     _add_samples(ev, None)
+    _add_resampling(ev)
     ev.set_defaults(run=_evaluate)
 
     tr = sub.add_parser(
@@ -248,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument('--quiet', action='store_true')
     _add_common(tr)
     _add_samples(tr, 1)
+    _add_resampling(tr)
     tr.set_defaults(run=_train)
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '

@@ -105,6 +105,8 @@ def evaluate_method(method: str, tracker: ParticleBP, dataset,
                  iterations=tracker.num_iterations,
                  measurement=tracker.measurement.config(),
                  samples=tracker.num_samples,
+                 regularize=tracker.regularize,
+                 ess_threshold=tracker.ess_threshold,
                  scenario=getattr(getattr(dataset, 'scenario', None), 'name',
                                   None))
     path = out / 'metrics.json'

@@ -604,3 +604,81 @@ def test_more_samples_make_a_better_filter():
                            net.states[agents, :, :2]).norm(dim=-1))
         return float(torch.cat(errors).square().mean().sqrt())
     assert rmse(ParticleBP(64, num_samples='all')) < rmse(ParticleBP(64))
+
+
+# ---- regularized and ESS-adaptive resampling --------------------------------
+
+def test_regularized_jitter_has_the_stated_covariance():
+    # one node whose particles coincide: after resampling the spread is the
+    # jitter alone, covariance h^2 cov (5 standard errors, K = 20,000)
+    K, h = 20_000, 0.3
+    cov = torch.tensor([[2.0, 0.6, 0.0, 0.0], [0.6, 1.0, 0.0, 0.0],
+                        [0.0, 0.0, 0.04, 0.01], [0.0, 0.0, 0.01, 0.02]],
+                       dtype=torch.float64)
+    particles = torch.ones(2, K, 4, dtype=torch.float64)
+    log_weights = torch.zeros(2, K, dtype=torch.float64)
+    covs = torch.stack([cov, torch.zeros(4, 4, dtype=torch.float64)])
+    tracker = ParticleBP(K, regularize=h)
+    moved, carried = tracker.resample_step(particles, log_weights, covs,
+                                           gen(13))
+    jitter = moved[0] - 1.0
+    sample = jitter.t() @ jitter / K
+    expected = h**2 * cov
+    scale = (expected.diagonal().unsqueeze(0) *
+             expected.diagonal().unsqueeze(1)).sqrt()
+    assert bool(((sample - expected).abs() <=
+                 5 * math.sqrt(2 / K) * scale + 1e-12).all())
+    assert torch.equal(moved[1], particles[1])  # zero covariance: no jitter
+    assert torch.allclose(carried.exp().sum(-1), torch.ones(2,
+                                                            dtype=torch.float64))
+    silverman = ParticleBP(K, regularize='silverman')
+    assert silverman.regularize == 'silverman'
+
+
+def test_ess_adaptive_resampling_keeps_high_ess_nodes():
+    K = 64
+    particles = torch.randn(2, K, 4, generator=gen(14), dtype=torch.float64)
+    flat = torch.full((K, ), -math.log(K), dtype=torch.float64)
+    peaked = torch.full((K, ), -50.0, dtype=torch.float64)
+    peaked[3] = 0.0
+    log_weights = torch.stack([flat - 0.01 * torch.arange(K), peaked])
+    log_weights = log_weights.log_softmax(-1)
+    cov = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
+    tracker = ParticleBP(K, ess_threshold=0.5)
+    moved, carried = tracker.resample_step(particles, log_weights, cov,
+                                           gen(15))
+    # node 0 (ESS near K) keeps its particles and weights, node 1 (ESS 1)
+    # is resampled onto its one particle with uniform weights
+    assert torch.equal(moved[0], particles[0])
+    assert torch.equal(carried[0], log_weights[0])
+    assert bool((moved[1] == particles[1, 3]).all())
+    assert torch.allclose(carried[1], torch.full((K, ), -math.log(K),
+                                                 dtype=torch.float64))
+
+
+def test_estimate_is_unchanged_by_a_step_without_information():
+    # static agent, no motion noise, no measurements at step 1: without
+    # resampling the estimate stays; resampling every step moves it
+    states = torch.tensor([[[5.0, 5.0, 0.0, 0.0]] * 3, [[0.0, 0.0, 0, 0]] * 3,
+                           [[10.0, 0.0, 0, 0]] * 3, [[0.0, 10.0, 0, 0]] * 3])
+    anchor = torch.tensor([False, True, True, True])
+    edges = [[(1, 0), (2, 0), (3, 0)], [], [(1, 0), (2, 0), (3, 0)]]
+    net = custom_realization(states, anchor, edges, seed=16)
+    net.prior_cov[0, 2:, 2:] = 0.0  # no velocity uncertainty
+    motion = ConstantVelocityDrag(sigma_a=0.0)
+    adaptive = [s.mean for s in ParticleBP(
+        256, motion=motion, ess_threshold=1e-9).steps(net, gen(17))]
+    assert torch.equal(adaptive[1], adaptive[0])
+    always = [s.mean for s in ParticleBP(256, motion=motion).steps(
+        net, gen(17))]
+    assert not torch.equal(always[1], always[0])
+
+
+@pytest.mark.parametrize('kwargs,error', [
+    (dict(ess_threshold=1.5), ValueError), (dict(ess_threshold=0.0),
+                                            ValueError),
+    (dict(regularize='scott'), TypeError), (dict(regularize=-1.0),
+                                            ValueError)])
+def test_resampling_options_are_checked(kwargs, error):
+    with pytest.raises(error):
+        ParticleBP(8, **kwargs)

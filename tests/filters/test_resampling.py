@@ -5,12 +5,15 @@ import pytest
 import torch
 from scipy.stats import chi2
 
-from tg_nebp.filters import (RESAMPLERS, multinomial_resample,
+from tg_nebp.filters import (RESAMPLERS, effective_sample_size,
+                             multinomial_resample, residual_resample,
+                             silverman_bandwidth, stratified_resample,
                              systematic_resample)
 
 from helpers import gen
 
-RESAMPLER_FNS = [multinomial_resample, systematic_resample]
+RESAMPLER_FNS = [multinomial_resample, systematic_resample,
+                 stratified_resample, residual_resample]
 
 
 def random_log_weights(shape, seed):
@@ -21,6 +24,8 @@ def random_log_weights(shape, seed):
 def test_registry():
     assert RESAMPLERS['multinomial'] is multinomial_resample
     assert RESAMPLERS['systematic'] is systematic_resample
+    assert RESAMPLERS['stratified'] is stratified_resample
+    assert RESAMPLERS['residual'] is residual_resample
 
 
 @pytest.mark.parametrize('fn', RESAMPLER_FNS)
@@ -189,3 +194,47 @@ def test_does_not_track_gradients(fn):
     lw = torch.zeros(2, 5, requires_grad=True)
     idx = fn(lw, generator=gen(0))
     assert not idx.requires_grad
+
+
+
+@pytest.mark.parametrize('fn', [stratified_resample, residual_resample])
+@pytest.mark.parametrize('M', [10, 23])
+def test_stratified_and_residual_are_unbiased(fn, M):
+    # E[count_k] = M w_k over many independent rows; a count's variance is
+    # at most M / 4, so 5 standard errors of the mean are 5 sqrt(M/4/R)
+    R, K = 4000, 6
+    lw = random_log_weights((K, ), 8).expand(R, K)
+    w = torch.softmax(lw[0], 0).numpy()
+    idx = fn(lw, M, generator=gen(9))
+    counts = np.stack([np.bincount(r, minlength=K) for r in idx.numpy()])
+    assert np.all(counts.sum(1) == M)
+    assert np.all(np.abs(counts.mean(0) - M * w) <
+                  5 * math.sqrt(M / 4 / R))
+
+
+def test_residual_keeps_the_deterministic_copies():
+    lw = random_log_weights((50, 9), 10)
+    M = 31
+    floor = np.floor(M * torch.softmax(lw, -1).numpy())
+    idx = residual_resample(lw, M, generator=gen(11)).numpy()
+    counts = np.stack([np.bincount(r, minlength=9) for r in idx])
+    assert np.all(counts >= floor)
+    assert np.all(counts.sum(1) == M)
+
+
+def test_stratified_draws_one_point_per_stratum():
+    # equal weights and M = K: exactly one draw per particle
+    idx = stratified_resample(torch.zeros(20, 8), generator=gen(12))
+    assert torch.equal(idx, torch.arange(8).expand(20, 8))
+
+
+def test_effective_sample_size_and_bandwidth():
+    assert float(effective_sample_size(torch.zeros(10))) == \
+        pytest.approx(10.0)
+    peaked = torch.tensor([0.0, -1e9, -1e9])
+    assert float(effective_sample_size(peaked)) == pytest.approx(1.0)
+    w = torch.tensor([0.5, 0.25, 0.25])
+    assert float(effective_sample_size(w.log())) == pytest.approx(
+        1 / (0.25 + 2 * 0.0625))
+    assert silverman_bandwidth(1000, 4) == pytest.approx(
+        (4 / 6000)**(1 / 8))

@@ -40,6 +40,10 @@ class NEBP(ParticleBP):
         num_samples (int or str, optional): Sender particles per receiver
             particle in the BP messages (see :class:`ParticleBP`).
             (default: :obj:`1`)
+        regularize (float or str, optional): Regularized resampling (see
+            :class:`ParticleBP`). (default: :obj:`None`)
+        ess_threshold (float, optional): ESS-adaptive resampling (see
+            :class:`ParticleBP`). (default: :obj:`None`)
         compile (bool, optional): Fuse the per-edge work of
             :class:`~tg_nebp.nn.conv.NEBPConv` with :func:`torch.compile`
             (training and inference; not part of :meth:`config`).
@@ -57,9 +61,12 @@ class NEBP(ParticleBP):
                  message_dim: int = 32, hidden_dim: int = 64,
                  correct_anchor_edges: bool = False,
                  chunk_size: Optional[int] = None, compile: bool = False,
-                 num_samples: Union[int, str] = 1):
+                 num_samples: Union[int, str] = 1,
+                 regularize: Union[float, str, None] = None,
+                 ess_threshold: Optional[float] = None):
         super().__init__(num_particles, num_iterations, motion, measurement,
-                         resampler, chunk_size, num_samples=num_samples)
+                         resampler, chunk_size, num_samples=num_samples,
+                         regularize=regularize, ess_threshold=ess_threshold)
         self.resampler_name = resampler if isinstance(resampler,
                                                       str) else None
         # the NEBP layer in place of BP's (it holds BP's conv itself)
@@ -98,6 +105,8 @@ class NEBP(ParticleBP):
                     correct_anchor_edges=self.correct_anchor_edges,
                     resampler=self.resampler_name,
                     num_samples=self.num_samples,
+                    regularize=self.regularize,
+                    ess_threshold=self.ess_threshold,
                     motion=self.motion.config(),
                     measurement=self.measurement.config())
 

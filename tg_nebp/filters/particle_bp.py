@@ -8,9 +8,11 @@ from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import (check_layer_inputs, check_positive_int,
-                                     check_realization, magnitude_limit)
-from tg_nebp.filters.resampling import RESAMPLERS
+from tg_nebp.data.validation import (check_layer_inputs, check_number,
+                                     check_positive_int, check_realization,
+                                     magnitude_limit)
+from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
+                                        silverman_bandwidth)
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, MotionModel)
 from tg_nebp.nn.conv import ParticleBPConv
@@ -121,7 +123,11 @@ class ParticleBP(torch.nn.Module):
        (:meth:`update`, :class:`~tg_nebp.nn.conv.ParticleBPConv` here),
     3. normalizes the log-weights and computes the MMSE estimate and its
        covariance,
-    4. resamples (ancestor indices from :obj:`resampler`, gradient cut).
+    4. resamples (ancestor indices from :obj:`resampler`, gradient cut):
+       every step (the paper), or only the nodes whose effective sample size
+       falls below :obj:`ess_threshold` (the others carry their weights
+       into the next prediction), with optional regularization (Gaussian
+       jitter, :obj:`regularize`); :meth:`resample_step`.
 
     The randomness (prior, prediction, resampling) comes from
     :obj:`generator`: one :class:`torch.Generator` for the whole batch, or
@@ -153,6 +159,16 @@ class ParticleBP(torch.nn.Module):
             :class:`~tg_nebp.nn.conv.ParticleBPConv`): :obj:`1` is the
             paper's pairing, :obj:`"all"` the exact message; the samples are
             drawn from :obj:`generator`. (default: :obj:`1`)
+        regularize (float or str, optional): Regularized resampling: after
+            resampling, every particle is moved by Gaussian noise with
+            covariance :math:`h^2` times the node's weighted particle
+            covariance; :obj:`"silverman"` takes :math:`h` from
+            :func:`~tg_nebp.filters.resampling.silverman_bandwidth`.
+            (default: :obj:`None`, the paper's plain resampling)
+        ess_threshold (float, optional): Resample a node only when its
+            effective sample size falls below this fraction of :math:`K`;
+            the others carry their weights into the next prediction.
+            (default: :obj:`None`, resample every step as the paper)
         compile (bool, optional): Fuse the convolution's per-edge work with
             :func:`torch.compile` (see :class:`ParticleBPConv`); for BP on
             CUDA the fused Triton kernel is used either way.
@@ -169,8 +185,19 @@ class ParticleBP(torch.nn.Module):
                  measurement: Optional[MeasurementModel] = None,
                  resampler: Union[str, Callable] = 'multinomial',
                  chunk_size: Optional[int] = None, compile: bool = False,
-                 num_samples: Union[int, str] = 1):
+                 num_samples: Union[int, str] = 1,
+                 regularize: Union[float, str, None] = None,
+                 ess_threshold: Optional[float] = None):
         super().__init__()
+        if regularize is not None and regularize != 'silverman':
+            regularize = check_number(regularize, 'regularize')
+        if ess_threshold is not None:
+            ess_threshold = check_number(ess_threshold, 'ess_threshold')
+            if ess_threshold > 1:
+                raise ValueError(f"'ess_threshold' must lie in (0, 1], got "
+                                 f"{ess_threshold}")
+        self.regularize = regularize
+        self.ess_threshold = ess_threshold
         num_particles = check_positive_int(num_particles, 'num_particles')
         num_iterations = check_positive_int(num_iterations, 'num_iterations')
         if not (isinstance(resampler, str) or callable(resampler)):
@@ -308,11 +335,8 @@ class ParticleBP(torch.nn.Module):
         # one dtype for the whole loop: half precision is promoted
         dtype = compute_dtype(data.prior_mean, data.prior_cov, data.edge_attr)
         particles = self.sample_prior(data, generator).to(dtype)
-        log_uniform = -math.log(self.num_particles)
-        log_weights = particles.new_full(particles.shape[:2], log_uniform)
-
-        def resample(log_weights: Tensor, g: Optional[torch.Generator]):
-            return self.resampler(log_weights, self.num_particles, g)
+        log_weights = particles.new_full(particles.shape[:2],
+                                         -math.log(self.num_particles))
 
         # the M-sample shifts of every step, per graph from its generator
         # (none drawn for the paper's pairing: its random stream is as is)
@@ -338,11 +362,64 @@ class ParticleBP(torch.nn.Module):
             _check_belief(log_weights, data, t)
             mean, cov = weighted_moments(particles, log_weights)
             yield StepOutput(t, mean, cov, particles, log_weights)
-            ancestors = _draw(resample, generator, counts,
-                              log_weights.detach())
-            particles = particles.gather(
-                1, ancestors.unsqueeze(-1).expand(-1, -1, particles.size(-1)))
-            log_weights = particles.new_full(particles.shape[:2], log_uniform)
+            particles, log_weights = self.resample_step(
+                particles, log_weights.detach(), cov.detach(), generator,
+                counts)
+
+    def resample_step(self, particles: Tensor, log_weights: Tensor,
+                      cov: Tensor, generator: Generators = None,
+                      counts: Optional[List[int]] = None):
+        r"""Step 4 of the time loop: resamples the nodes whose effective
+        sample size is below :obj:`ess_threshold` :math:`\cdot K` (all
+        nodes without a threshold), jitters their particles if
+        :obj:`regularize` is set, and returns the particles and the
+        log-weights that the next prediction carries (uniform where
+        resampled). :obj:`cov` is the weighted particle covariance of the
+        step (the jitter's shape). The gradient is cut: log-weights carry
+        over as values."""
+        def resample(log_weights: Tensor, g: Optional[torch.Generator]):
+            return self.resampler(log_weights, self.num_particles, g)
+
+        ancestors = _draw(resample, generator, counts, log_weights)
+        resampled = None
+        if self.ess_threshold is not None:
+            resampled = (effective_sample_size(log_weights) <
+                         self.ess_threshold * self.num_particles)
+            keep = torch.arange(self.num_particles, device=particles.device)
+            ancestors = torch.where(resampled.unsqueeze(-1), ancestors, keep)
+        particles = particles.gather(
+            1, ancestors.unsqueeze(-1).expand(-1, -1, particles.size(-1)))
+        if self.regularize is not None:
+            particles = particles + self._jitter(cov, particles, generator,
+                                                 counts, resampled)
+        uniform = particles.new_full(particles.shape[:2],
+                                     -math.log(self.num_particles))
+        if resampled is None:
+            return particles, uniform
+        return particles, torch.where(resampled.unsqueeze(-1), uniform,
+                                      log_weights.to(uniform.dtype))
+
+    def _jitter(self, cov: Tensor, particles: Tensor, generator: Generators,
+                counts: Optional[List[int]],
+                resampled: Optional[Tensor]) -> Tensor:
+        # regularized resampling: Gaussian kernel noise with covariance
+        # h^2 times the weighted particle covariance (a PSD square root:
+        # anchors and collapsed clouds have singular covariances)
+        h = (silverman_bandwidth(self.num_particles, particles.size(-1))
+             if self.regularize == 'silverman' else self.regularize)
+        eigvals, eigvecs = torch.linalg.eigh(cov.double())
+        root = (eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)).to(
+            particles.dtype)
+
+        def standard_normal(part: Tensor, g: Optional[torch.Generator]):
+            return torch.randn(part.shape, dtype=part.dtype,
+                               device=part.device, generator=g)
+
+        noise = _draw(standard_normal, generator, counts, particles)
+        jitter = h * noise @ root.transpose(-1, -2)
+        if resampled is not None:  # only the particles just resampled
+            jitter = jitter * resampled.view(-1, 1, 1)
+        return jitter
 
     def forward(self, data: Realization,
                 generator: Generators = None) -> TrackOutput:

@@ -7,7 +7,9 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-__all__ = ['multinomial_resample', 'systematic_resample', 'RESAMPLERS']
+__all__ = ['multinomial_resample', 'systematic_resample',
+           'stratified_resample', 'residual_resample', 'RESAMPLERS',
+           'effective_sample_size', 'silverman_bandwidth']
 
 
 def _probabilities(log_weights: Tensor) -> Tensor:
@@ -82,6 +84,76 @@ def systematic_resample(log_weights: Tensor,
     return _inverse_cdf(probs, (grid + offset) / num_samples)
 
 
+def stratified_resample(log_weights: Tensor,
+                        num_samples: Optional[int] = None,
+                        generator: Optional[torch.Generator] = None
+                        ) -> Tensor:
+    r"""Stratified resampling: one uniform :math:`u_m \sim U[0, 1)` per
+    stratum and the points :math:`(m + u_m) / M`; unbiased offspring counts
+    with lower variance than multinomial resampling.
+
+    Args:
+        log_weights (torch.Tensor): Unnormalized log-weights :math:`(*, K)`.
+        num_samples (int, optional): :math:`M`. (default: :obj:`K`)
+        generator (torch.Generator, optional): Source of randomness.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:** :math:`(*, K)`
+        - **output:** :math:`(*, M)` indices in :math:`[0, K)`
+    """
+    probs = _probabilities(log_weights)
+    num_samples = _num_samples(num_samples, probs)
+    uniform = torch.rand(probs.shape[:-1] + (num_samples, ),
+                         dtype=probs.dtype, device=probs.device,
+                         generator=generator)
+    grid = torch.arange(num_samples, dtype=probs.dtype, device=probs.device)
+    return _inverse_cdf(probs, (grid + uniform) / num_samples)
+
+
+def residual_resample(log_weights: Tensor,
+                      num_samples: Optional[int] = None,
+                      generator: Optional[torch.Generator] = None
+                      ) -> Tensor:
+    r"""Residual resampling: particle :math:`k` gets :math:`\lfloor M w^{(k)}
+    \rfloor` copies deterministically, and the remaining :math:`R = M -
+    \sum_k \lfloor M w^{(k)} \rfloor` are drawn multinomially with
+    probabilities proportional to the residuals :math:`M w^{(k)} - \lfloor M
+    w^{(k)} \rfloor`; unbiased offspring counts.
+
+    Args:
+        log_weights (torch.Tensor): Unnormalized log-weights :math:`(*, K)`.
+        num_samples (int, optional): :math:`M`. (default: :obj:`K`)
+        generator (torch.Generator, optional): Source of randomness.
+            (default: :obj:`None`)
+
+    Shapes:
+        - **input:** :math:`(*, K)`
+        - **output:** :math:`(*, M)` indices in :math:`[0, K)` (the
+          deterministic copies first, in index order)
+    """
+    probs = _probabilities(log_weights)
+    num_samples = _num_samples(num_samples, probs)
+    expected = probs * num_samples
+    copies = expected.floor()
+    residual = expected - copies
+    kept = copies.sum(-1, keepdim=True)
+    # positions [0, kept) take the copies in index order, the others draw
+    # from the residuals (whose sum, M - kept, is positive whenever a
+    # position is left)
+    position = torch.arange(num_samples, dtype=probs.dtype,
+                            device=probs.device).expand(
+                                probs.shape[:-1] + (num_samples, ))
+    deterministic = torch.searchsorted(copies.cumsum(-1),
+                                       position.contiguous(), right=True)
+    uniform = torch.rand(position.shape, dtype=probs.dtype,
+                         device=probs.device, generator=generator)
+    left = residual.sum(-1, keepdim=True)
+    drawn = _inverse_cdf(torch.where(left > 0, residual, probs), uniform)
+    index = torch.where(position < kept, deterministic, drawn)
+    return index.clamp_(max=probs.size(-1) - 1)
+
+
 def _num_samples(num_samples: Optional[int], probs: Tensor) -> int:
     if num_samples is None:
         return probs.size(-1)
@@ -105,4 +177,20 @@ def _inverse_cdf(probs: Tensor, points: Tensor) -> Tensor:
 RESAMPLERS = {
     'multinomial': multinomial_resample,
     'systematic': systematic_resample,
+    'stratified': stratified_resample,
+    'residual': residual_resample,
 }
+
+
+def effective_sample_size(log_weights: Tensor) -> Tensor:
+    r"""The effective sample size :math:`1 / \sum_k (w^{(k)})^2` of
+    (unnormalized) log-weights :math:`(*, K)`: :math:`K` for equal weights,
+    1 for a single surviving particle."""
+    return 1.0 / torch.softmax(log_weights.double(), dim=-1).square().sum(-1)
+
+
+def silverman_bandwidth(num_particles: int, state_dim: int) -> float:
+    r"""Silverman's rule of thumb for a Gaussian kernel in :math:`d`
+    dimensions, :math:`h = (4 / (K (d + 2)))^{1 / (d + 4)}`, the scale of
+    regularized resampling's jitter relative to the particle spread."""
+    return (4.0 / (num_particles * (state_dim + 2)))**(1.0 / (state_dim + 4))
