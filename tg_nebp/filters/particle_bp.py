@@ -376,7 +376,8 @@ class ParticleBP(torch.nn.Module):
         log-weights that the next prediction carries (uniform where
         resampled). :obj:`cov` is the weighted particle covariance of the
         step (the jitter's shape). The gradient is cut: log-weights carry
-        over as values."""
+        over as values. With one generator per graph, :obj:`counts` gives
+        the graphs' node counts (as :meth:`steps` passes them)."""
         def resample(log_weights: Tensor, g: Optional[torch.Generator]):
             return self.resampler(log_weights, self.num_particles, g)
 
@@ -432,6 +433,12 @@ class ParticleBP(torch.nn.Module):
         return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
 
     def __repr__(self) -> str:
+        options = ''.join(
+            f', {name}={getattr(self, name)!r}'
+            for name, default in (('num_samples', 1), ('regularize', None),
+                                  ('ess_threshold', None))
+            if getattr(self, name) != default)
         return (f'{self.__class__.__name__}(num_particles='
                 f'{self.num_particles}, num_iterations={self.num_iterations}'
-                f', motion={self.motion}, measurement={self.measurement})')
+                f', motion={self.motion}, measurement={self.measurement}'
+                f'{options})')
