@@ -26,6 +26,7 @@ __all__ = [
     'check_positive_int',
     'check_number',
     'check_layer_inputs',
+    'is_integer',
 ]
 
 
@@ -43,11 +44,16 @@ def magnitude_limit(dtype: torch.dtype) -> float:
     return math.sqrt(torch.finfo(working).max) / 4
 
 
+def is_integer(value) -> bool:
+    r"""Whether :obj:`value` is an integer (NumPy's too), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def check_positive_int(value, name: str) -> int:
     r"""Returns :obj:`value` as an :obj:`int` if it is an integer of at
     least one (a float such as :obj:`2.5` or a bool is a
     :class:`TypeError` naming :obj:`name`)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+    if not is_integer(value):
         raise TypeError(f"'{name}' must be an integer, got {value!r}")
     if value < 1:
         raise ValueError(f"'{name}' must be positive, got {value}")

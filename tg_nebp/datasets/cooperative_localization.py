@@ -1,4 +1,3 @@
-import numbers
 import os
 import pickle
 import re
@@ -11,7 +10,8 @@ import torch.distributed as dist
 from torch_geometric.data import InMemoryDataset
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_positive_int, check_realization
+from tg_nebp.data.validation import (check_positive_int, check_realization,
+                                     is_integer)
 from tg_nebp.datasets.scenario import Scenario
 from tg_nebp.io import atomic_write, first_line
 from tg_nebp.utils import derive_seed
@@ -110,7 +110,7 @@ class CooperativeLocalizationDataset(InMemoryDataset):
                             f"Scenario, got {scenario!r}")
         num_realizations = check_positive_int(num_realizations,
                                               'num_realizations')
-        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        if not is_integer(seed):
             raise TypeError(f"'seed' must be an integer, got {seed!r}")
         if seed < 0:
             raise ValueError(f"'seed' must be non-negative, got {seed}")

@@ -11,6 +11,7 @@ from typing import Any, Dict, Optional, Tuple, Union
 import torch
 
 from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import is_integer
 from tg_nebp.io import read_json
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, Model, MotionModel,
@@ -19,10 +20,6 @@ from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
 __all__ = ['Scenario']
 
 _FILE_NAME = re.compile(r'[A-Za-z0-9_+-][A-Za-z0-9_.+-]*\Z')
-
-
-def _is_integer(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def _is_real(value) -> bool:
@@ -122,7 +119,7 @@ class Scenario:
                             f"{self.description!r}")
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if field.type is int and not _is_integer(value):
+            if field.type is int and not is_integer(value):
                 raise TypeError(f"'{field.name}' must be an integer, got "
                                 f"{value!r}")
             if field.type is float and not _is_real(value):

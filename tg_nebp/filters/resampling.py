@@ -1,11 +1,12 @@
 r"""Resamplers: pure functions from log-weights :math:`(*, K)` to ancestor
 indices :math:`(*, M)`, as in filterpy. They never touch the particles, so
 any tracker (or user) applies them with :func:`torch.gather`."""
-import numbers
 from typing import Optional
 
 import torch
 from torch import Tensor
+
+from tg_nebp.data.validation import is_integer
 
 __all__ = ['multinomial_resample', 'systematic_resample',
            'stratified_resample', 'residual_resample', 'RESAMPLERS',
@@ -52,10 +53,7 @@ def multinomial_resample(log_weights: Tensor,
     num_samples = _num_samples(num_samples, probs)
     # inverse CDF at i.i.d. uniforms: exact multinomial draws, batched over
     # all rows in one searchsorted (torch.multinomial loops over rows)
-    uniform = torch.rand(probs.shape[:-1] + (num_samples, ),
-                         dtype=probs.dtype, device=probs.device,
-                         generator=generator)
-    return _inverse_cdf(probs, uniform)
+    return _inverse_cdf(probs, _uniform(probs, num_samples, generator))
 
 
 def systematic_resample(log_weights: Tensor,
@@ -78,10 +76,8 @@ def systematic_resample(log_weights: Tensor,
     """
     probs = _probabilities(log_weights)
     num_samples = _num_samples(num_samples, probs)
-    offset = torch.rand(probs.shape[:-1] + (1, ), dtype=probs.dtype,
-                        device=probs.device, generator=generator)
-    grid = torch.arange(num_samples, dtype=probs.dtype, device=probs.device)
-    return _inverse_cdf(probs, (grid + offset) / num_samples)
+    return _inverse_cdf(probs, _strata(num_samples,
+                                       _uniform(probs, 1, generator)))
 
 
 def stratified_resample(log_weights: Tensor,
@@ -104,11 +100,8 @@ def stratified_resample(log_weights: Tensor,
     """
     probs = _probabilities(log_weights)
     num_samples = _num_samples(num_samples, probs)
-    uniform = torch.rand(probs.shape[:-1] + (num_samples, ),
-                         dtype=probs.dtype, device=probs.device,
-                         generator=generator)
-    grid = torch.arange(num_samples, dtype=probs.dtype, device=probs.device)
-    return _inverse_cdf(probs, (grid + uniform) / num_samples)
+    return _inverse_cdf(probs, _strata(num_samples, _uniform(
+        probs, num_samples, generator)))
 
 
 def residual_resample(log_weights: Tensor,
@@ -146,19 +139,32 @@ def residual_resample(log_weights: Tensor,
                                 probs.shape[:-1] + (num_samples, ))
     deterministic = torch.searchsorted(copies.cumsum(-1),
                                        position.contiguous(), right=True)
-    uniform = torch.rand(position.shape, dtype=probs.dtype,
-                         device=probs.device, generator=generator)
     left = residual.sum(-1, keepdim=True)
-    drawn = _inverse_cdf(torch.where(left > 0, residual, probs), uniform)
+    drawn = _inverse_cdf(torch.where(left > 0, residual, probs),
+                         _uniform(probs, num_samples, generator))
     index = torch.where(position < kept, deterministic, drawn)
     return index.clamp_(max=probs.size(-1) - 1)
+
+
+def _uniform(probs: Tensor, count: int,
+             generator: Optional[torch.Generator]) -> Tensor:
+    # count uniforms in [0, 1) per row of probs
+    return torch.rand(probs.shape[:-1] + (count, ), dtype=probs.dtype,
+                      device=probs.device, generator=generator)
+
+
+def _strata(num_samples: int, offsets: Tensor) -> Tensor:
+    # the points (m + u_m) / M, one per stratum m (a shared offset u for
+    # systematic resampling, one per stratum for stratified resampling)
+    grid = torch.arange(num_samples, dtype=offsets.dtype,
+                        device=offsets.device)
+    return (grid + offsets) / num_samples
 
 
 def _num_samples(num_samples: Optional[int], probs: Tensor) -> int:
     if num_samples is None:
         return probs.size(-1)
-    if isinstance(num_samples, bool) or not isinstance(num_samples,
-                                                       numbers.Integral):
+    if not is_integer(num_samples):
         raise TypeError(f"'num_samples' must be an integer, got "
                         f"{num_samples!r}")
     if num_samples < 0:
