@@ -267,13 +267,13 @@ class ParticleBP(torch.nn.Module):
     def update(self, particles: Tensor, log_weights: Tensor,
                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
                validate: bool = True,
-               sample_shifts: Optional[Tensor] = None) -> Tensor:
+               sample_offsets: Optional[Tensor] = None) -> Tensor:
         r"""The update step: :obj:`num_iterations` message passing
         iterations (:meth:`iterate`); returns normalized log-weights. Edges
         are summed per receiver, so a plain :obj:`edge_index` is sorted by
         receiver first; :meth:`steps` passes an already sorted
         :class:`~torch_geometric.EdgeIndex` and :obj:`validate=False` (it
-        checks the whole realization once) and the shifts of
+        checks the whole realization once) and the offsets of
         :math:`M`-sample messages drawn from its generators (drawn from the
         global generator if :obj:`None`)."""
         if validate:
@@ -288,7 +288,7 @@ class ParticleBP(torch.nn.Module):
         for _ in range(self.num_iterations):
             belief, state = self.iterate(particles, log_weights, edge_index,
                                          edge_attr, anchor, sender, state,
-                                         sample_shifts)
+                                         sample_offsets)
             # normalizing scales each message by a per-node constant: the
             # beliefs are unchanged and the log-weights stay bounded
             sender = log_normalize(belief)
@@ -297,7 +297,7 @@ class ParticleBP(torch.nn.Module):
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
                 sender_log_weights: Tensor, state=None,
-                sample_shifts: Optional[Tensor] = None):
+                sample_offsets: Optional[Tensor] = None):
         r"""One message passing iteration: returns the unnormalized belief
         log-weights and a state carried to the next iteration (none for
         BP; NEBP's node embeddings)."""
@@ -305,7 +305,7 @@ class ParticleBP(torch.nn.Module):
                               sender_log_weights=sender_log_weights,
                               anchor=anchor, validate=False,
                               return_messages=False,
-                              sample_shifts=sample_shifts)
+                              sample_offsets=sample_offsets)
         return belief, None
 
     def steps(self, data: Realization,
@@ -338,13 +338,14 @@ class ParticleBP(torch.nn.Module):
         log_weights = particles.new_full(particles.shape[:2],
                                          -math.log(self.num_particles))
 
-        # the M-sample shifts of every step, per graph from its generator
+        # the M-sample offsets of every step, per graph from its generator
         # (none drawn for the paper's pairing: its random stream is as is)
         sampled = self.bp_conv.samples_for(self.num_particles)
 
-        def draw_shifts(part: Tensor, g: Optional[torch.Generator]):
-            return self.bp_conv.draw_shifts(part.size(0), self.num_particles,
-                                            g, part.device)
+        def draw_offsets(part: Tensor, g: Optional[torch.Generator]):
+            return self.bp_conv.draw_offsets(part.size(0),
+                                             self.num_particles, g,
+                                             part.device)
 
         size = (data.num_nodes, data.num_nodes)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
@@ -354,11 +355,11 @@ class ParticleBP(torch.nn.Module):
             particles = _draw(self.predict, generator, counts, particles,
                               anchor)
             _check_prediction(particles, self.motion, t)
-            shifts = (None if sampled == 1 else _draw(
-                draw_shifts, generator, counts, particles))
+            offsets = (None if sampled == 1 else _draw(
+                draw_offsets, generator, counts, particles))
             log_weights = self.update(particles, log_weights, edge_index,
                                       edge_attr.to(dtype), anchor,
-                                      validate=False, sample_shifts=shifts)
+                                      validate=False, sample_offsets=offsets)
             _check_belief(log_weights, data, t)
             mean, cov = weighted_moments(particles, log_weights)
             yield StepOutput(t, mean, cov, particles, log_weights)
