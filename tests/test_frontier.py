@@ -125,6 +125,13 @@ def test_frontier_command(tmp_path, capsys):
     # K = 4 with M = 8 does not exist
     assert len(result['points']) == 3 * 2 * 2
     assert (out / 'frontier.png').stat().st_size > 0
+    table = (out / 'frontier.md').read_text().splitlines()
+    rows = [line for line in table if line.startswith('| ') and
+            line[2].isdigit()]
+    assert len(rows) == 12
+    # fastest first, and the fastest point is on both fronts
+    seconds = [float(row.split('|')[8]) for row in rows]
+    assert seconds == sorted(seconds) and rows[0].endswith('| ** |')
     assert '12 points' in capsys.readouterr().out
     # resumed: nothing to run, the same figures
     assert main(argv) == 0

@@ -14,7 +14,7 @@ from tqdm import tqdm
 from tg_nebp.datasets import load_datasets
 from tg_nebp.filters import NEBP, ParticleBP
 from tg_nebp.filters.resampling import RESAMPLERS
-from tg_nebp.io import check_writable_folder, one_line
+from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.reproduce import PRESETS, reproduce
@@ -212,7 +212,7 @@ def _train_on(args, device: str) -> int:
 
 
 def _frontier(args) -> int:
-    from tg_nebp.frontier import grid, run_frontier
+    from tg_nebp.frontier import frontier_table, grid, run_frontier
     from tg_nebp.plot import plot_frontier
 
     points = grid(args.particles, args.samples, args.resampler,
@@ -230,9 +230,10 @@ def _frontier(args) -> int:
                               args.batch_size, progress=bar.update,
                               log=bar.write if not args.quiet else print,
                               compile=args.compile)
+    write_text(out / 'frontier.md', frontier_table(result))
     plot_frontier(result, out / 'frontier.png')
     print(f"{len(result['points'])} points -> {out / 'frontier.json'}, "
-          f"{out / 'frontier.png'}")
+          f"{out / 'frontier.md'}, {out / 'frontier.png'}")
     return 0
 
 
@@ -337,14 +338,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     fr = sub.add_parser(
         'frontier', help='BP\'s accuracy against its cost over a grid of '
-        'K, M and resampling options; writes DIR/frontier.json and '
-        'DIR/frontier.png', description='Runs particle BP for every '
-        'combination of the options on the same test realizations (same '
-        'prior particle draws) and writes P_out, P(accept H0), RMSE and '
-        'seconds per realization of each to DIR/frontier.json after every '
-        'point, then DIR/frontier.png with the Pareto front and the '
-        'paper\'s rows. Run again with more options to add points: those '
-        'already in the file are skipped.')
+        'K, M and resampling options; writes DIR/frontier.json, '
+        'DIR/frontier.md and DIR/frontier.png',
+        description='Runs particle BP for every combination of the options '
+        'on the same test realizations (same prior particle draws) and '
+        'writes P_out, P(accept H0), RMSE and seconds per realization of '
+        'each to DIR/frontier.json after every point, then the table '
+        'DIR/frontier.md and DIR/frontier.png with the Pareto fronts and '
+        'the paper\'s rows. Run again with more options to add points: '
+        'those already in the file are skipped.')
     fr.add_argument('--particles', type=_positive, nargs='+',
                     default=[500, 1000, 2000], metavar='K',
                     help='particle counts (default: 500 1000 2000)')

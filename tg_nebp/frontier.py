@@ -4,8 +4,8 @@ test realizations with the same prior particle draws, each point's outage,
 consistency and seconds per realization, and the Pareto-optimal points.
 
 Behind :obj:`tg-nebp frontier`, which writes :obj:`frontier.json` after
-every point (an interrupted run resumes where it stopped) and
-:obj:`frontier.png`."""
+every point (an interrupted run resumes where it stopped),
+:obj:`frontier.md` and :obj:`frontier.png`."""
 import itertools
 import os
 import time
@@ -17,7 +17,7 @@ from tg_nebp.filters import ParticleBP
 from tg_nebp.io import read_json, write_json
 
 __all__ = ['GridPoint', 'grid', 'pareto_front', 'run_frontier',
-           'FRONTIER_VERSION']
+           'frontier_table', 'FRONTIER_VERSION']
 
 FRONTIER_VERSION = 1
 
@@ -163,3 +163,27 @@ def run_frontier(points: Iterable[GridPoint], dataset, out: Path,
             f"P(accept 0.95) {entry['accept'][CONFIDENCE_KEY]:.3f}, "
             f"{entry['seconds_per_realization']:.2f} s per realization")
     return result
+
+
+def frontier_table(frontier: dict) -> str:
+    r"""The points of :obj:`frontier.json` as a Markdown table, fastest
+    first; :obj:`*` marks a point on the Pareto front of the outage
+    (first) and of the consistency (second)."""
+    settings = frontier['settings']
+    lines = [f"Scenario `{settings['scenario']}`, {settings['realizations']} "
+             f"realizations, seed {settings['seed']}, {settings['device']}.",
+             '', '| K | M | resampler | regularize | ESS threshold | '
+             'P_out 0.5 / 1 / 2 m | P(accept 0.95) | s per realization | '
+             'Pareto |', '| --- ' * 9 + '|']
+    for e in sorted(frontier['points'].values(),
+                    key=lambda e: e['seconds_per_realization']):
+        o, front = e['outage'], e['pareto']
+        marks = ''.join('*' if front[p] else '-' for p in ('outage',
+                                                            'accept'))
+        lines.append(
+            f"| {e['particles']} | {e['samples']} | {e['resampler']} | "
+            f"{e['regularize'] or 'no'} | {e['ess_threshold'] or 'no'} | "
+            f"{o['0.5']:.3f} / {o['1.0']:.3f} / {o['2.0']:.3f} | "
+            f"{e['accept'][CONFIDENCE_KEY]:.3f} | "
+            f"{e['seconds_per_realization']:.2f} | {marks} |")
+    return '\n'.join(lines) + '\n'
