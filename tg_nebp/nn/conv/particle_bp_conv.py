@@ -325,9 +325,9 @@ class ParticleBPConv(MessagePassing):
         # rolled by o_j and written twice; groups of samples are reduced by
         # one logsumexp each, the groups by a running one
         num_particles = planes[0].size(1)
-        rows = torch.arange(src.numel(), device=src.device)
-        edge_offsets = offsets.index_select(0, src)
-        senders = [_rolled_twice(p.index_select(0, src), rows, edge_offsets)
+        index = _rolled_twice_index(offsets.index_select(0, src),
+                                    num_particles)
+        senders = [p.index_select(0, src).gather(1, index)
                    for p in (*planes, sender_log_weights)]
         receivers = tuple(p.index_select(0, dst) for p in planes)
         num_samples = self.samples_for(num_particles)
@@ -458,13 +458,13 @@ class ParticleBPConv(MessagePassing):
         return f'{self.__class__.__name__}({self.measurement})'
 
 
-def _rolled_twice(rows: Tensor, index: Tensor, offsets: Tensor) -> Tensor:
-    # [E, 2K]: row e rolled left by offsets[e] and written twice, so that
-    # every cyclic window of it is a strided view; one gather of contiguous
-    # runs (windows of the row written three times), no [E, K] index tensor
-    num_particles = rows.size(1)
-    return torch.cat([rows, rows, rows], dim=1).unfold(
-        1, 2 * num_particles, 1)[index, offsets]
+def _rolled_twice_index(offsets: Tensor, num_particles: int) -> Tensor:
+    # [E, 2K] columns that roll row e left by offsets[e] and write it twice,
+    # so that every cyclic window is a strided view. A gather with it has a
+    # scatter-add into [E, K] as its backward (indexing windows of an
+    # unfolded view would materialize the [E, K, 2K] unfolded gradient)
+    columns = torch.arange(2 * num_particles, device=offsets.device)
+    return (offsets.view(-1, 1) + columns).remainder_(num_particles)
 
 
 def _sum_blocks(messages: Callable, num_planes: int, bounds: List[int],
