@@ -6,7 +6,8 @@ import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
-from tg_nebp.utils import (compute_dtype, log_normalize, plain_tensor,
+from tg_nebp.utils import (compute_dtype, log_normalize, logsumexp,
+                            plain_tensor,
                            sort_by_receiver, weighted_moments)
 
 
@@ -63,6 +64,55 @@ def test_log_normalize_keeps_zero_rows_without_nan():
     out[:, :2].sum().backward()  # a finite part of every row
     assert not torch.isnan(rows.grad).any()
     assert torch.equal(rows.grad[1], torch.zeros(3))
+
+
+def reference_logsumexp(values, dim):
+    # plain loops in float64 over the other dimensions
+    moved = values.double().movedim(dim, -1)
+    out = torch.empty(moved.shape[:-1], dtype=torch.float64)
+    for index in torch.cartesian_prod(*(torch.arange(n) for n in out.shape)
+                                      ).view(-1, out.dim()).tolist():
+        terms = moved[tuple(index)].tolist()
+        top = max(terms)
+        out[tuple(index)] = top if top == -math.inf else top + math.log(
+            sum(math.exp(t - top) for t in terms))
+    return out
+
+
+@pytest.mark.parametrize('dtype', [torch.float32, torch.float64])
+def test_logsumexp_matches_a_float64_loop_over_wide_ranges(dtype):
+    # terms spanning thousands of nats (far particles), -inf terms, a slice
+    # of -inf only, and a finite offset that float32 cannot hold exactly
+    values = torch.randn(6, 3, 5, generator=torch.Generator().manual_seed(0),
+                         dtype=torch.float64) * 400 - 1e4
+    values[:, 0, 0] = -math.inf
+    values[2, 1, :] = -math.inf
+    values = values.to(dtype)
+    for dim in (0, 2):
+        out = logsumexp(values, dim)
+        expected = reference_logsumexp(values, dim)
+        assert out.dtype == dtype
+        assert torch.equal(out.isneginf(), expected.isneginf())
+        finite = expected.isfinite()
+        torch.testing.assert_close(out.double()[finite], expected[finite],
+                                   rtol=1e-7 if dtype == torch.float32
+                                   else 1e-14, atol=0)
+
+
+def test_logsumexp_gradient_is_the_softmax_and_never_nan():
+    values = torch.randn(5, 4, generator=torch.Generator().manual_seed(1),
+                         dtype=torch.float64) * 100
+    values[:, 0] = -math.inf
+    values[0, 1] = -math.inf
+    values.requires_grad_()
+    weights = torch.randn(4, generator=torch.Generator().manual_seed(2),
+                          dtype=torch.float64)
+    grad, = torch.autograd.grad((logsumexp(values, 0) * weights).sum(),
+                                values)
+    assert not grad.isnan().any()
+    # terms raised to the floor (under 1e-34 of the largest) get zero
+    expected = values.detach().softmax(0).nan_to_num(0.0) * weights
+    torch.testing.assert_close(grad, expected, rtol=1e-12, atol=1e-30)
 
 
 def test_weighted_moments_normalize_unnormalized_log_weights():

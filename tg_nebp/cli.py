@@ -1,5 +1,5 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
-:obj:`reproduce` and :obj:`bench`."""
+:obj:`reproduce`, :obj:`frontier` and :obj:`bench`."""
 import argparse
 import math
 import os
@@ -14,7 +14,7 @@ from tqdm import tqdm
 from tg_nebp.datasets import load_datasets
 from tg_nebp.filters import NEBP, ParticleBP
 from tg_nebp.filters.resampling import RESAMPLERS
-from tg_nebp.io import check_writable_folder, one_line
+from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.reproduce import PRESETS, reproduce
@@ -51,6 +51,15 @@ def _bandwidth(text: str):
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a number or 'silverman', "
                                          f"got '{text}'") from None
+
+
+def _grid_bandwidth(text: str):
+    # a grid value of --regularize: also 'none', plain resampling
+    return None if text == 'none' else _bandwidth(text)
+
+
+def _grid_threshold(text: str):
+    return None if text == 'none' else _fraction(text)
 
 
 def _fraction(text: str) -> float:
@@ -202,6 +211,32 @@ def _train_on(args, device: str) -> int:
     return 0
 
 
+def _frontier(args) -> int:
+    from tg_nebp.frontier import frontier_table, grid, run_frontier
+    from tg_nebp.plot import plot_frontier
+
+    points = grid(args.particles, args.samples, args.resampler,
+                  args.regularize, args.ess_threshold)
+    if not points:
+        raise ValueError('the grid is empty: every --samples M exceeds '
+                         'every --particles K')
+    dataset, = load_datasets(args.root, (args.scenario, args.realizations,
+                                         args.seed))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with _bar(len(points) * len(dataset) * dataset.scenario.num_steps,
+              f'frontier ({len(points)} points)', args.quiet) as bar:
+        result = run_frontier(points, dataset, out, args.seed, args.device,
+                              args.batch_size, progress=bar.update,
+                              log=bar.write if not args.quiet else print,
+                              compile=args.compile)
+    write_text(out / 'frontier.md', frontier_table(result))
+    plot_frontier(result, out / 'frontier.png')
+    print(f"{len(result['points'])} points -> {out / 'frontier.json'}, "
+          f"{out / 'frontier.md'}, {out / 'frontier.png'}")
+    return 0
+
+
 def _reproduce(args) -> int:
     metrics = reproduce(args.preset, args.device, args.out, args.root,
                         progress_factory=lambda total, desc: _bar(
@@ -300,6 +335,48 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(rp)
     _add_samples(rp, 1)
     rp.set_defaults(run=_reproduce)
+
+    fr = sub.add_parser(
+        'frontier', help='BP\'s accuracy against its cost over a grid of '
+        'K, M and resampling options; writes DIR/frontier.json, '
+        'DIR/frontier.md and DIR/frontier.png',
+        description='Runs particle BP for every combination of the options '
+        'on the same test realizations (same prior particle draws) and '
+        'writes P_out, P(accept H0), RMSE and seconds per realization of '
+        'each to DIR/frontier.json after every point, then the table '
+        'DIR/frontier.md and DIR/frontier.png with the Pareto fronts and '
+        'the paper\'s rows. Run again with more options to add points: '
+        'those already in the file are skipped.')
+    fr.add_argument('--particles', type=_positive, nargs='+',
+                    default=[500, 1000, 2000], metavar='K',
+                    help='particle counts (default: 500 1000 2000)')
+    fr.add_argument('--samples', type=_samples, nargs='+', default=[1, 4, 16],
+                    metavar='M', help="sender particles per receiver "
+                    "particle; 'all' is the exact message (default: 1 4 16)")
+    fr.add_argument('--resampler', choices=sorted(RESAMPLERS), nargs='+',
+                    default=['multinomial'], help='resamplers (default: '
+                    'multinomial)')
+    fr.add_argument('--regularize', type=_grid_bandwidth, nargs='+',
+                    default=[None, 'silverman'], metavar='H',
+                    help="regularized resampling bandwidths: 'none', "
+                    "'silverman' or a number (default: none silverman)")
+    fr.add_argument('--ess-threshold', type=_grid_threshold, nargs='+',
+                    default=[None], metavar='T', help="ESS-adaptive "
+                    "resampling thresholds: 'none' (every step) or a "
+                    "fraction in (0, 1] (default: none)")
+    fr.add_argument('--realizations', type=_positive, default=20,
+                    help='test realizations R (default: 20)')
+    fr.add_argument('--seed', type=_non_negative, default=0,
+                    help='seed of data and particles (default: 0)')
+    fr.add_argument('--batch-size', type=_positive, default=1,
+                    help='realizations tracked together (default: 1)')
+    fr.add_argument('--scenario', default='paper_test',
+                    help='scenario name or JSON file (default: paper_test)')
+    fr.add_argument('--out', default='results/frontier',
+                    help='output folder (default: results/frontier)')
+    fr.add_argument('--quiet', action='store_true', help='no progress bar')
+    _add_common(fr)
+    fr.set_defaults(run=_frontier)
 
     from tg_nebp.bench import add_arguments, run_bench
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '

@@ -1,5 +1,6 @@
-r"""Figures of the paper's Fig. 2: tracks, outage and consistency curves,
-with the paper's digitized curves for comparison. Needs matplotlib
+r"""Figures of the paper's Fig. 2 (tracks, outage and consistency curves,
+with the paper's digitized curves for comparison) and of the accuracy-cost
+frontier. Needs matplotlib
 (:obj:`pip install tg_nebp[plot]`)."""
 from pathlib import Path
 from typing import Dict, Union
@@ -10,7 +11,8 @@ from tg_nebp import metrics
 from tg_nebp.io import atomic_write
 from tg_nebp.reference import paper_curves
 
-__all__ = ['plot_tracks', 'plot_outage', 'plot_consistency']
+__all__ = ['plot_tracks', 'plot_outage', 'plot_consistency',
+           'plot_frontier']
 
 COLORS = {'bp': 'tab:blue', 'nebp': 'tab:red'}
 PAPER_SERIES = {'bp': 'BP', 'nebp': 'NEBP'}
@@ -100,3 +102,67 @@ def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path]):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     _save(fig, path)
+
+
+def plot_frontier(frontier: dict, path: Union[str, Path]):
+    r"""The accuracy-cost frontier of :obj:`frontier.json`
+    (:func:`~tg_nebp.frontier.run_frontier`): :math:`P_\mathrm{out}` (1 m)
+    and P(accept :math:`H_0`) at the 0.95 level against seconds per
+    realization (log scale), one colour per number of sender samples
+    :math:`M`, one marker per resampling option, :math:`K` written at each
+    point, the Pareto-optimal points joined, and the paper's BP and NEBP
+    rows as horizontal lines."""
+    from matplotlib.figure import Figure
+    from tg_nebp.frontier import CONFIDENCE_KEY, OUTAGE_KEY
+    from tg_nebp.reference import PAPER_TABLE
+
+    entries = list(frontier['points'].values())
+    fig = Figure(figsize=(11, 4.5))
+    panels = fig.subplots(1, 2)
+    samples = sorted({str(e['samples']) for e in entries},
+                     key=lambda m: (m == 'all', int(m) if m != 'all' else 0))
+    colors = {m: f'C{i % 10}' for i, m in enumerate(samples)}
+    options = sorted({_resampling_label(e) for e in entries})
+    markers = {o: 'osD^v<>px*'[i % 10] for i, o in enumerate(options)}
+    for ax, (panel, field, key) in zip(panels, (
+            ('outage', 'outage', OUTAGE_KEY),
+            ('accept', 'accept', CONFIDENCE_KEY))):
+        for e in entries:
+            x, y = e['seconds_per_realization'], e[field][key]
+            ax.plot(x, y, markers[_resampling_label(e)],
+                    color=colors[str(e['samples'])], ms=6,
+                    mfc='none' if not e['pareto'][panel] else None)
+            ax.annotate(str(e['particles']), (x, y), fontsize=6,
+                        xytext=(3, 3), textcoords='offset points')
+        front = sorted((e['seconds_per_realization'], e[field][key])
+                       for e in entries if e['pareto'][panel])
+        if front:
+            ax.plot(*zip(*front), color='black', lw=0.8, zorder=0,
+                    label='Pareto front')
+        for method, style in (('bp', ':'), ('nebp', '--')):
+            ax.axhline(PAPER_TABLE[method][field][key], color='gray',
+                       ls=style, lw=1, label=f'paper {method.upper()}')
+        ax.set_xscale('log')
+        ax.set_xlabel('seconds per realization')
+        ax.grid(alpha=0.3)
+    panels[0].set_ylabel('$P_{out}$ (1 m)')
+    panels[1].set_ylabel('P(accept $H_0$) at 0.95')
+    panels[1].axhline(float(CONFIDENCE_KEY), color='black', ls=':', lw=0.6,
+                      label='ideal')
+    for m in samples:
+        panels[1].plot([], [], 's', color=colors[m], label=f'M = {m}')
+    for o in options:
+        panels[1].plot([], [], markers[o], color='black', mfc='none',
+                       label=o)
+    panels[1].legend(loc='upper left', bbox_to_anchor=(1.01, 1), fontsize=7)
+    fig.suptitle('filled: Pareto-optimal; numbers: K', fontsize=8)
+    _save(fig, path)
+
+
+def _resampling_label(entry: dict) -> str:
+    parts = [entry['resampler']]
+    if entry['regularize'] is not None:
+        parts.append(f"regularized ({entry['regularize']})")
+    if entry['ess_threshold'] is not None:
+        parts.append(f"ESS < {entry['ess_threshold']} K")
+    return ', '.join(parts)

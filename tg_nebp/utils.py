@@ -8,6 +8,7 @@ from torch_geometric import EdgeIndex, Index
 __all__ = [
     'weighted_moments',
     'log_normalize',
+    'logsumexp',
     'compute_dtype',
     'plain_tensor',
     'sort_by_receiver',
@@ -62,6 +63,33 @@ def log_normalize(log_weights: Tensor) -> Tensor:
     # a finite stand-in keeps log_softmax's NaN out of both passes
     normalized = log_weights.masked_fill(zero, 0.0).log_softmax(-1)
     return normalized.masked_fill(zero, float('-inf'))
+
+
+# exp() of arguments below about -87 (float32) lands in the denormal range or
+# underflows, where torch's CPU exp takes a slow path (tens of times slower
+# than for moderate arguments). A term this far below the largest of its sum
+# is under 1e-34 of it, beneath the rounding of float32 and float64 sums.
+EXP_FLOOR = -80.0
+
+
+def logsumexp(values: Tensor, dim: int = 0) -> Tensor:
+    r""":math:`\log \sum \exp` of :obj:`values` over :obj:`dim`, equal to
+    :func:`torch.logsumexp` within rounding, several times faster on the CPU
+    for terms that span hundreds of nats (likelihoods of far particles).
+
+    The maximum is subtracted and differences below :obj:`EXP_FLOOR` are
+    raised to it before the exponential: such a term is under
+    :math:`10^{-34}` of the largest term, so the sum is unchanged in float32
+    and float64, while the exponential never reaches the denormal range
+    where it is slow. All :math:`-\infty` gives :math:`-\infty`. The
+    gradient is the softmax of :obj:`values` (zero for the raised terms)."""
+    top = values.detach().amax(dim, keepdim=True)
+    # all -inf: a finite stand-in avoids inf - inf; the sum adds -inf back
+    finite_top = top.masked_fill(torch.isneginf(top), 0.0)
+    shifted = (values - finite_top).clamp_(min=EXP_FLOOR)
+    # in place without autograd: no temporaries beyond the first
+    terms = shifted.exp() if shifted.requires_grad else shifted.exp_()
+    return terms.sum(dim).log_().add_(top.squeeze(dim))
 
 
 def plain_tensor(tensor: Tensor) -> Tensor:

@@ -14,6 +14,7 @@ from tg_nebp import metrics
 from tg_nebp.data import Realization
 from tg_nebp.datasets import Scenario
 from tg_nebp.filters import ParticleBP, weighted_moments
+from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 
 from helpers import gen, tiny_scenario
@@ -682,3 +683,20 @@ def test_estimate_is_unchanged_by_a_step_without_information():
 def test_resampling_options_are_checked(kwargs, error):
     with pytest.raises(error):
         ParticleBP(8, **kwargs)
+
+
+def test_recommended_configuration_and_overrides():
+    tracker = ParticleBP.recommended()
+    assert (tracker.num_particles, tracker.num_samples,
+            tracker.regularize) == (500, 32, 'silverman')
+    assert tracker.bp_conv.num_samples == 32
+    assert tracker.resampler is RESAMPLERS['multinomial']
+    measurement = GaussianRange(0.5)
+    other = ParticleBP.recommended(num_particles=64, measurement=measurement)
+    assert (other.num_particles, other.num_samples) == (64, 32)
+    assert other.measurement is measurement and other.bp_conv.measurement \
+        is measurement
+    # the constructor's default stays the paper's configuration
+    paper = ParticleBP()
+    assert (paper.num_particles, paper.num_samples, paper.regularize) == (
+        1000, 1, None)

@@ -87,11 +87,11 @@ class NEBP(ParticleBP):
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
                 sender_log_weights: Tensor, state=None,
-                sample_shifts: Optional[Tensor] = None):
+                sample_offsets: Optional[Tensor] = None):
         return self.conv(particles, log_weights, edge_index, edge_attr,
                          anchor, sender_log_weights=sender_log_weights,
                          embedding=state, validate=False,
-                         sample_shifts=sample_shifts)
+                         sample_offsets=sample_offsets)
 
     def config(self) -> dict:
         r"""Everything needed to rebuild this tracker (saved in

@@ -88,13 +88,14 @@ def test_sample_gradients_equal_autograd_of_materialized_messages():
                                                  edge_prob=0.8)
     sender = torch.randn(lw.shape, generator=gen(47), dtype=torch.float64)
     conv = ParticleBPConv(num_samples=3, chunk_size=2)
-    shifts = conv.draw_shifts(7, 6, generator=gen(48))
+    offsets = conv.draw_offsets(7, 6, generator=gen(48))
     grads = []
     for return_messages in (True, False):
         inputs = [particles.clone().requires_grad_(),
                   sender.clone().requires_grad_(), ea.clone().requires_grad_()]
         out, _ = conv(inputs[0], lw, ei, inputs[2], inputs[1], anchor,
-                      return_messages=return_messages, sample_shifts=shifts)
+                      return_messages=return_messages,
+                      sample_offsets=offsets)
         out.sin().sum().backward()
         grads.append([t.grad for t in inputs])
     for blockwise, materialized in zip(grads[1], grads[0]):
@@ -102,19 +103,29 @@ def test_sample_gradients_equal_autograd_of_materialized_messages():
                                    rtol=1e-9)
 
 
-def test_draw_shifts_and_their_validation():
+def test_draw_offsets_and_their_validation():
     conv = ParticleBPConv(num_samples=4)
-    shifts = conv.draw_shifts(50, 10, generator=gen(49))
-    assert shifts.shape == (50, 4)
-    # distinct, in range, and every shift equally likely
-    assert all(len(set(row)) == 4 for row in shifts.tolist())
-    counts = torch.bincount(shifts.flatten(), minlength=10).double()
-    assert counts.min() > 0
+    offsets = conv.draw_offsets(2000, 10, generator=gen(49))
+    assert offsets.shape == (2000, ) and offsets.dtype == torch.long
+    # uniform on {0, ..., K - 1}: a chi-square test at 9 degrees of freedom
+    # (the 0.999 quantile is 27.9)
+    counts = torch.bincount(offsets, minlength=10).double()
+    assert counts.numel() == 10
+    assert float(((counts - 200)**2 / 200).sum()) < 27.9
+    assert ParticleBPConv(num_samples='all').draw_offsets(5, 10).eq(0).all()
+    assert ParticleBPConv().draw_offsets(5, 10) is None
     particles, lw, ei, ea, anchor = random_graph(gen(50), 3, 1, 10)
-    with pytest.raises(ValueError, match="'sample_shifts' must be an "
-                       "integer tensor of shape \\[4, 4\\]"):
+    with pytest.raises(ValueError, match="'sample_offsets' must be an "
+                       "integer tensor of shape \\[4\\]"):
         conv(particles, lw, ei, ea, anchor=anchor,
-             sample_shifts=shifts[:4, :3])
+             sample_offsets=offsets[:3])
+    with pytest.raises(ValueError, match=r"'sample_offsets\[2\]' = 10 must "
+                       r"lie in \[0, 10\)"):
+        conv(particles, lw, ei, ea, anchor=anchor,
+             sample_offsets=torch.tensor([0, 1, 10, 3]))
+    with pytest.raises(ValueError, match="num_samples = 1 pairs"):
+        ParticleBPConv()(particles, lw, ei, ea, anchor=anchor,
+                         sample_offsets=offsets[:4])
     with pytest.raises(ValueError, match="'num_samples' = 4 exceeds the "
                        "K = 3 particles"):
         conv(particles[:, :3], lw[:, :3], ei, ea, anchor=anchor)

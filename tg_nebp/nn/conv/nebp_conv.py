@@ -187,7 +187,7 @@ class NEBPConv(MessagePassing):
         sender_log_weights: Optional[Tensor] = None,
         embedding: Optional[Tensor] = None,
         validate: bool = True,
-        sample_shifts: Optional[Tensor] = None,
+        sample_offsets: Optional[Tensor] = None,
         generator: Optional[torch.Generator] = None,
     ) -> Tuple[Tensor, Tensor]:
         r"""Runs one NEBP iteration.
@@ -206,10 +206,10 @@ class NEBPConv(MessagePassing):
                 (default: :obj:`None`)
             validate (bool, optional): Check the inputs.
                 (default: :obj:`True`)
-            sample_shifts (torch.Tensor, optional): Shifts of the
+            sample_offsets (torch.Tensor, optional): Offsets of the
                 :math:`M`-sample BP messages (see :class:`ParticleBPConv`).
                 (default: :obj:`None`)
-            generator (torch.Generator, optional): Source of the shifts
+            generator (torch.Generator, optional): Source of the offsets
                 when they are not given. (default: :obj:`None`)
         """
         num_nodes = particles.size(0)
@@ -248,7 +248,7 @@ class NEBPConv(MessagePassing):
         # 1. classical BP messages
         _, log_phi = self.bp(particles, log_weights, edge_index, edge_attr,
                              sender_log_weights=sender_log_weights,
-                             validate=False, sample_shifts=sample_shifts,
+                             validate=False, sample_offsets=sample_offsets,
                              generator=generator)
         # 2. GNN messages and 3. corrected messages, per edge (the compiled
         # region takes plain tensors; aggregation stays a segment sum)

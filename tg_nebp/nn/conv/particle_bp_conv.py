@@ -10,8 +10,8 @@ from torch_geometric.utils import segment
 from tg_nebp.data.validation import check_layer_inputs, check_positive_int
 from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
-from tg_nebp.utils import (compute_dtype, long_edge_index, plain_tensor,
-                            sort_by_receiver)
+from tg_nebp.utils import (compute_dtype, logsumexp, long_edge_index,
+                            plain_tensor, sort_by_receiver)
 
 __all__ = ['ParticleBPConv']
 
@@ -19,6 +19,10 @@ __all__ = ['ParticleBPConv']
 # work independently of E (the GPU amortizes kernel launches over more work).
 CPU_CHUNK_ELEMENTS = 1 << 18
 CUDA_CHUNK_ELEMENTS = 1 << 25
+# Samples of an M-sample message reduced by one logsumexp (a stack of them):
+# enough to amortize the reduction's passes over the stack. A chain of
+# pairwise logaddexp was 3x slower on the CPU (a scalar log1p per element).
+SAMPLE_GROUP = 16
 
 
 class ParticleBPConv(MessagePassing):
@@ -43,23 +47,30 @@ class ParticleBPConv(MessagePassing):
     \sum_{l} \tilde{w}_j^{(l)} p(z_{j \to i} | \mathbf{x}_j^{(l)},
     \mathbf{x}_i^{(k)})`. With :obj:`num_samples` :math:`M > 1` each
     receiver particle averages over :math:`M` sender particles
-    :math:`l_m = (k + s_{j,m}) \bmod K`,
+    :math:`l_m = (k + o_j + \lfloor (m - 1) K / M \rfloor) \bmod K`,
 
     .. math::
         \log \hat{\phi}_{j \to i}^{(k)} = \log \frac{K}{M}
         \sum_{m=1}^{M} \tilde{w}_j^{(l_m)} \, p\big(z_{j \to i} \,\big|\,
         \mathbf{x}_j^{(l_m)}, \mathbf{x}_i^{(k)}\big),
 
-    with shifts :math:`\{s_{j,1}, \dots, s_{j,M}\}` a uniformly random
-    :math:`M`-subset of :math:`\{0, \dots, K - 1\}` per sender and step
-    (:meth:`draw_shifts`). For every :math:`k` the indices :math:`l_m` are
-    then a uniformly random :math:`M`-subset of the sender's particles, each
-    included with probability :math:`M / K`, so :math:`\mathbb{E}
-    \hat{\phi} = \phi` (sampling without replacement): unbiased, at cost
-    :math:`O(|\mathcal{E}| K M)`. :math:`M = K` (:obj:`"all"`) takes all
-    shifts and is the exact message; the constant :math:`\log (K / M)` is
-    dropped (normalization removes it). :math:`M = 1` is the paper's pairing
-    (:math:`s = 0`). The sum over incoming edges is a
+    with one offset :math:`o_j` per sender and step drawn uniformly from
+    :math:`\{0, \dots, K - 1\}` (:meth:`draw_offsets`): systematic sampling
+    over the sender's particle order. The :math:`M` spacings
+    :math:`\lfloor (m - 1) K / M \rfloor` are distinct, so for every
+    :math:`k` each sender particle :math:`l` is among the :math:`l_m` for
+    exactly :math:`M` of the :math:`K` offsets, with probability
+    :math:`M / K`, and :math:`\mathbb{E} \hat{\phi} = \phi`: unbiased, at
+    cost :math:`O(|\mathcal{E}| K M)`. For particles in random order (as
+    multinomial resampling leaves them) the :math:`l_m` hold a uniformly
+    random :math:`M`-subset of the particles; for sorted ones (systematic
+    resampling) they are spread over the order, as in stratified sampling.
+    Every sample is a strided window of the sender's row rolled once by
+    :math:`o_j`: no gather per sample. :math:`M = K`
+    (:obj:`"all"`) takes every particle and is the exact message; the
+    constant :math:`\log (K / M)` is dropped (normalization removes it).
+    :math:`M = 1` is the paper's pairing (:math:`o_j = 0`). The sum over
+    incoming edges is a
     scatter (or, for an :class:`~torch_geometric.EdgeIndex` sorted by
     receiver, a deterministic segment) sum. Anchors send their known position
     (all :math:`K` particles at it) and never receive: their log-weights are
@@ -77,9 +88,11 @@ class ParticleBPConv(MessagePassing):
             gradients by autograd. (default: :obj:`GaussianRange()`)
         chunk_size (int, optional): Edges processed at once; bounds the
             temporary memory to about :obj:`chunk_size * K` floats whatever
-            :math:`|\mathcal{E}|`. If :obj:`None`, :math:`2^{18} / K` on the
-            CPU (cache-sized blocks) and :math:`2^{25} / K` on CUDA.
-            (default: :obj:`None`)
+            :math:`|\mathcal{E}|` (times :math:`\min(M, 16)` for the
+            stacked samples of :math:`M`-sample messages). If :obj:`None`,
+            :math:`2^{18} / K` on the CPU (cache-sized blocks) and
+            :math:`2^{25} / K` on CUDA, divided by :math:`\min(M, 16) / 4`
+            for :math:`M > 4`. (default: :obj:`None`)
         num_samples (int or str, optional): Sender particles :math:`M` per
             receiver particle; :obj:`1` is the paper's pairing,
             :obj:`"all"` the exact message. (default: :obj:`1`)
@@ -133,7 +146,7 @@ class ParticleBPConv(MessagePassing):
         anchor: Optional[Tensor] = None,
         validate: bool = True,
         return_messages: bool = True,
-        sample_shifts: Optional[Tensor] = None,
+        sample_offsets: Optional[Tensor] = None,
         generator: Optional[torch.Generator] = None,
     ) -> Tuple[Tensor, Optional[Tensor]]:
         r"""Runs the forward pass.
@@ -163,12 +176,12 @@ class ParticleBPConv(MessagePassing):
                 output stays about :obj:`chunk_size * K` floats; on CUDA a
                 fused Triton kernel computes and sums them in one pass.
                 Either way the sum is deterministic. (default: :obj:`True`)
-            sample_shifts (torch.Tensor, optional): The shifts
-                :math:`s_{j,m}` :math:`(|\mathcal{V}|, M)` of the
+            sample_offsets (torch.Tensor, optional): The offsets
+                :math:`o_j` :math:`(|\mathcal{V}|)` of the
                 :math:`M`-sample messages (the trackers draw them per graph);
-                drawn with :obj:`generator` by :meth:`draw_shifts` if
+                drawn with :obj:`generator` by :meth:`draw_offsets` if
                 :obj:`None`. (default: :obj:`None`)
-            generator (torch.Generator, optional): Source of the shifts.
+            generator (torch.Generator, optional): Source of the offsets.
                 (default: :obj:`None`)
         """
         if sender_log_weights is None:
@@ -185,21 +198,21 @@ class ParticleBPConv(MessagePassing):
         edge_index = long_edge_index(edge_index, particles.size(0))
         planes = tuple(particles[..., d].to(dtype).contiguous()
                        for d in model.state_entries)
-        if sample_shifts is None:
-            sample_shifts = self.draw_shifts(particles.size(0),
-                                             particles.size(1),
-                                             generator=generator,
-                                             device=particles.device)
+        if sample_offsets is None:
+            sample_offsets = self.draw_offsets(particles.size(0),
+                                               particles.size(1),
+                                               generator=generator,
+                                               device=particles.device)
         elif validate:
-            self._check_shifts(sample_shifts, particles.size(0),
-                               particles.size(1))
+            self._check_offsets(sample_offsets, particles.size(0),
+                                particles.size(1))
         node_args = dict(planes=planes,
                          sender_log_weights=sender_log_weights.to(dtype),
                          link_features=edge_attr.to(dtype),
-                         shifts=sample_shifts)
+                         offsets=sample_offsets)
         path = self._path(return_messages, planes[0], (
             *planes, node_args['sender_log_weights'],
-            node_args['link_features']), sample_shifts is not None)
+            node_args['link_features']), sample_offsets is not None)
         if path == 'messages':
             log_messages = self.edge_updater(edge_index, size=size,
                                              **node_args)
@@ -225,36 +238,35 @@ class ParticleBPConv(MessagePassing):
                              f"the K = {num_particles} particles per node")
         return self.num_samples
 
-    def draw_shifts(self, num_nodes: int, num_particles: int,
-                    generator: Optional[torch.Generator] = None,
-                    device=None) -> Optional[Tensor]:
-        r"""The shifts :math:`(N, M)` of the :math:`M`-sample messages: per
-        node a uniformly random :math:`M`-subset of :math:`\{0, \dots,
-        K - 1\}` (all of them for :math:`M = K`, with no random draw);
-        :obj:`None` for the paper's pairing (:math:`M = 1`)."""
+    def draw_offsets(self, num_nodes: int, num_particles: int,
+                     generator: Optional[torch.Generator] = None,
+                     device=None) -> Optional[Tensor]:
+        r"""The offsets :math:`o_j` :math:`(N)` of the :math:`M`-sample
+        messages, uniform on :math:`\{0, \dots, K - 1\}` (zeros without a
+        random draw for :math:`M = K`, where every offset gives the same
+        samples); :obj:`None` for the paper's pairing (:math:`M = 1`)."""
         samples = self.samples_for(num_particles)
         if samples == 1:
             return None
         if samples == num_particles:
-            return torch.arange(num_particles, device=device).expand(
-                num_nodes, -1)
-        keys = torch.rand(num_nodes, num_particles, generator=generator,
-                          device=device)
-        return keys.argsort(dim=1)[:, :samples]
+            return torch.zeros(num_nodes, dtype=torch.long, device=device)
+        return torch.randint(num_particles, (num_nodes, ),
+                             generator=generator, device=device)
 
-    def _check_shifts(self, shifts: Tensor, num_nodes: int,
-                      num_particles: int) -> None:
-        samples = self.samples_for(num_particles)
-        if samples == 1:
-            raise ValueError("'sample_shifts' given, but num_samples = 1 "
+    def _check_offsets(self, offsets: Tensor, num_nodes: int,
+                       num_particles: int) -> None:
+        if self.samples_for(num_particles) == 1:
+            raise ValueError("'sample_offsets' given, but num_samples = 1 "
                              "pairs the particles")
-        if shifts.shape != (num_nodes, samples) or shifts.is_floating_point():
-            raise ValueError(f"'sample_shifts' must be an integer tensor of "
-                             f"shape [{num_nodes}, {samples}], got "
-                             f"{shifts.dtype} {list(shifts.shape)}")
-        if bool(((shifts < 0) | (shifts >= num_particles)).any()):
-            raise ValueError(f"'sample_shifts' must lie in [0, "
-                             f"{num_particles})")
+        if offsets.shape != (num_nodes, ) or offsets.is_floating_point():
+            raise ValueError(f"'sample_offsets' must be an integer tensor of "
+                             f"shape [{num_nodes}], got {offsets.dtype} "
+                             f"{list(offsets.shape)}")
+        bad = (offsets < 0) | (offsets >= num_particles)
+        if bool(bad.any()):
+            j = int(bad.nonzero()[0, 0])
+            raise ValueError(f"'sample_offsets[{j}]' = {int(offsets[j])} "
+                             f"must lie in [0, {num_particles})")
 
     def _path(self, return_messages: bool, like: Tensor,
               inputs: Tuple[Tensor, ...], sampled: bool = False) -> str:
@@ -283,49 +295,55 @@ class ParticleBPConv(MessagePassing):
 
     def edge_update(self, planes: Tuple[Tensor, ...],
                     sender_log_weights: Tensor, link_features: Tensor,
-                    shifts: Optional[Tensor], edge_index_i: Tensor,
+                    offsets: Optional[Tensor], edge_index_i: Tensor,
                     edge_index_j: Tensor) -> Tensor:
         # plain tensors (not PyG's Index) into the compiled region
         src, dst = plain_tensor(edge_index_j), plain_tensor(edge_index_i)
         num_edges = dst.numel()
-        chunk = self._chunk_edges(planes[0])
+        chunk = self._chunk_edges(planes[0], offsets)
         if chunk >= num_edges or torch.compiler.is_compiling():
             # a compiled graph fuses the chain without temporaries
             return self._messages(planes, sender_log_weights, link_features,
-                                  src, dst, shifts)
+                                  src, dst, offsets)
         out = planes[0].new_empty((num_edges, planes[0].size(1)))
         for start in range(0, num_edges, chunk):
             part = slice(start, start + chunk)
             out[part] = self._messages(planes, sender_log_weights,
                                        link_features[part], src[part],
-                                       dst[part], shifts)
+                                       dst[part], offsets)
         return out
 
     def _log_messages(self, planes: Tuple[Tensor, ...],
                       sender_log_weights: Tensor, link_features: Tensor,
                       src: Tensor, dst: Tensor,
-                      shifts: Optional[Tensor] = None) -> Tensor:
-        if shifts is None:
+                      offsets: Optional[Tensor] = None) -> Tensor:
+        if offsets is None:
             return self._paired_log_messages(planes, link_features, src,
                                              dst, planes, sender_log_weights)
-        # M-sample messages: for each m the sender rows rolled by the
-        # sender's shift s_(j,m), accumulated by logaddexp; the block's rows
-        # are gathered once
-        edge_shifts = shifts.index_select(0, src)
-        # each sender row written twice: every rolled row is a window of it
-        senders = [_doubled(p.index_select(0, src)) for p in planes]
-        sender_weights = _doubled(sender_log_weights.index_select(0, src))
+        # M-sample messages: sample m reads the sender's particles from
+        # offset o_j + floor(m K / M) on, a window of the sender's row
+        # rolled by o_j and written twice; groups of samples are reduced by
+        # one logsumexp each, the groups by a running one
+        num_particles = planes[0].size(1)
+        index = _rolled_twice_index(offsets.index_select(0, src),
+                                    num_particles)
+        senders = [p.index_select(0, src).gather(1, index)
+                   for p in (*planes, sender_log_weights)]
         receivers = tuple(p.index_select(0, dst) for p in planes)
-        rows = torch.arange(src.numel(), device=src.device)
+        num_samples = self.samples_for(num_particles)
+
+        def sample(m: int) -> Tensor:
+            start = m * num_particles // num_samples
+            window = [s[:, start:start + num_particles] for s in senders]
+            return self._paired_log_messages(receivers, link_features, None,
+                                             None, window[:-1], window[-1])
+
         total = None
-        for m in range(shifts.size(1)):
-            shift = edge_shifts[:, m]
-            sample = self._paired_log_messages(
-                receivers, link_features, None, None,
-                tuple(windows[rows, shift] for windows in senders),
-                sender_weights[rows, shift])
-            total = sample if total is None else torch.logaddexp(total,
-                                                                 sample)
+        for first in range(0, num_samples, SAMPLE_GROUP):
+            group = range(first, min(first + SAMPLE_GROUP, num_samples))
+            part = logsumexp(torch.stack([sample(m) for m in group]))
+            total = part if total is None else logsumexp(
+                torch.stack([total, part]))
         return total
 
     def _paired_log_messages(self, planes: Tuple[Tensor, ...],
@@ -357,8 +375,12 @@ class ParticleBPConv(MessagePassing):
         else:  # in place on fresh temporaries: a third of the memory traffic
             (sender_x, sender_y), (pos_x, pos_y) = sender_planes[:2], \
                 planes[:2]
-            dx = at(sender_x, src).sub_(at(pos_x, dst))
-            dy = at(sender_y, src).sub_(at(pos_y, dst))
+            if src is None:  # views of shared sender rows: not in place
+                dx = sender_x - at(pos_x, dst)
+                dy = sender_y - at(pos_y, dst)
+            else:
+                dx = sender_x.index_select(0, src).sub_(at(pos_x, dst))
+                dy = sender_y.index_select(0, src).sub_(at(pos_y, dst))
             distances = dx.mul_(dx).addcmul_(dy, dy).sqrt_()
             log_lik = (model.log_likelihood_of_distance_(
                 link_features, distances)
@@ -375,7 +397,7 @@ class ParticleBPConv(MessagePassing):
                               planes: Tuple[Tensor, ...],
                               sender_log_weights: Tensor,
                               link_features: Tensor,
-                              shifts: Optional[Tensor],
+                              offsets: Optional[Tensor],
                               log_messages: Optional[Tensor],
                               path: str) -> Tensor:
         # edges sorted by receiver: a deterministic segment sum (PyG calls
@@ -394,10 +416,11 @@ class ParticleBPConv(MessagePassing):
         # blocks of whole receivers holding about one chunk of edges each:
         # the peak temporary memory is one chunk, whatever E
         dst = plain_tensor(edge_index[1])
-        bounds = self._receiver_blocks(ptr, self._chunk_edges(planes[0]))
-        # the shifts of M-sample messages ride last (no gradient)
+        bounds = self._receiver_blocks(ptr,
+                                       self._chunk_edges(planes[0], offsets))
+        # the offsets of M-sample messages ride last (no gradient)
         inputs = (*planes, sender_log_weights, link_features) + (
-            () if shifts is None else (shifts, ))
+            () if offsets is None else (offsets, ))
         if path in ('closed-form', 'autograd') and len(bounds) > 2:
             gradients = (_range_block_grads if path == 'closed-form' else
                          _autograd_block_grads)
@@ -407,10 +430,16 @@ class ParticleBPConv(MessagePassing):
         return _sum_blocks(self._messages, len(planes), bounds, src, dst,
                            ptr, *inputs)
 
-    def _chunk_edges(self, like: Tensor) -> int:
+    def _chunk_edges(self, like: Tensor,
+                     offsets: Optional[Tensor] = None) -> int:
         if self.chunk_size is not None:
             return self.chunk_size
         elements = CUDA_CHUNK_ELEMENTS if like.is_cuda else CPU_CHUNK_ELEMENTS
+        if offsets is not None:
+            # the [group, chunk, K] stack of an M-sample message holds at
+            # most four chunks' worth
+            group = min(self.samples_for(like.size(1)), SAMPLE_GROUP)
+            elements = elements * 4 // max(group, 4)
         return max(1, elements // max(like.size(1), 1))
 
     @staticmethod
@@ -429,12 +458,13 @@ class ParticleBPConv(MessagePassing):
         return f'{self.__class__.__name__}({self.measurement})'
 
 
-def _doubled(rows: Tensor) -> Tensor:
-    # the windows [E, K + 1, K] of every row written twice: window s of row
-    # e is rows[e, (k + s) mod K], and indexing [e, s] copies it as one
-    # contiguous run (no [E, K] index tensor)
-    num_particles = rows.size(1)
-    return torch.cat([rows, rows], dim=1).unfold(1, num_particles, 1)
+def _rolled_twice_index(offsets: Tensor, num_particles: int) -> Tensor:
+    # [E, 2K] columns that roll row e left by offsets[e] and write it twice,
+    # so that every cyclic window is a strided view. A gather with it has a
+    # scatter-add into [E, K] as its backward (indexing windows of an
+    # unfolded view would materialize the [E, K, 2K] unfolded gradient)
+    columns = torch.arange(2 * num_particles, device=offsets.device)
+    return (offsets.view(-1, 1) + columns).remainder_(num_particles)
 
 
 def _sum_blocks(messages: Callable, num_planes: int, bounds: List[int],
@@ -442,15 +472,16 @@ def _sum_blocks(messages: Callable, num_planes: int, bounds: List[int],
                 *inputs: Tensor) -> Tensor:
     # the segment sums of the receiver blocks [bounds[b], bounds[b + 1]);
     # inputs: the coordinate planes, the sender log-weights, link features
-    # and, for M-sample messages, the shifts
+    # and, for M-sample messages, the offsets
     planes, sender = inputs[:num_planes], inputs[num_planes]
     link_features = inputs[num_planes + 1]
-    shifts = inputs[num_planes + 2] if len(inputs) > num_planes + 2 else None
+    offsets = (inputs[num_planes + 2] if len(inputs) > num_planes + 2 else
+               None)
     sums = []
     for first, last in zip(bounds[:-1], bounds[1:]):
         begin, end = int(ptr[first]), int(ptr[last])
         block = messages(planes, sender, link_features[begin:end],
-                         src[begin:end], dst[begin:end], shifts)
+                         src[begin:end], dst[begin:end], offsets)
         sums.append(segment(block, ptr[first:last + 1] - begin, reduce='sum'))
     return sums[0] if len(sums) == 1 else torch.cat(sums)
 
@@ -540,15 +571,15 @@ def _autograd_block_grads(ctx, inputs, needs, begin, end, src, dst,
                   for t, need in zip(inputs[:num_planes + 1], needs)]
         block_features = inputs[num_planes + 1][begin:end].detach(
         ).requires_grad_(needs[num_planes + 1])
-        shifts = (inputs[num_planes + 2].index_select(0, nodes)
+        offsets = (inputs[num_planes + 2].index_select(0, nodes)
                   if len(inputs) > num_planes + 2 else None)
         block = ctx.messages(tuple(leaves[:num_planes]), leaves[num_planes],
                              block_features, local[:count], local[count:],
-                             shifts)
+                             offsets)
         wanted = [t for t in (*leaves, block_features) if t.requires_grad]
         found = iter(torch.autograd.grad(block, wanted, grad_messages,
                                          allow_unused=True))
-    needs = needs[:num_planes + 2]  # the shifts have no gradient
+    needs = needs[:num_planes + 2]  # the offsets have no gradient
     grads = [next(found) if need else None for need in needs]
     grads = [torch.zeros_like(t) if g is None and need else g
              for g, t, need in zip(grads, (*leaves, block_features), needs)]

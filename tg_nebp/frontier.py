@@ -1,0 +1,189 @@
+r"""The accuracy-cost frontier of particle BP: a grid of particle counts
+:math:`K`, sender samples :math:`M` and resampling options run on the same
+test realizations with the same prior particle draws, each point's outage,
+consistency and seconds per realization, and the Pareto-optimal points.
+
+Behind :obj:`tg-nebp frontier`, which writes :obj:`frontier.json` after
+every point (an interrupted run resumes where it stopped),
+:obj:`frontier.md` and :obj:`frontier.png`."""
+import itertools
+import os
+import time
+from pathlib import Path
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
+
+from tg_nebp.evaluation import summarize, track_dataset
+from tg_nebp.filters import ParticleBP
+from tg_nebp.io import read_json, write_json
+
+__all__ = ['GridPoint', 'grid', 'pareto_front', 'run_frontier',
+           'frontier_table', 'FRONTIER_VERSION']
+
+FRONTIER_VERSION = 1
+
+# what a point is ranked by: P_out(1 m) (lower is better) and the distance of
+# P(accept H0) at the 0.95 level from its ideal 0.95 (a filter that accepts
+# more often than that is overly conservative, not better)
+OUTAGE_KEY, CONFIDENCE_KEY = '1.0', '0.95'
+
+
+class GridPoint(dict):
+    r"""One configuration of the grid: :obj:`particles`, :obj:`samples`,
+    :obj:`resampler`, :obj:`regularize`, :obj:`ess_threshold`; its
+    :attr:`key` names it in :obj:`frontier.json`."""
+    @property
+    def key(self) -> str:
+        return ' '.join(f'{name}={value}' for name, value in self.items())
+
+    def tracker(self, **models) -> ParticleBP:
+        return ParticleBP(self['particles'], num_samples=self['samples'],
+                          resampler=self['resampler'],
+                          regularize=self['regularize'],
+                          ess_threshold=self['ess_threshold'], **models)
+
+
+def grid(particles: Sequence[int], samples: Sequence[Union[int, str]],
+         resamplers: Sequence[str] = ('multinomial', ),
+         regularize: Sequence[Union[float, str, None]] = (None, ),
+         ess_thresholds: Sequence[Optional[float]] = (None, )
+         ) -> List[GridPoint]:
+    r"""The product of the options, cheapest :math:`K \cdot M` first;
+    points with :math:`M > K` are left out (they do not exist)."""
+    points = []
+    for k, m, resampler, h, ess in itertools.product(
+            particles, samples, resamplers, regularize, ess_thresholds):
+        if m != 'all' and m > k:
+            continue
+        points.append(GridPoint(particles=k, samples=m, resampler=resampler,
+                                regularize=h, ess_threshold=ess))
+    return sorted(points, key=lambda p: p['particles'] * (
+        p['particles'] if p['samples'] == 'all' else p['samples']))
+
+
+def pareto_front(costs: Sequence[float],
+                 losses: Sequence[float]) -> List[bool]:
+    r"""Marks the points that no other point dominates (no more cost and
+    no more loss, and less of one of them); a NaN loss is never on the
+    front."""
+    on_front = []
+    for i, (cost, loss) in enumerate(zip(costs, losses)):
+        dominated = loss != loss or any(
+            c <= cost and v <= loss and (c < cost or v < loss)
+            for j, (c, v) in enumerate(zip(costs, losses)) if j != i)
+        on_front.append(not dominated)
+    return on_front
+
+
+def _settings(dataset, seed: int, device: str, batch_size: int,
+              compile: bool) -> dict:
+    return dict(version=FRONTIER_VERSION, scenario=dataset.scenario.name,
+                realizations=len(dataset), seed=seed, device=device,
+                batch_size=batch_size, compile=compile)
+
+
+def _mark_fronts(points: Dict[str, dict]) -> None:
+    entries = list(points.values())
+    seconds = [e['seconds_per_realization'] for e in entries]
+    outage = [e['outage'][OUTAGE_KEY] for e in entries]
+    gap = [abs(e['accept'][CONFIDENCE_KEY] - float(CONFIDENCE_KEY))
+           for e in entries]
+    for entry, on_outage, on_accept in zip(entries,
+                                           pareto_front(seconds, outage),
+                                           pareto_front(seconds, gap)):
+        entry['pareto'] = dict(outage=on_outage, accept=on_accept)
+
+
+def run_frontier(points: Iterable[GridPoint], dataset, out: Path,
+                 seed: int = 0, device: str = 'cpu', batch_size: int = 1,
+                 progress: Optional[Callable] = None,
+                 log: Callable = print, compile: bool = False) -> dict:
+    r"""Runs every grid point on :obj:`dataset` and returns the content of
+    :obj:`out/frontier.json`, written after every point.
+
+    Points already in that file are skipped (resuming), as long as it was
+    made with the same scenario, realizations, seed, device, batch size and
+    :obj:`compile`;
+    another file is an error rather than a mix of incomparable figures.
+    Every point tracks the same realizations with the same prior particle
+    draws (:func:`~tg_nebp.evaluation.track_dataset` with :obj:`seed`) and
+    records its accuracy (:func:`~tg_nebp.evaluation.summarize`), its wall
+    seconds per realization and the load average of the machine when it
+    started (timings on a busy machine are not comparable).
+
+    Args:
+        points (iterable of GridPoint): The configurations (:func:`grid`).
+        dataset: The test realizations, with a :obj:`scenario`.
+        out (Path): Folder of :obj:`frontier.json`.
+        seed (int, optional): Seed of the particle draws. (default: :obj:`0`)
+        device (str, optional): Device. (default: :obj:`"cpu"`)
+        batch_size (int, optional): Realizations tracked together.
+            (default: :obj:`1`)
+        progress (callable, optional): Called with the number of time steps
+            done. (default: :obj:`None`)
+        log (callable, optional): Receives one line per point.
+            (default: :obj:`print`)
+        compile (bool, optional): Fuse the per-edge work with
+            :func:`torch.compile` (see :class:`ParticleBP`).
+            (default: :obj:`False`)
+    """
+    path = Path(out) / 'frontier.json'
+    settings = _settings(dataset, seed, device, batch_size, compile)
+    result = read_json(path) if path.exists() else dict(settings=settings,
+                                                        points={})
+    if not isinstance(result, dict) or result.get('settings') != settings:
+        found = result.get('settings') if isinstance(result, dict) else None
+        raise ValueError(f"'{path}' holds a frontier made with {found}, not "
+                         f"{settings}: use another --out folder")
+    scenario = dataset.scenario
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model, compile=compile)
+    # every point's options are checked before the first one runs
+    trackers = [(point, point.tracker(**models)) for point in points]
+    steps = len(dataset) * scenario.num_steps
+    for point, tracker in trackers:
+        if point.key in result['points']:
+            if progress is not None:
+                progress(steps)
+            continue
+        load = os.getloadavg()[0]
+        tracker = tracker.to(device).eval()
+        start = time.perf_counter()
+        tracked = track_dataset(tracker, dataset, batch_size, device, seed,
+                                progress=progress)
+        seconds = time.perf_counter() - start
+        entry = summarize(tracked['errors'], tracked['nees'])
+        entry.update(dict(point), seconds=round(seconds, 3),
+                     seconds_per_realization=round(seconds / len(dataset),
+                                                   4),
+                     load_average=round(load, 2))
+        result['points'][point.key] = entry
+        _mark_fronts(result['points'])
+        write_json(path, result)
+        log(f"{point.key}: P_out(1 m) {entry['outage'][OUTAGE_KEY]:.3f}, "
+            f"P(accept 0.95) {entry['accept'][CONFIDENCE_KEY]:.3f}, "
+            f"{entry['seconds_per_realization']:.2f} s per realization")
+    return result
+
+
+def frontier_table(frontier: dict) -> str:
+    r"""The points of :obj:`frontier.json` as a Markdown table, fastest
+    first; :obj:`*` marks a point on the Pareto front of the outage
+    (first) and of the consistency (second)."""
+    settings = frontier['settings']
+    lines = [f"Scenario `{settings['scenario']}`, {settings['realizations']} "
+             f"realizations, seed {settings['seed']}, {settings['device']}.",
+             '', '| K | M | resampler | regularize | ESS threshold | '
+             'P_out 0.5 / 1 / 2 m | P(accept 0.95) | s per realization | '
+             'Pareto |', '| --- ' * 9 + '|']
+    for e in sorted(frontier['points'].values(),
+                    key=lambda e: e['seconds_per_realization']):
+        o, front = e['outage'], e['pareto']
+        marks = ''.join('*' if front[p] else '-' for p in ('outage',
+                                                            'accept'))
+        lines.append(
+            f"| {e['particles']} | {e['samples']} | {e['resampler']} | "
+            f"{e['regularize'] or 'no'} | {e['ess_threshold'] or 'no'} | "
+            f"{o['0.5']:.3f} / {o['1.0']:.3f} / {o['2.0']:.3f} | "
+            f"{e['accept'][CONFIDENCE_KEY]:.3f} | "
+            f"{e['seconds_per_realization']:.2f} | {marks} |")
+    return '\n'.join(lines) + '\n'
