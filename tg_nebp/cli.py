@@ -92,6 +92,20 @@ def _add_samples(parser: argparse.ArgumentParser, default):
                         f"{default if default is not None else 1})")
 
 
+def _add_test_data(parser: argparse.ArgumentParser, realizations: int):
+    # the realizations a tracker is evaluated on, and their batching
+    parser.add_argument('--realizations', type=_positive,
+                        default=realizations, help=f'test realizations R '
+                        f'(default: {realizations})')
+    parser.add_argument('--seed', type=_non_negative, default=0,
+                        help='seed of data and particles (default: 0)')
+    parser.add_argument('--batch-size', type=_positive, default=1,
+                        help='realizations tracked together (default: 1)')
+    parser.add_argument('--scenario', default='paper_test',
+                        help='scenario name or JSON file (default: '
+                        'paper_test)')
+
+
 def _device(name: str) -> str:
     if name not in ('cpu', 'cuda') and not name.startswith('cuda:'):
         raise argparse.ArgumentTypeError(f"must be 'cpu' or 'cuda', got "
@@ -264,14 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--particles', type=_positive, default=None,
                     help='particles K per agent (default: 1000 for BP, the '
                     "checkpoint's K for NEBP)")
-    ev.add_argument('--realizations', type=_positive, default=10,
-                    help='test realizations R (default: 10)')
-    ev.add_argument('--seed', type=_non_negative, default=0,
-                    help='seed of data and particles (default: 0)')
+    _add_test_data(ev, realizations=10)
     ev.add_argument('--iterations', type=_positive, default=1,
                     help='message passing iterations per step (default: 1)')
-    ev.add_argument('--batch-size', type=_positive, default=1,
-                    help='realizations tracked together (default: 1)')
     ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
                     default='multinomial')
     ev.add_argument('--measurement', choices=sorted(MODELS['measurement']),
@@ -279,8 +288,6 @@ def build_parser() -> argparse.ArgumentParser:
                     help="BP's likelihood (default: the scenario's); it "
                     "keeps the scenario's sigma and max_range, so "
                     "'gaussian' on NLOS data shows the cost of mismatch")
-    ev.add_argument('--scenario', default='paper_test',
-                    help='scenario name or JSON file (default: paper_test)')
     ev.add_argument('--out', default='results/evaluate',
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -364,14 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
                     default=[None], metavar='T', help="ESS-adaptive "
                     "resampling thresholds: 'none' (every step) or a "
                     "fraction in (0, 1] (default: none)")
-    fr.add_argument('--realizations', type=_positive, default=20,
-                    help='test realizations R (default: 20)')
-    fr.add_argument('--seed', type=_non_negative, default=0,
-                    help='seed of data and particles (default: 0)')
-    fr.add_argument('--batch-size', type=_positive, default=1,
-                    help='realizations tracked together (default: 1)')
-    fr.add_argument('--scenario', default='paper_test',
-                    help='scenario name or JSON file (default: paper_test)')
+    _add_test_data(fr, realizations=20)
     fr.add_argument('--out', default='results/frontier',
                     help='output folder (default: results/frontier)')
     fr.add_argument('--quiet', action='store_true', help='no progress bar')
