@@ -82,3 +82,31 @@ def test_resampling_flags(tmp_path):
         with pytest.raises(SystemExit) as info:
             main(argv + bad)
         assert info.value.code == 2
+
+
+def test_equivariant_variant_trains_once_and_runs_at_any_k(tmp_path, capsys):
+    path = tmp_path / 'tiny.json'
+    path.write_text(json.dumps(vars(tiny_scenario(steps=2))))
+    common = ['--scenario', str(path), '--root', str(tmp_path / 'data'),
+              '--quiet']
+    train = ['train', '--realizations', '2', '--val-realizations', '1',
+             '--epochs', '1', '--batch-size', '1', '--particles', '8']
+    for variant in ('paper', 'equivariant'):
+        assert main(train + common + ['--variant', variant, '--out',
+                                      str(tmp_path / variant)]) == 0
+    evaluate = ['evaluate', '--method', 'nebp', '--realizations', '1',
+                '--particles', '24'] + common
+    out = tmp_path / 'eval'
+    assert main(evaluate + ['--checkpoint',
+                            str(tmp_path / 'equivariant' / 'nebp.pt'),
+                            '--out', str(out)]) == 0
+    assert json.loads((out / 'metrics.json').read_text())['nebp'][
+        'particles'] == 24
+    capsys.readouterr()
+    assert main(evaluate + ['--checkpoint',
+                            str(tmp_path / 'paper' / 'nebp.pt'),
+                            '--out', str(out)]) == 2
+    assert "train --variant equivariant for any K" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(train + common + ['--variant', 'other'])
+    assert info.value.code == 2

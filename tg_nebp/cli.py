@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from tg_nebp.datasets import load_datasets
 from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
@@ -200,7 +201,7 @@ def _train_on(args, device: str) -> int:
     model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
                  measurement=scenario.measurement_model, compile=args.compile,
                  num_samples=args.samples, regularize=args.regularize,
-                 ess_threshold=args.ess_threshold)
+                 ess_threshold=args.ess_threshold, variant=args.variant)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
     with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
@@ -277,7 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help='NEBP checkpoint (with --method nebp)')
     ev.add_argument('--particles', type=_positive, default=None,
                     help='particles K per agent (default: 1000 for BP, the '
-                    "checkpoint's K for NEBP)")
+                    "checkpoint's K for NEBP; any K for an equivariant "
+                    'checkpoint)')
     _add_test_data(ev, realizations=10)
     ev.add_argument('--iterations', type=_positive, default=1,
                     help='message passing iterations per step (default: 1)')
@@ -307,6 +309,10 @@ def build_parser() -> argparse.ArgumentParser:
         'writes the checkpoint and prints; the others are quiet.')
     tr.add_argument('--particles', type=_positive, default=1000,
                     help='particles K (default: 1000; the paper: 50000)')
+    tr.add_argument('--variant', choices=sorted(VARIANTS), default='paper',
+                    help="the NEBP layer: 'paper' (NEBPConv, sized by K) or "
+                    "'equivariant' (EquivariantNEBPConv: evaluate it at any "
+                    "K) (default: paper)")
     tr.add_argument('--scenario', default='paper_train',
                     help='scenario name or JSON file of the training and '
                     'validation data (default: paper_train)')

@@ -1,0 +1,200 @@
+import math
+from typing import Optional, Tuple, Union
+
+import torch
+from torch import Tensor
+from torch_geometric.nn import MLP
+
+from tg_nebp.data.validation import check_positive_int
+from tg_nebp.models import MeasurementModel
+from tg_nebp.nn.conv.nebp_conv import (EDGE_FEATURES, MLP_OPTIONS, NEBPConv,
+                                       _log_relu)
+from tg_nebp.utils import log_normalize, weighted_moments
+
+__all__ = ['EquivariantNEBPConv']
+
+# the per-particle features: whitened position (2), log-message below its
+# maximum (1), range residual (1)
+PARTICLE_FEATURES = 4
+# the per-edge summaries of the message: weighted mean (2) and second
+# moments (3) of the whitened positions, effective sample size over K (1)
+MESSAGE_SUMMARIES = 6
+# log-messages further below the maximum read as this (finite features for
+# -inf messages; such particles carry no weight anyway)
+LOG_MESSAGE_FLOOR = -30.0
+
+
+class EquivariantNEBPConv(NEBPConv):
+    r"""A particle-equivariant Neural Enhanced BP iteration: the correction
+    of :class:`NEBPConv` (from the `"Neural Enhanced Belief Propagation for
+    Cooperative Localization" <https://arxiv.org/abs/2105.12903>`_ paper)
+    with networks that never see a particle index, so one set of weights
+    runs at any particle count :math:`K` and permuting a node's particles
+    permutes its corrected messages the same way.
+
+    The paper's :math:`g_e` reads the :math:`K`-vector BP message and its
+    :math:`g_v` writes a :math:`K`-vector of offsets, so they exist for one
+    :math:`K` and tie offset :math:`k` to particle index :math:`k` of an
+    unordered set. Here, with :math:`\bar{\boldsymbol{\phi}}_{j \to i}` the
+    BP message scaled to mean one over the receiver's particles,
+    :math:`\pi^{(k)} \propto w_i^{(k)} \bar{\phi}_{j \to i}^{(k)}` the
+    message-weighted prediction of the receiver, and
+    :math:`\mathbf{u}_i^{(k)} = \mathbf{L}_i^{-1} (\mathbf{p}_i^{(k)} -
+    \hat{\mathbf{p}}_i)` the receiver's particle positions whitened by its
+    prediction mean and covariance :math:`\mathbf{L}_i \mathbf{L}_i^\top`,
+
+    .. math::
+        \mathbf{m}_{j \to i} &= g_e\big(\mathbf{h}_i, \mathbf{h}_j,
+        \textstyle \sum_k \pi^{(k)} \mathbf{u}_i^{(k)}, \sum_k \pi^{(k)}
+        \mathbf{u}_i^{(k)} \mathbf{u}_i^{(k)\top},
+        \big(K \sum_k (\pi^{(k)})^2\big)^{-1}\big)
+
+        \underline{\phi}_{j \to i}^{(k)} &= g_s(\mathbf{m}_{j \to i}) \,
+        \bar{\phi}_{j \to i}^{(k)} + g_v\big(\mathbf{m}_{j \to i},
+        \mathbf{u}_i^{(k)}, \log \bar{\phi}_{j \to i}^{(k)} - \max_l \log
+        \bar{\phi}_{j \to i}^{(l)}, r_{j \to i}^{(k)}\big)
+
+    in the log domain, with the range residual :math:`r_{j \to i}^{(k)} =
+    (z_{j \to i} - \|\mathbf{p}_i^{(k)} - \hat{\mathbf{p}}_j\|) / s_j`
+    scaled by the sender's position spread :math:`s_j = (\frac{1}{2}
+    \operatorname{tr} \hat{\mathbf{C}}_{j,\mathrm{pos}} + 1\,
+    \mathrm{m}^2)^{1/2}`. :math:`g_e` is a summary of permutation-invariant
+    inputs; :math:`g_s` ends in a sigmoid (a scale in :math:`(0, 1)`) and
+    :math:`g_v` in a ReLU (non-negative offsets), as in the paper, but
+    :math:`g_v` is one small MLP applied to every particle with shared
+    weights. Its first layer is split into an edge part, computed once per
+    edge, and a particle part, so the per-particle work is
+    :math:`O(|\mathcal{E}| K \cdot \mathrm{particle\_dim})`. Everything
+    else (BP messages, embeddings, :math:`g_n`, anchors, aggregation,
+    dtypes) is :class:`NEBPConv`'s.
+
+    A zero offset and unit scale give BP's beliefs. The BP messages
+    themselves are permutation-equivariant only when they marginalize over
+    every sender particle (:obj:`num_samples="all"`); with fewer samples,
+    which sender particles a receiver particle meets depends on the order.
+
+    Args:
+        message_dim (int, optional): Size of :math:`\mathbf{m}`.
+            (default: :obj:`32`)
+        hidden_dim (int, optional): Hidden layer size of :math:`g_e`,
+            :math:`g_s` and :math:`g_n`. (default: :obj:`64`)
+        particle_dim (int, optional): Hidden layer size of the
+            per-particle :math:`g_v`. (default: :obj:`32`)
+        correct_anchor_edges (bool, optional): Also correct the messages
+            sent by anchors. (default: :obj:`False`)
+        node_update (bool, optional): Build :math:`g_n`.
+            (default: :obj:`False`)
+        measurement (MeasurementModel, optional): Measurement model of the
+            BP messages. (default: :obj:`GaussianRange()`)
+        feature_scale (float, optional): Divides the embedding features
+            that enter :math:`g_e` and :math:`g_n`. (default: :obj:`10.0`)
+        chunk_size (int, optional): Edge chunk of the BP messages.
+            (default: :obj:`None`)
+        num_samples (int or str, optional): Sender particles per receiver
+            particle in the BP messages (see :class:`ParticleBPConv`).
+            (default: :obj:`1`)
+        compile (bool, optional): See :class:`NEBPConv`.
+            (default: :obj:`False`)
+
+    Shapes:
+        - **input:**
+          particles :math:`(|\mathcal{V}|, K, 4)` for any :math:`K`,
+          log-weights :math:`(|\mathcal{V}|, K)`,
+          edge indices :math:`(2, |\mathcal{E}|)`,
+          link features :math:`(|\mathcal{E}|, F)` (the range first),
+          anchor mask :math:`(|\mathcal{V}|)`,
+          sender log-weights :math:`(|\mathcal{V}|, K)` *(optional)*,
+          node embeddings :math:`(|\mathcal{V}|, 20)` *(optional)*
+        - **output:** updated log-weights :math:`(|\mathcal{V}|, K)` and node
+          embeddings :math:`(|\mathcal{V}|, 20)`
+    """
+    def __init__(self, message_dim: int = 32, hidden_dim: int = 64,
+                 particle_dim: int = 32, correct_anchor_edges: bool = False,
+                 node_update: bool = False,
+                 measurement: Optional[MeasurementModel] = None,
+                 feature_scale: float = 10.0,
+                 chunk_size: Optional[int] = None, compile: bool = False,
+                 num_samples: Union[int, str] = 1):
+        self.particle_dim = particle_dim
+        super().__init__(None, message_dim, hidden_dim, correct_anchor_edges,
+                         node_update, measurement, feature_scale, chunk_size,
+                         compile, num_samples)
+
+    def build_correction(self, message_dim: int, hidden_dim: int) -> None:
+        r"""Builds :math:`g_e` (node features and message summaries),
+        :math:`g_s`, and the per-particle :math:`g_v` as an edge part, a
+        particle part and a shared output layer."""
+        particle_dim = check_positive_int(self.particle_dim, 'particle_dim')
+        self.g_e = MLP([EDGE_FEATURES + MESSAGE_SUMMARIES, hidden_dim,
+                        message_dim], **MLP_OPTIONS)
+        self.g_s = MLP([message_dim, hidden_dim, 1], **MLP_OPTIONS)
+        self.g_v_edge = torch.nn.Linear(message_dim, particle_dim)
+        self.g_v_particle = torch.nn.Linear(PARTICLE_FEATURES, particle_dim,
+                                            bias=False)
+        self.g_v_out = torch.nn.Linear(particle_dim, 1)
+
+    def corrected_messages(self, embedding: Tensor, log_phi: Tensor,
+                           edge_index: Tensor, anchor: Tensor,
+                           particles: Tensor, log_weights: Tensor,
+                           edge_attr: Tensor) -> Tuple[Tensor, Tensor]:
+        r"""The corrected log-messages :math:`(|\mathcal{E}|, K)` and the
+        GNN messages :math:`(|\mathcal{E}|, \mathrm{message\_dim})` (see the
+        class docstring)."""
+        num_particles = log_phi.size(1)
+        # scaled to mean one per edge: a per-edge constant, BP is unchanged
+        log_phi = log_normalize(log_phi) + math.log(num_particles)
+        src, dst = edge_index[0], edge_index[1]
+        positions = particles[..., :2]
+        mean, cov = weighted_moments(positions, log_weights)
+        whitened = _whiten(positions, mean, cov)  # [N, K, 2]
+        u = whitened.index_select(0, dst)  # [E, K, 2]
+
+        # the message-weighted prediction of the receiver, summarized
+        pi = log_normalize(log_weights.index_select(0, dst) + log_phi).exp()
+        first = torch.einsum('ek,ekd->ed', pi, u)
+        second = torch.einsum('ek,ekd,ekf->edf', pi, u, u).flatten(1)[
+            :, [0, 1, 3]]
+        power = pi.square().sum(-1)
+        ess = pi.sum(-1).square() / (power * num_particles).clamp_min(
+            torch.finfo(power.dtype).tiny)
+        summaries = torch.cat([first, second, ess.unsqueeze(-1)], -1)
+        message = self.g_e(torch.cat([
+            self.embedding_features(embedding.index_select(0, dst),
+                                    embedding.index_select(0, src)),
+            summaries], -1))
+
+        # per-particle features: finite where the message is -inf
+        top = log_phi.amax(-1, keepdim=True)
+        top = top.masked_fill(torch.isneginf(top), 0.0)
+        below = (log_phi - top).clamp_min(LOG_MESSAGE_FLOOR) / 10.0
+        spread = (0.5 * cov.diagonal(dim1=-2, dim2=-1).sum(-1) + 1.0).sqrt()
+        sender_mean = mean.index_select(0, src).unsqueeze(1)
+        distance = (positions.index_select(0, dst) - sender_mean).norm(
+            dim=-1)
+        residual = ((edge_attr[:, :1] - distance) /
+                    spread.index_select(0, src).unsqueeze(-1))
+        features = torch.cat([u, below.unsqueeze(-1),
+                              residual.unsqueeze(-1)], -1)
+        hidden = torch.nn.functional.leaky_relu(
+            self.g_v_edge(message).unsqueeze(1) + self.g_v_particle(features))
+        log_offset = _log_relu(self.g_v_out(hidden).squeeze(-1))
+        return self.combine(message, log_phi, log_offset, edge_index,
+                            anchor), message
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(message_dim='
+                f'{self.g_s.channel_list[0]}, particle_dim='
+                f'{self.particle_dim}, correct_anchor_edges='
+                f'{self.correct_anchor_edges})')
+
+
+def _whiten(positions: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
+    # L^-1 (p - mean) with L L^T = cov + a jitter relative to its trace (and
+    # an absolute floor for anchors, whose particles all sit at the mean)
+    scale = cov.diagonal(dim1=-2, dim2=-1).sum(-1) / 2
+    jitter = (scale * 1e-6 + 1e-12).view(-1, 1, 1)
+    eye = torch.eye(2, dtype=cov.dtype, device=cov.device)
+    root = torch.linalg.cholesky(cov + jitter * eye)
+    centered = (positions - mean.unsqueeze(1)).transpose(1, 2)  # [N, 2, K]
+    return torch.linalg.solve_triangular(root, centered,
+                                         upper=False).transpose(1, 2)
