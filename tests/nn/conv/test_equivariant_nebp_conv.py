@@ -98,7 +98,7 @@ def reference(conv, particles, log_weights, edge_index, edge_attr, anchor,
             with torch.no_grad():
                 hidden = torch.nn.functional.leaky_relu(
                     edge_part + conv.g_v_particle(f))
-                g_v = max(conv.g_v_out(hidden).item(), 0.0)
+                g_v = math.exp(conv.g_v_out(hidden).item())
             corrected = g_s * math.exp(log_phi[k]) + g_v
             if bool(anchor[j]) and not conv.correct_anchor_edges:
                 corrected = math.exp(log_phi[k])
@@ -184,7 +184,7 @@ def test_identity_correction_equals_particle_bp():
     conv = make_conv(num_samples=1)
     conv.g_s = Const(1, 1e4)  # sigmoid = 1
     torch.nn.init.zeros_(conv.g_v_out.weight)
-    torch.nn.init.constant_(conv.g_v_out.bias, -1.0)  # relu = 0
+    torch.nn.init.constant_(conv.g_v_out.bias, -1e4)  # exp = 0
     out, _ = conv(particles, lw, ei, ea, anchor, sender_log_weights=sender)
     bp, _ = ParticleBPConv()(particles, lw, ei, ea, sender, anchor)
     # equal up to a per-node constant (the mean-one scaling of messages)
@@ -208,6 +208,32 @@ def test_batch_equals_each_graph_alone():
     torch.testing.assert_close(out, alone, rtol=1e-12, atol=1e-12)
 
 
+def test_offsets_never_die():
+    # a ReLU head pushed below zero at every particle (as training left
+    # one) gives zero offsets, BP's beliefs and no gradient ever again;
+    # the log-domain head keeps a positive offset with a gradient
+    particles, lw, ei, ea, anchor = random_graph(gen(77), 5, 2, 8,
+                                                 edge_prob=0.8)
+    conv = make_conv(num_samples=1)
+    torch.nn.init.constant_(conv.g_v_out.bias, -8.0)
+    seen = []
+    combine = conv.combine
+
+    def spy(message, log_phi, log_offset, edge_index, anchor):
+        seen.append(log_offset)
+        return combine(message, log_phi, log_offset, edge_index, anchor)
+
+    conv.combine = spy
+    out, _ = conv(particles, lw, ei, ea, anchor)
+    assert bool(torch.isfinite(seen[0]).all())
+    out.log_softmax(-1)[~anchor].square().sum().backward()
+    assert bool(conv.g_v_out.bias.grad.abs() > 0)
+    assert bool(conv.g_v_particle.weight.grad.abs().sum() > 0)
+    bp, _ = ParticleBPConv()(particles, lw, ei, ea, None, anchor)
+    assert not torch.allclose(out.log_softmax(-1)[~anchor],
+                              bp.log_softmax(-1)[~anchor], atol=1e-6)
+
+
 def test_gradients_reach_every_parameter_and_are_finite_with_neg_inf():
     particles, lw, ei, ea, anchor = random_graph(gen(75), 5, 2, 8,
                                                  edge_prob=0.8)
@@ -215,6 +241,9 @@ def test_gradients_reach_every_parameter_and_are_finite_with_neg_inf():
     # agent whose every message is -inf at some particles
     sender = torch.randn(lw.shape, generator=gen(76), dtype=torch.float64)
     sender[:5, :3] = -math.inf
+    # and -inf prediction weights (the offsets keep every corrected message
+    # finite, so these are what stays -inf)
+    lw[0, :2] = -math.inf
     conv = make_conv(num_samples=1, node_update=True,
                      correct_anchor_edges=True)
     out, emb = conv(particles, lw, ei, ea, anchor, sender_log_weights=sender)

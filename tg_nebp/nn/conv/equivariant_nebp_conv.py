@@ -7,8 +7,7 @@ from torch_geometric.nn import MLP
 
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.models import MeasurementModel
-from tg_nebp.nn.conv.nebp_conv import (EDGE_FEATURES, MLP_OPTIONS, NEBPConv,
-                                       _log_relu)
+from tg_nebp.nn.conv.nebp_conv import EDGE_FEATURES, MLP_OPTIONS, NEBPConv
 from tg_nebp.utils import log_normalize, weighted_moments
 
 __all__ = ['EquivariantNEBPConv']
@@ -22,6 +21,9 @@ MESSAGE_SUMMARIES = 6
 # log-messages further below the maximum read as this (finite features for
 # -inf messages; such particles carry no weight anyway)
 LOG_MESSAGE_FLOOR = -30.0
+# the initial log-offset (the bias of g_v's output layer): offsets start at
+# 5 % of the mean-one message, a mild floor under every particle
+INITIAL_LOG_OFFSET = math.log(0.05)
 
 
 class EquivariantNEBPConv(NEBPConv):
@@ -59,10 +61,14 @@ class EquivariantNEBPConv(NEBPConv):
     scaled by the sender's position spread :math:`s_j = (\frac{1}{2}
     \operatorname{tr} \hat{\mathbf{C}}_{j,\mathrm{pos}} + 1\,
     \mathrm{m}^2)^{1/2}`. :math:`g_e` is a summary of permutation-invariant
-    inputs; :math:`g_s` ends in a sigmoid (a scale in :math:`(0, 1)`) and
-    :math:`g_v` in a ReLU (non-negative offsets), as in the paper, but
-    :math:`g_v` is one small MLP applied to every particle with shared
-    weights. Its first layer is split into an edge part, computed once per
+    inputs; :math:`g_s` ends in a sigmoid (a scale in :math:`(0, 1)`), as
+    in the paper. :math:`g_v` is one small MLP applied to every particle
+    with shared weights, and it writes the log of a positive offset where
+    the paper's ends in a ReLU: a ReLU on a shared head dies. Once its
+    output is negative for every particle no gradient reaches it again; a
+    layer trained that way had every offset at zero, which leaves BP's
+    beliefs unchanged (the scale alone is a per-edge constant). The offsets
+    start at 5 % of the mean-one message. Its first layer is split into an edge part, computed once per
     edge, and a particle part, so the per-particle work is
     :math:`O(|\mathcal{E}| K \cdot \mathrm{particle\_dim})`. Everything
     else (BP messages, embeddings, :math:`g_n`, anchors, aggregation,
@@ -132,6 +138,11 @@ class EquivariantNEBPConv(NEBPConv):
         self.g_v_particle = torch.nn.Linear(PARTICLE_FEATURES, particle_dim,
                                             bias=False)
         self.g_v_out = torch.nn.Linear(particle_dim, 1)
+        torch.nn.init.constant_(self.g_v_out.bias, INITIAL_LOG_OFFSET)
+
+    def reset_parameters(self):
+        super().reset_parameters()
+        torch.nn.init.constant_(self.g_v_out.bias, INITIAL_LOG_OFFSET)
 
     def corrected_messages(self, embedding: Tensor, log_phi: Tensor,
                            edge_index: Tensor, anchor: Tensor,
@@ -177,7 +188,7 @@ class EquivariantNEBPConv(NEBPConv):
                               residual.unsqueeze(-1)], -1)
         hidden = torch.nn.functional.leaky_relu(
             self.g_v_edge(message).unsqueeze(1) + self.g_v_particle(features))
-        log_offset = _log_relu(self.g_v_out(hidden).squeeze(-1))
+        log_offset = self.g_v_out(hidden).squeeze(-1)
         return self.combine(message, log_phi, log_offset, edge_index,
                             anchor), message
 
