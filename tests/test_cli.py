@@ -6,6 +6,7 @@ import pytest
 
 from tg_nebp.cli import main
 from tg_nebp.models import NLOSRange
+from tg_nebp.training import nebp_from_checkpoint
 
 from helpers import tiny_scenario
 
@@ -38,6 +39,21 @@ def test_evaluate_with_another_likelihood(tmp_path, measurement, expected):
     entry = json.loads((out / 'metrics.json').read_text())['bp']
     assert entry['measurement'] == expected
     assert entry['scenario'] == 'tiny-nlos'
+
+
+def test_train_with_another_likelihood(tmp_path):
+    # NEBP trained on NLOS data with a Gaussian likelihood inside, the
+    # model-mismatch experiment; the checkpoint records the likelihood
+    path = nlos_scenario_file(tmp_path)
+    out = tmp_path / 'out'
+    assert main(['train', '--scenario', str(path), '--realizations', '1',
+                 '--val-realizations', '1', '--epochs', '1', '--batch-size',
+                 '1', '--particles', '8', '--variant', 'equivariant',
+                 '--measurement', 'gaussian', '--root',
+                 str(tmp_path / 'data'), '--out', str(out), '--quiet']) == 0
+    model = nebp_from_checkpoint(out / 'nebp.pt')
+    assert model.measurement.config() == {
+        'name': 'gaussian', 'params': {'sigma': 0.8, 'max_range': 20.0}}
 
 
 def test_measurement_is_for_bp_only(tmp_path, capsys):

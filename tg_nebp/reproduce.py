@@ -1,13 +1,16 @@
 r"""The paper's experiment end to end: generate data, train NEBP, evaluate
 BP and NEBP on the same test realizations with the same prior particle
 draws, and write :obj:`metrics.json`, :obj:`report.md` and the figures
-:obj:`tracks.png`, :obj:`outage.png`, :obj:`consistency.png`."""
+:obj:`tracks.png`, :obj:`outage.png`, :obj:`consistency.png`. The preset
+:obj:`"beyond"` runs the experiments beyond the paper instead
+(:mod:`tg_nebp.beyond`)."""
 import time
 from pathlib import Path
 from typing import Callable, Optional, Union
 
 import torch
 
+from tg_nebp.beyond import BEYOND, reproduce_beyond
 from tg_nebp.datasets import load_datasets
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import NEBP, ParticleBP
@@ -31,6 +34,9 @@ PRESETS = {
     'paper': dict(particles=50_000, train_realizations=100,
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
                   test_realizations=400, eval_batch_size=4),
+    # the equivariant NEBP at several K, on marginalized BP and under NLOS
+    # mismatch (tg_nebp.beyond; sized by the device)
+    'beyond': BEYOND,
 }
 
 
@@ -84,6 +90,12 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
     if preset not in PRESETS:
         raise ValueError(f"'preset' must be one of {sorted(PRESETS)}, got "
                          f"'{preset}'")
+    if preset == 'beyond':
+        if compile or num_samples != 1:
+            raise ValueError("the preset 'beyond' sets its own samples and "
+                             "does not compile: leave --samples and "
+                             "--compile out")
+        return reproduce_beyond(device, out, root, log, progress_factory)
     config = PRESETS[preset]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
