@@ -8,7 +8,7 @@ from torch_geometric.nn import MLP
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.nebp_conv import EDGE_FEATURES, MLP_OPTIONS, NEBPConv
-from tg_nebp.utils import log_normalize, weighted_moments
+from tg_nebp.utils import floored_exp, log_normalize, weighted_moments
 
 __all__ = ['EquivariantNEBPConv']
 
@@ -161,7 +161,8 @@ class EquivariantNEBPConv(NEBPConv):
         u = whitened.index_select(0, dst)  # [E, K, 2]
 
         # the message-weighted prediction of the receiver, summarized
-        pi = log_normalize(log_weights.index_select(0, dst) + log_phi).exp()
+        pi = floored_exp(log_normalize(log_weights.index_select(0, dst) +
+                                       log_phi))
         first = torch.einsum('ek,ekd->ed', pi, u)
         second = torch.einsum('ek,ekd,ekf->edf', pi, u, u).flatten(1)[
             :, [0, 1, 3]]

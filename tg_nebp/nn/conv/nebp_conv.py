@@ -12,8 +12,9 @@ from tg_nebp.data.validation import (check_layer_inputs, check_number,
                                      check_positive_int)
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
-from tg_nebp.utils import (compute_dtype, log_normalize, long_edge_index,
-                            plain_tensor, weighted_moments)
+from tg_nebp.utils import (compute_dtype, floored_exp, log_normalize,
+                            logaddexp, long_edge_index, plain_tensor,
+                            weighted_moments)
 
 __all__ = ['NEBPConv', 'node_embedding']
 
@@ -305,11 +306,7 @@ class NEBPConv(MessagePassing):
         stay BP's unless :obj:`correct_anchor_edges`."""
         log_scaled = torch.nn.functional.logsigmoid(
             self.g_s(message)) + log_phi
-        # logaddexp(-inf, -inf) has a NaN gradient: keep such entries out
-        dead = torch.isneginf(log_scaled) & torch.isneginf(log_offset)
-        log_corrected = torch.logaddexp(log_scaled.masked_fill(dead, 0.0),
-                                        log_offset).masked_fill(
-                                            dead, float('-inf'))
+        log_corrected = logaddexp(log_scaled, log_offset)
         if not self.correct_anchor_edges:
             from_anchor = anchor[edge_index[0]].view(-1, 1)
             log_corrected = torch.where(from_anchor, log_phi, log_corrected)
@@ -318,7 +315,7 @@ class NEBPConv(MessagePassing):
     def edge_update(self, h_i: Tensor, h_j: Tensor,
                     log_phi: Tensor) -> Tensor:
         return self.g_e(torch.cat([self.embedding_features(h_i, h_j),
-                                   log_phi.exp()], dim=-1))
+                                   floored_exp(log_phi)], dim=-1))
 
     def embedding_features(self, h_i: Tensor, h_j: Tensor) -> Tensor:
         r"""What :math:`g_e` reads of the two node embeddings
