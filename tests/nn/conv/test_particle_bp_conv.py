@@ -22,9 +22,9 @@ from helpers import gen, random_graph
 # --------------------------------------------------------------------------
 
 
-def reference(particles, log_weights, edge_index, edge_attr, sigma=1.0,
-              sender_log_weights=None, anchor=None):
-    r"""One BP iteration with plain Python loops, in float64."""
+def as_lists(particles, log_weights, edge_index, edge_attr,
+             sender_log_weights, anchor):
+    # the inputs of one BP iteration as float64 Python lists
     pos = particles.double().tolist()
     lw = log_weights.double().tolist()
     sender = lw if sender_log_weights is None else \
@@ -32,6 +32,15 @@ def reference(particles, log_weights, edge_index, edge_attr, sigma=1.0,
     edges = edge_index.tolist()
     ranges = edge_attr.double().view(-1).tolist()
     is_anchor = [False] * len(lw) if anchor is None else anchor.tolist()
+    return pos, lw, sender, edges, ranges, is_anchor
+
+
+def reference(particles, log_weights, edge_index, edge_attr, sigma=1.0,
+              sender_log_weights=None, anchor=None):
+    r"""One BP iteration with plain Python loops, in float64."""
+    pos, lw, sender, edges, ranges, is_anchor = as_lists(
+        particles, log_weights, edge_index, edge_attr, sender_log_weights,
+        anchor)
     log_norm = math.log(math.sqrt(2.0 * math.pi) * sigma)
     out = [list(row) for row in lw]
     messages = []
@@ -62,13 +71,9 @@ def float32_error_bound(particles, log_weights, edge_index, edge_attr,
     far above any fixed tolerance: a 5 m residual at sigma = 1 cm puts a
     single rounding of d at about 0.3 nats."""
     u = 2.0**-24
-    pos = particles.double().tolist()
-    lw = log_weights.double().tolist()
-    sender = lw if sender_log_weights is None else \
-        sender_log_weights.double().tolist()
-    edges = edge_index.tolist()
-    ranges = edge_attr.double().view(-1).tolist()
-    is_anchor = [False] * len(lw) if anchor is None else anchor.tolist()
+    pos, lw, sender, edges, ranges, is_anchor = as_lists(
+        particles, log_weights, edge_index, edge_attr, sender_log_weights,
+        anchor)
     log_norm = abs(math.log(math.sqrt(2.0 * math.pi) * sigma))
     cancellation = [[0.0] * len(row) for row in lw]
     magnitude = [[abs(x) for x in row] for row in lw]
