@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch_geometric.data import Batch, Data
 
+import tg_nebp.nn.conv.equivariant_nebp_conv as module
 from tg_nebp.nn.conv import EquivariantNEBPConv, ParticleBPConv
 from tg_nebp.nn.conv.nebp_conv import node_embedding
 
@@ -206,6 +207,31 @@ def test_batch_equals_each_graph_alone():
     alone = torch.cat([conv(g.particles, g.lw, g.edge_index, g.edge_attr,
                             g.anchor)[0] for g in graphs])
     torch.testing.assert_close(out, alone, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize('chunk', [1, 40, 1 << 20])
+def test_per_particle_mlp_in_chunks_equals_the_plain_formula(monkeypatch,
+                                                            chunk):
+    # g_v over chunks of edges with a closed-form backward: the same values
+    # and gradients as the formula written with autograd, for chunks of one
+    # edge, of a few, and all edges at once
+    monkeypatch.setattr(module, 'HIDDEN_CHUNK', chunk)
+    g = gen(78)
+    inputs = [torch.randn(shape, generator=g, dtype=torch.float64,
+                          requires_grad=True)
+              for shape in ((5, 6), (5, 7, 4), (6, 4), (1, 6), (1, ))]
+    edge_part, features, weight_p, weight_o, bias_o = inputs
+    plain = (torch.nn.functional.leaky_relu(
+        edge_part.unsqueeze(1) + features @ weight_p.t()) @ weight_o.t()
+    ).squeeze(-1) + bias_o
+    out = module._ParticleMLP.apply(*inputs)
+    torch.testing.assert_close(out, plain, rtol=1e-14, atol=1e-14)
+    weights = torch.randn(5, 7, generator=g, dtype=torch.float64)
+    for got, want in zip(torch.autograd.grad((out * weights).sum(), inputs),
+                         torch.autograd.grad((plain * weights).sum(),
+                                             inputs)):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(module._ParticleMLP.apply, inputs)
 
 
 def test_offsets_never_die():

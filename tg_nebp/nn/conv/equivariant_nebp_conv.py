@@ -187,9 +187,10 @@ class EquivariantNEBPConv(NEBPConv):
                     spread.index_select(0, src).unsqueeze(-1))
         features = torch.cat([u, below.unsqueeze(-1),
                               residual.unsqueeze(-1)], -1)
-        hidden = torch.nn.functional.leaky_relu(
-            self.g_v_edge(message).unsqueeze(1) + self.g_v_particle(features))
-        log_offset = self.g_v_out(hidden).squeeze(-1)
+        log_offset = _ParticleMLP.apply(self.g_v_edge(message), features,
+                                        self.g_v_particle.weight,
+                                        self.g_v_out.weight,
+                                        self.g_v_out.bias)
         return self.combine(message, log_phi, log_offset, edge_index,
                             anchor), message
 
@@ -198,6 +199,74 @@ class EquivariantNEBPConv(NEBPConv):
                 f'{self.g_s.channel_list[0]}, particle_dim='
                 f'{self.particle_dim}, correct_anchor_edges='
                 f'{self.correct_anchor_edges})')
+
+
+# elements of the [edges, K, particle_dim] hidden layer per chunk: a few MB,
+# so each chunk stays in cache between the per-particle steps
+HIDDEN_CHUNK = 1 << 20
+LEAKY_SLOPE = 0.01  # torch.nn.functional.leaky_relu's default, as MLP_OPTIONS
+
+
+class _ParticleMLP(torch.autograd.Function):
+    r"""g_v on every particle: :math:`\mathbf{w}_o^\top
+    \operatorname{LeakyReLU}(\mathbf{a}_e + \mathbf{W}_p
+    \mathbf{f}_e^{(k)}) + b_o` :math:`(E, K)` from the edge part
+    :math:`\mathbf{a}` :math:`(E, P)` and the particle features
+    :math:`\mathbf{f}` :math:`(E, K, F)`. Run over chunks of edges and
+    recomputed in the backward pass (closed form), the
+    :math:`(E, K, P)` hidden layer is never stored: written whole it is
+    hundreds of MB at K = 5,000, and the passes over it dominated a
+    training step."""
+    @staticmethod
+    def forward(ctx, edge_part: Tensor, features: Tensor, weight_p: Tensor,
+                weight_o: Tensor, bias_o: Tensor) -> Tensor:
+        ctx.save_for_backward(edge_part, features, weight_p, weight_o)
+        out = features.new_empty(features.shape[:2])
+        for rows in _chunks(features, weight_p):
+            hidden = torch.nn.functional.leaky_relu_(_preactivation(
+                edge_part[rows], features[rows], weight_p), LEAKY_SLOPE)
+            out[rows] = hidden @ weight_o[0] + bias_o
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        edge_part, features, weight_p, weight_o = ctx.saved_tensors
+        grad_edge = torch.empty_like(edge_part)
+        grad_features = (torch.empty_like(features)
+                         if ctx.needs_input_grad[1] else None)
+        grad_p = torch.zeros_like(weight_p)
+        grad_o = torch.zeros_like(weight_o)
+        for rows in _chunks(features, weight_p):
+            pre = _preactivation(edge_part[rows], features[rows], weight_p)
+            outer = grad[rows].unsqueeze(-1)  # [c, K, 1]
+            grad_o += (torch.nn.functional.leaky_relu(pre, LEAKY_SLOPE) *
+                       outer).sum((0, 1))
+            # d hidden / d pre: 1 above zero, the slope below
+            grad_pre = torch.where(pre > 0, outer, outer * LEAKY_SLOPE) * \
+                weight_o[0]
+            grad_edge[rows] = grad_pre.sum(1)
+            grad_p += grad_pre.flatten(0, 1).t() @ features[rows].flatten(
+                0, 1)
+            if grad_features is not None:
+                grad_features[rows] = grad_pre @ weight_p
+        return (grad_edge, grad_features, grad_p, grad_o,
+                grad.sum().view(1))
+
+
+def _chunks(features: Tensor, weight_p: Tensor):
+    # slices of edges whose hidden layer holds about HIDDEN_CHUNK elements
+    num_edges, num_particles = features.shape[:2]
+    step = max(HIDDEN_CHUNK // max(num_particles * weight_p.size(0), 1), 1)
+    return [slice(start, start + step)
+            for start in range(0, num_edges, step)]
+
+
+def _preactivation(edge_part: Tensor, features: Tensor,
+                   weight_p: Tensor) -> Tensor:
+    # a_e + W_p f of a chunk of edges [c, K, P]
+    return torch.baddbmm(edge_part.unsqueeze(1), features,
+                         weight_p.t().expand(len(edge_part), -1, -1))
 
 
 def _whiten(positions: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
