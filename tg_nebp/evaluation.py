@@ -41,8 +41,10 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
             disjoint graph. (default: :obj:`1`)
         device (str, optional): Device. (default: :obj:`"cpu"`)
         seed (int, optional): Seed of the particle draws. (default: :obj:`0`)
-        progress (callable, optional): Called with the number of time steps
-            done after each time step. (default: :obj:`None`)
+        progress (callable, optional): Called after each time step with
+            the number of realization-steps it did (the batch's
+            realizations), so a bar of :obj:`len(dataset) * T` ends full
+            for any :obj:`batch_size`. (default: :obj:`None`)
     """
     errors, nees, owner, first = [], [], [], {}
     with torch.no_grad():
@@ -64,8 +66,8 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
                 owner.append(realization)
                 if b == 0:
                     means.append(step.mean)
-                if progress is not None:
-                    progress(1)
+                if progress is not None:  # realization-steps
+                    progress(batch.num_graphs)
             if b == 0:
                 ptr = batch.ptr
                 first = {
