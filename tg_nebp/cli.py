@@ -18,7 +18,7 @@ from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
-from tg_nebp.reproduce import PRESETS, reproduce
+from tg_nebp.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
 
 __all__ = ['main']
@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
                         'training, BP and NEBP evaluation, report, figures')
-    rp.add_argument('--preset', choices=sorted(PRESETS), default='quick')
+    rp.add_argument('--preset', choices=PRESET_NAMES, default='quick')
     rp.add_argument('--out', default=None,
                     help='output folder (default: results/reproduce, '
                     'results/beyond with --preset beyond)')
