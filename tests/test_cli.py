@@ -6,6 +6,7 @@ import pytest
 
 from tg_nebp.cli import main
 from tg_nebp.models import NLOSRange
+from tg_nebp.training import nebp_from_checkpoint
 
 from helpers import tiny_scenario
 
@@ -38,6 +39,21 @@ def test_evaluate_with_another_likelihood(tmp_path, measurement, expected):
     entry = json.loads((out / 'metrics.json').read_text())['bp']
     assert entry['measurement'] == expected
     assert entry['scenario'] == 'tiny-nlos'
+
+
+def test_train_with_another_likelihood(tmp_path):
+    # NEBP trained on NLOS data with a Gaussian likelihood inside, the
+    # model-mismatch experiment; the checkpoint records the likelihood
+    path = nlos_scenario_file(tmp_path)
+    out = tmp_path / 'out'
+    assert main(['train', '--scenario', str(path), '--realizations', '1',
+                 '--val-realizations', '1', '--epochs', '1', '--batch-size',
+                 '1', '--particles', '8', '--variant', 'equivariant',
+                 '--measurement', 'gaussian', '--root',
+                 str(tmp_path / 'data'), '--out', str(out), '--quiet']) == 0
+    model = nebp_from_checkpoint(out / 'nebp.pt')
+    assert model.measurement.config() == {
+        'name': 'gaussian', 'params': {'sigma': 0.8, 'max_range': 20.0}}
 
 
 def test_measurement_is_for_bp_only(tmp_path, capsys):
@@ -82,3 +98,31 @@ def test_resampling_flags(tmp_path):
         with pytest.raises(SystemExit) as info:
             main(argv + bad)
         assert info.value.code == 2
+
+
+def test_equivariant_variant_trains_once_and_runs_at_any_k(tmp_path, capsys):
+    path = tmp_path / 'tiny.json'
+    path.write_text(json.dumps(vars(tiny_scenario(steps=2))))
+    common = ['--scenario', str(path), '--root', str(tmp_path / 'data'),
+              '--quiet']
+    train = ['train', '--realizations', '2', '--val-realizations', '1',
+             '--epochs', '1', '--batch-size', '1', '--particles', '8']
+    for variant in ('paper', 'equivariant'):
+        assert main(train + common + ['--variant', variant, '--out',
+                                      str(tmp_path / variant)]) == 0
+    evaluate = ['evaluate', '--method', 'nebp', '--realizations', '1',
+                '--particles', '24'] + common
+    out = tmp_path / 'eval'
+    assert main(evaluate + ['--checkpoint',
+                            str(tmp_path / 'equivariant' / 'nebp.pt'),
+                            '--out', str(out)]) == 0
+    assert json.loads((out / 'metrics.json').read_text())['nebp'][
+        'particles'] == 24
+    capsys.readouterr()
+    assert main(evaluate + ['--checkpoint',
+                            str(tmp_path / 'paper' / 'nebp.pt'),
+                            '--out', str(out)]) == 2
+    assert "train --variant equivariant for any K" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(train + common + ['--variant', 'other'])
+    assert info.value.code == 2

@@ -8,7 +8,7 @@ from tg_nebp.filters import (NEBP, ParticleBP, multinomial_resample,
 from tg_nebp.models import (ConstantVelocity, ConstantVelocityDrag,
                             GaussianRange, MeasurementModel, MotionModel,
                             NLOSRange, RangeModel, StudentTRange)
-from tg_nebp.nn import NEBPConv, ParticleBPConv
+from tg_nebp.nn import EquivariantNEBPConv, NEBPConv, ParticleBPConv
 from tg_nebp.utils import weighted_moments
 
 __version__ = '0.1.0'
@@ -16,6 +16,7 @@ __version__ = '0.1.0'
 __all__ = [
     'ParticleBPConv',
     'NEBPConv',
+    'EquivariantNEBPConv',
     'ParticleBP',
     'NEBP',
     'CooperativeLocalizationDataset',

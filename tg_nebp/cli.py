@@ -13,11 +13,12 @@ from tqdm import tqdm
 
 from tg_nebp.datasets import load_datasets
 from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
-from tg_nebp.reproduce import PRESETS, reproduce
+from tg_nebp.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
 
 __all__ = ['main']
@@ -125,6 +126,22 @@ def _add_common(parser: argparse.ArgumentParser):
                         'first steps compile)')
 
 
+def _add_measurement(parser, who: str):
+    parser.add_argument(
+        '--measurement', choices=sorted(MODELS['measurement']),
+        default=None, help=f"{who}'s likelihood (default: the scenario's); "
+        "it keeps the scenario's sigma and max_range, so 'gaussian' on NLOS "
+        "data shows the cost of mismatch")
+
+
+def _measurement(args, scenario):
+    # the likelihood inside the tracker: the scenario's, or another one
+    measurement = scenario.measurement_model
+    if args.measurement is None:
+        return measurement
+    return model_like(args.measurement, 'measurement', measurement)
+
+
 def _bar(total: int, desc: str, quiet: bool = False):
     return tqdm(total=total, desc=desc, unit='step', disable=quiet)
 
@@ -132,13 +149,8 @@ def _bar(total: int, desc: str, quiet: bool = False):
 def _evaluate(args) -> int:
     dataset, = load_datasets(args.root, (args.scenario, args.realizations,
                                          args.seed))
-    measurement = dataset.scenario.measurement_model
-    if args.measurement is not None:
-        # another likelihood than the data's: the cost of model mismatch
-        measurement = model_like(args.measurement, 'measurement',
-                                 measurement)
     models = dict(motion=dataset.scenario.motion_model,
-                  measurement=measurement)
+                  measurement=_measurement(args, dataset.scenario))
     if args.method == 'nebp':
         if args.checkpoint is None:
             raise ValueError("--method nebp needs --checkpoint PATH")
@@ -198,9 +210,10 @@ def _train_on(args, device: str) -> int:
     scenario = train_set.scenario
     torch.manual_seed(args.seed)  # the GNN's initial weights
     model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
-                 measurement=scenario.measurement_model, compile=args.compile,
+                 measurement=_measurement(args, scenario),
+                 compile=args.compile,
                  num_samples=args.samples, regularize=args.regularize,
-                 ess_threshold=args.ess_threshold)
+                 ess_threshold=args.ess_threshold, variant=args.variant)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
     with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
@@ -277,17 +290,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help='NEBP checkpoint (with --method nebp)')
     ev.add_argument('--particles', type=_positive, default=None,
                     help='particles K per agent (default: 1000 for BP, the '
-                    "checkpoint's K for NEBP)")
+                    "checkpoint's K for NEBP; any K for an equivariant "
+                    'checkpoint)')
     _add_test_data(ev, realizations=10)
     ev.add_argument('--iterations', type=_positive, default=1,
                     help='message passing iterations per step (default: 1)')
     ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
                     default='multinomial')
-    ev.add_argument('--measurement', choices=sorted(MODELS['measurement']),
-                    default=None,
-                    help="BP's likelihood (default: the scenario's); it "
-                    "keeps the scenario's sigma and max_range, so "
-                    "'gaussian' on NLOS data shows the cost of mismatch")
+    _add_measurement(ev, 'BP')
     ev.add_argument('--out', default='results/evaluate',
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -307,9 +317,14 @@ def build_parser() -> argparse.ArgumentParser:
         'writes the checkpoint and prints; the others are quiet.')
     tr.add_argument('--particles', type=_positive, default=1000,
                     help='particles K (default: 1000; the paper: 50000)')
+    tr.add_argument('--variant', choices=sorted(VARIANTS), default='paper',
+                    help="the NEBP layer: 'paper' (NEBPConv, sized by K) or "
+                    "'equivariant' (EquivariantNEBPConv: evaluate it at any "
+                    "K) (default: paper)")
     tr.add_argument('--scenario', default='paper_train',
                     help='scenario name or JSON file of the training and '
                     'validation data (default: paper_train)')
+    _add_measurement(tr, 'NEBP')
     tr.add_argument('--realizations', type=_positive, default=100,
                     help='training realizations (default: 100)')
     tr.add_argument('--val-realizations', type=_positive, default=10,
@@ -336,8 +351,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
                         'training, BP and NEBP evaluation, report, figures')
-    rp.add_argument('--preset', choices=sorted(PRESETS), default='quick')
-    rp.add_argument('--out', default='results/reproduce')
+    rp.add_argument('--preset', choices=PRESET_NAMES, default='quick')
+    rp.add_argument('--out', default=None,
+                    help='output folder (default: results/reproduce, '
+                    'results/beyond with --preset beyond)')
     rp.add_argument('--quiet', action='store_true')
     _add_common(rp)
     _add_samples(rp, 1)
@@ -414,6 +431,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     malformed file, unwritable output) prints one line starting with
     :obj:`error:` and exits with status 2, without a traceback."""
     args = build_parser().parse_args(argv)
+    if args.command == 'reproduce' and args.out is None:
+        args.out = ('results/beyond' if args.preset == 'beyond' else
+                    'results/reproduce')
     try:
         _check_paths(args)
         return args.run(args)

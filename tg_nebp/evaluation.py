@@ -24,8 +24,9 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
                   progress: Optional[Callable] = None) -> Dict[str, torch.Tensor]:
     r"""Tracks every realization of :obj:`dataset` and returns the agents'
     position errors and NEES values, flattened over agents, time steps and
-    realizations (:obj:`"errors"`, :obj:`"nees"`), plus the estimates of the
-    first realization (:obj:`"first_mean"`, :obj:`"first_states"`,
+    realizations (:obj:`"errors"`, :obj:`"nees"`), the index of the
+    realization each value belongs to (:obj:`"realization"`), plus the
+    estimates of the first realization (:obj:`"first_mean"`, :obj:`"first_states"`,
     :obj:`"first_anchor"`) for plots.
 
     Realization :math:`r` draws its particles from its own generator,
@@ -40,10 +41,12 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
             disjoint graph. (default: :obj:`1`)
         device (str, optional): Device. (default: :obj:`"cpu"`)
         seed (int, optional): Seed of the particle draws. (default: :obj:`0`)
-        progress (callable, optional): Called with the number of time steps
-            done after each time step. (default: :obj:`None`)
+        progress (callable, optional): Called after each time step with
+            the number of realization-steps it did (the batch's
+            realizations), so a bar of :obj:`len(dataset) * T` ends full
+            for any :obj:`batch_size`. (default: :obj:`None`)
     """
-    errors, nees, first = [], [], {}
+    errors, nees, owner, first = [], [], [], {}
     with torch.no_grad():
         for b, batch in enumerate(DataLoader(dataset, batch_size=batch_size)):
             batch = batch.to(device)
@@ -52,6 +55,7 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
                 torch.Generator(device).manual_seed(derive_seed(seed, r))
                 for r in range(offset, offset + batch.num_graphs)]
             agents = ~batch.anchor
+            realization = (batch.batch + offset)[agents]
             means = []
             for step in tracker.steps(batch, generator):
                 truth = batch.states[:, step.t, :2]
@@ -59,10 +63,11 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
                 errors.append(metrics.position_errors(est, truth)[agents])
                 nees.append(
                     metrics.nees(est, step.cov[:, :2, :2], truth)[agents])
+                owner.append(realization)
                 if b == 0:
                     means.append(step.mean)
-                if progress is not None:
-                    progress(1)
+                if progress is not None:  # realization-steps
+                    progress(batch.num_graphs)
             if b == 0:
                 ptr = batch.ptr
                 first = {
@@ -71,7 +76,7 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
                     'first_anchor': batch.anchor[:ptr[1]].cpu(),
                 }
     return dict(errors=torch.cat(errors).cpu(), nees=torch.cat(nees).cpu(),
-                **first)
+                realization=torch.cat(owner).cpu(), **first)
 
 
 def summarize(errors: torch.Tensor, nees: torch.Tensor,

@@ -12,7 +12,7 @@ from tg_nebp.io import atomic_write
 from tg_nebp.reference import paper_curves
 
 __all__ = ['plot_tracks', 'plot_outage', 'plot_consistency',
-           'plot_frontier']
+           'plot_frontier', 'plot_outage_against_particles']
 
 COLORS = {'bp': 'tab:blue', 'nebp': 'tab:red'}
 PAPER_SERIES = {'bp': 'BP', 'nebp': 'NEBP'}
@@ -56,24 +56,32 @@ def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
     _save(fig, path)
 
 
-def _plot_with_paper(ax, name, x, y, paper_xy):
-    # this run's curve of a method, and the paper's dashed in its colour
-    color = COLORS.get(name)
-    ax.plot(x, y, color=color, label=f'{name.upper()} (this run)')
-    ax.plot(*paper_xy, color=color, ls='--', label=f'{name.upper()} (paper)')
+def _plot_with_paper(ax, figure, curves):
+    # this run's curve of every method (x, y), then the paper's curves of
+    # the methods it has ('bp', 'nebp'), dashed in the same colour
+    reference = paper_curves()
+    colors = {}
+    for name, (x, y) in curves.items():
+        line, = ax.plot(x, y, color=COLORS.get(name),
+                        label=f'{name.upper()} (this run)')
+        colors[name] = line.get_color()
+    for name in PAPER_SERIES:
+        if name in curves:
+            ax.plot(*reference[(figure, PAPER_SERIES[name])],
+                    color=colors[name], ls='--',
+                    label=f'{name.upper()} (paper)')
 
 
 def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
                 max_threshold: float = 3.0):
     r"""Outage probability versus error threshold per method, with the
-    paper's curves dashed."""
+    paper's curves of BP and NEBP (methods :obj:`"bp"`, :obj:`"nebp"`)
+    dashed."""
     thresholds = torch.linspace(0, max_threshold, 121)
-    reference = paper_curves()
     fig, ax = _figure((5, 4))
-    for name, err in errors.items():
-        _plot_with_paper(ax, name, thresholds,
-                         metrics.outage_from_errors(err, thresholds),
-                         reference[('outage', PAPER_SERIES[name])])
+    _plot_with_paper(ax, 'outage', {
+        name: (thresholds, metrics.outage_from_errors(err, thresholds))
+        for name, err in errors.items()})
     ax.set_xlabel('error threshold $e_{th}$ [m]')
     ax.set_ylabel('outage probability')
     ax.set_xlim(0, max_threshold)
@@ -85,15 +93,14 @@ def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
 
 def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path]):
     r"""P(accept H0) of the two-sided chi-square NEES test versus confidence
-    level per method, the ideal diagonal, and the paper's curves dashed."""
+    level per method, the ideal diagonal, and the paper's curves of BP and
+    NEBP dashed."""
     levels = torch.linspace(0.01, 0.99, 99)
-    reference = paper_curves()
     fig, ax = _figure((5, 4))
     ax.plot([0, 1], [0, 1], color='black', lw=0.8, ls=':', label='ideal')
-    for name, values in nees.items():
-        _plot_with_paper(ax, name, levels,
-                         metrics.consistency_curve(values, levels),
-                         reference[('consistency', PAPER_SERIES[name])])
+    _plot_with_paper(ax, 'consistency', {
+        name: (levels, metrics.consistency_curve(values, levels))
+        for name, values in nees.items()})
     ax.axvline(0.95, color='gray', ls=':', lw=0.8)
     ax.set_xlabel('confidence level $1 - \\alpha$')
     ax.set_ylabel('P(accept $H_0$)')
@@ -166,3 +173,31 @@ def _resampling_label(entry: dict) -> str:
     if entry['ess_threshold'] is not None:
         parts.append(f"ESS < {entry['ess_threshold']} K")
     return ', '.join(parts)
+
+
+def plot_outage_against_particles(entries: Dict[str, Dict[int, dict]],
+                                  path: Union[str, Path],
+                                  paper: Dict[str, dict] = None):
+    r"""P_out (1 m) and P(accept :math:`H_0`) at the 0.95 level against the
+    particle count :math:`K` (log scale), one line per method from
+    :obj:`{method: {K: metrics.json entry}}`, and the :obj:`paper`'s rows
+    (:obj:`{label: entry}`, at their :obj:`"particles"`) as stars."""
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(10, 4))
+    axes = fig.subplots(1, 2)
+    for ax, (key, level, label) in zip(axes, (
+            ('outage', '1.0', '$P_\\mathrm{out}$ (1 m)'),
+            ('accept', '0.95', 'P(accept $H_0$) at 0.95'))):
+        for name, by_k in entries.items():
+            ks = sorted(by_k)
+            ax.plot(ks, [by_k[k][key][level] for k in ks], 'o-',
+                    label=name)
+        for name, entry in (paper or {}).items():
+            ax.plot(entry['particles'], entry[key][level], '*', ms=12,
+                    label=name)
+        ax.set_xscale('log')
+        ax.set_xlabel('particles $K$ per agent')
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7, loc='lower right')
+    _save(fig, path)

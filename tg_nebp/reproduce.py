@@ -1,13 +1,16 @@
 r"""The paper's experiment end to end: generate data, train NEBP, evaluate
 BP and NEBP on the same test realizations with the same prior particle
 draws, and write :obj:`metrics.json`, :obj:`report.md` and the figures
-:obj:`tracks.png`, :obj:`outage.png`, :obj:`consistency.png`."""
+:obj:`tracks.png`, :obj:`outage.png`, :obj:`consistency.png`. The preset
+:obj:`"beyond"` runs the experiments beyond the paper instead
+(:mod:`tg_nebp.beyond`)."""
 import time
 from pathlib import Path
 from typing import Callable, Optional, Union
 
 import torch
 
+from tg_nebp.beyond import reproduce_beyond
 from tg_nebp.datasets import load_datasets
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import NEBP, ParticleBP
@@ -15,7 +18,7 @@ from tg_nebp.io import read_json, write_text
 from tg_nebp.reference import PAPER_TABLE
 from tg_nebp.training import train
 
-__all__ = ['PRESETS', 'reproduce']
+__all__ = ['PRESETS', 'PRESET_NAMES', 'reproduce']
 
 # Seeds of the three disjoint data sets; evaluation draws particles from
 # the test seed so that BP and NEBP see the same prior particles.
@@ -32,6 +35,10 @@ PRESETS = {
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
                   test_realizations=400, eval_batch_size=4),
 }
+# every preset name: the paper's experiment at the sizes above, and
+# 'beyond', the equivariant NEBP at several K, on marginalized BP and under
+# NLOS mismatch (tg_nebp.beyond, its sizes in BEYOND by device)
+PRESET_NAMES = sorted([*PRESETS, 'beyond'])
 
 
 def _report(metrics: dict, preset: str, config: dict, device: str,
@@ -73,7 +80,8 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
               progress_factory: Optional[Callable] = None,
               compile: bool = False, num_samples: Union[int, str] = 1
               ) -> dict:
-    r"""Runs the whole experiment of :obj:`preset` (see :obj:`PRESETS`) and
+    r"""Runs the whole experiment of :obj:`preset` (see :obj:`PRESETS`;
+    :obj:`"beyond"` runs :func:`~tg_nebp.beyond.reproduce_beyond`) and
     writes its results to :obj:`out`; returns :obj:`metrics.json`'s
     content. :obj:`num_samples` is both trackers' number of sender samples
     per BP message (see :class:`~tg_nebp.filters.ParticleBP`).
@@ -81,9 +89,15 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
     :func:`torch.compile` (see :class:`~tg_nebp.nn.conv.NEBPConv`)."""
     from tg_nebp.plot import plot_consistency, plot_outage, plot_tracks
 
-    if preset not in PRESETS:
-        raise ValueError(f"'preset' must be one of {sorted(PRESETS)}, got "
+    if preset not in PRESET_NAMES:
+        raise ValueError(f"'preset' must be one of {PRESET_NAMES}, got "
                          f"'{preset}'")
+    if preset == 'beyond':
+        if compile or num_samples != 1:
+            raise ValueError("the preset 'beyond' sets its own samples and "
+                             "does not compile: leave --samples and "
+                             "--compile out")
+        return reproduce_beyond(device, out, root, log, progress_factory)
     config = PRESETS[preset]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,9 @@ __all__ = ['train', 'train_epoch', 'adam', 'step_loss', 'position_loss',
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
 # 2: models stored as {'name': ..., 'params': ...}
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
+# version 2 differs only in lacking the NEBP variant (the paper's)
+READABLE_VERSIONS = (2, 3)
 
 
 def position_loss(mean, states, t, anchor):
@@ -74,10 +76,10 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
                          f"(corrupt or foreign): {first_line(e)}") from None
     if not isinstance(state, dict) or state.get('format') != CHECKPOINT_FORMAT:
         raise ValueError(f"'{path}' is not a tg_nebp NEBP checkpoint")
-    if state.get('version') != CHECKPOINT_VERSION:
+    if state.get('version') not in READABLE_VERSIONS:
         raise ValueError(f"checkpoint '{path}' has format version "
                          f"{state.get('version')}; this tg_nebp reads "
-                         f"version {CHECKPOINT_VERSION}")
+                         f"versions {', '.join(map(str, READABLE_VERSIONS))}")
     for key in ('config', 'model'):
         if not isinstance(state.get(key), dict):
             raise ValueError(f"checkpoint '{path}' lacks its '{key}'")
@@ -90,17 +92,22 @@ def nebp_from_checkpoint(path: Union[str, Path],
                          num_samples: Optional[Union[int, str]] = None
                          ) -> NEBP:
     r"""Rebuilds an :class:`NEBP` tracker from a checkpoint (with
-    :obj:`compile`, see :class:`NEBP`). The paper's :math:`g_e` and
+    :obj:`compile`, see :class:`NEBP`). The paper variant's :math:`g_e` and
     :math:`g_v` are sized by :math:`K`, so a different :obj:`num_particles`
-    is an error."""
+    is an error; the equivariant variant runs at any :math:`K`."""
     state = load_checkpoint(path)
     trained = state['config'].get('num_particles')
-    if num_particles is not None and num_particles != trained:
+    variant = state['config'].get('variant', 'paper')
+    if (num_particles is not None and num_particles != trained
+            and variant == 'paper'):
         raise ValueError(f"'particles' = {num_particles} does not match the "
                          f"checkpoint '{path}', trained with K = {trained} "
-                         f"(g_e and g_v are sized by K)")
+                         f"(the paper variant's g_e and g_v are sized by K; "
+                         f"train --variant equivariant for any K)")
     try:
         options = dict(compile=compile)
+        if num_particles is not None:
+            options['num_particles'] = num_particles
         if num_samples is not None:  # else the checkpoint's
             options['num_samples'] = num_samples
         model = NEBP.from_config(state['config'], **options)

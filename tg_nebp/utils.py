@@ -9,6 +9,8 @@ __all__ = [
     'weighted_moments',
     'log_normalize',
     'logsumexp',
+    'logaddexp',
+    'floored_exp',
     'compute_dtype',
     'plain_tensor',
     'sort_by_receiver',
@@ -90,6 +92,53 @@ def logsumexp(values: Tensor, dim: int = 0) -> Tensor:
     # in place without autograd: no temporaries beyond the first
     terms = shifted.exp() if shifted.requires_grad else shifted.exp_()
     return terms.sum(dim).log_().add_(top.squeeze(dim))
+
+
+class _LogAddExp(torch.autograd.Function):
+    # one pass forward, exp(a - out) and exp(b - out) backward, every
+    # exponent raised to EXP_FLOOR (torch.logaddexp's kernels take exp's
+    # slow denormal path for such differences, in both passes)
+    @staticmethod
+    def forward(ctx, a: Tensor, b: Tensor) -> Tensor:
+        top = torch.maximum(a, b)
+        # both -inf: a finite stand-in avoids inf - inf
+        finite_top = top.masked_fill(torch.isneginf(top), 0.0)
+        out = torch.minimum(a, b).sub_(finite_top).clamp_(
+            min=EXP_FLOOR).exp_().log1p_().add_(top)
+        ctx.save_for_backward(a, b, out)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        a, b, out = ctx.saved_tensors
+        finite_out = out.masked_fill(torch.isneginf(out), 0.0)
+        grads = []
+        for value, needed in zip((a, b), ctx.needs_input_grad):
+            grads.append((value - finite_out).clamp_(min=EXP_FLOOR).exp_()
+                         .mul_(grad).sum_to_size(value.shape)
+                         if needed else None)
+        return tuple(grads)
+
+
+def logaddexp(a: Tensor, b: Tensor) -> Tensor:
+    r""":math:`\log(e^a + e^b)` elementwise (broadcasting), equal to
+    :func:`torch.logaddexp` within rounding and several times faster on the
+    CPU, forward and backward, where the two differ by more than
+    :math:`-\mathrm{EXP\_FLOOR}` nats, as most corrected messages do: every
+    exponent is raised to :obj:`EXP_FLOOR` (see :func:`logsumexp`), which
+    changes the result and the gradient by less than :math:`10^{-34}`
+    relative. Two :math:`-\infty` give :math:`-\infty` and a zero (below
+    :math:`10^{-34}`) gradient, not :func:`torch.logaddexp`'s NaN."""
+    return _LogAddExp.apply(a, b)
+
+
+def floored_exp(values: Tensor) -> Tensor:
+    r""":math:`e^x` with :math:`x` raised to :obj:`EXP_FLOOR` first, for
+    log-values normalized to a maximum near zero (messages, weights): the
+    result differs from :func:`torch.exp` by less than :math:`10^{-34}`
+    and the exponential stays out of its slow denormal path."""
+    return values.clamp_min(EXP_FLOOR).exp()
 
 
 def plain_tensor(tensor: Tensor) -> Tensor:

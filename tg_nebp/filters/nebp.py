@@ -4,9 +4,12 @@ from torch import Tensor
 
 from tg_nebp.filters.particle_bp import ParticleBP
 from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
-from tg_nebp.nn.conv import NEBPConv, ParticleBPConv
+from tg_nebp.nn.conv import EquivariantNEBPConv, NEBPConv, ParticleBPConv
 
-__all__ = ['NEBP']
+__all__ = ['NEBP', 'VARIANTS']
+
+# the NEBP layers by the name that checkpoints and the CLI use
+VARIANTS = {'paper': NEBPConv, 'equivariant': EquivariantNEBPConv}
 
 
 class NEBP(ParticleBP):
@@ -48,6 +51,14 @@ class NEBP(ParticleBP):
             :class:`~tg_nebp.nn.conv.NEBPConv` with :func:`torch.compile`
             (training and inference; not part of :meth:`config`).
             (default: :obj:`False`)
+        variant (str, optional): The NEBP layer: :obj:`"paper"`
+            (:class:`~tg_nebp.nn.conv.NEBPConv`, sized by :math:`K`) or
+            :obj:`"equivariant"`
+            (:class:`~tg_nebp.nn.conv.EquivariantNEBPConv`, which runs at
+            any :math:`K`: rebuild it with another :obj:`num_particles`).
+            (default: :obj:`"paper"`)
+        particle_dim (int, optional): Hidden size of the equivariant
+            layer's per-particle :math:`g_v`. (default: :obj:`32`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -63,19 +74,29 @@ class NEBP(ParticleBP):
                  chunk_size: Optional[int] = None, compile: bool = False,
                  num_samples: Union[int, str] = 1,
                  regularize: Union[float, str, None] = None,
-                 ess_threshold: Optional[float] = None):
+                 ess_threshold: Optional[float] = None,
+                 variant: str = 'paper', particle_dim: int = 32):
+        if variant not in VARIANTS:
+            raise ValueError(f"'variant' must be one of {sorted(VARIANTS)}, "
+                             f"got {variant!r}")
         super().__init__(num_particles, num_iterations, motion, measurement,
                          resampler, chunk_size, num_samples=num_samples,
                          regularize=regularize, ess_threshold=ess_threshold)
         self.resampler_name = resampler if isinstance(resampler,
                                                       str) else None
         # the NEBP layer in place of BP's (it holds BP's conv itself)
-        self.conv = NEBPConv(num_particles, message_dim, hidden_dim,
-                             correct_anchor_edges,
-                             node_update=num_iterations > 1,
-                             measurement=self.measurement,
-                             chunk_size=chunk_size, compile=compile,
-                             num_samples=num_samples)
+        layer = dict(message_dim=message_dim, hidden_dim=hidden_dim,
+                     correct_anchor_edges=correct_anchor_edges,
+                     node_update=num_iterations > 1,
+                     measurement=self.measurement, chunk_size=chunk_size,
+                     compile=compile, num_samples=num_samples)
+        if variant == 'paper':
+            self.conv = NEBPConv(num_particles, **layer)
+        else:
+            self.conv = EquivariantNEBPConv(particle_dim=particle_dim,
+                                            **layer)
+        self.variant = variant
+        self.particle_dim = particle_dim
         self.message_dim = message_dim
         self.hidden_dim = hidden_dim
         self.correct_anchor_edges = correct_anchor_edges
@@ -107,6 +128,9 @@ class NEBP(ParticleBP):
                     num_samples=self.num_samples,
                     regularize=self.regularize,
                     ess_threshold=self.ess_threshold,
+                    variant=self.variant,
+                    **(dict(particle_dim=self.particle_dim)
+                       if self.variant == 'equivariant' else {}),
                     motion=self.motion.config(),
                     measurement=self.measurement.config())
 
@@ -115,7 +139,9 @@ class NEBP(ParticleBP):
         r"""Rebuilds a tracker from :meth:`config`; :obj:`options` are
         run-time arguments (:obj:`chunk_size`, :obj:`compile`) or replace
         entries that do not size the GNN (:obj:`num_samples`: the GNN reads
-        the BP message, however many sender samples estimate it)."""
+        the BP message, however many sender samples estimate it; and, for
+        the equivariant variant, :obj:`num_particles`). A configuration
+        without a :obj:`variant` (checkpoint version 2) is the paper's."""
         config = {**config, **options}
         motion = model_from_config(config.pop('motion', None), 'motion')
         measurement = model_from_config(config.pop('measurement', None),

@@ -1,3 +1,3 @@
-from .conv import NEBPConv, ParticleBPConv
+from .conv import EquivariantNEBPConv, NEBPConv, ParticleBPConv
 
-__all__ = ['ParticleBPConv', 'NEBPConv']
+__all__ = ['ParticleBPConv', 'NEBPConv', 'EquivariantNEBPConv']

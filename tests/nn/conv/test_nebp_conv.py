@@ -415,7 +415,8 @@ def test_layers_compile_without_graph_breaks(grad):
     _, log_phi = bp(particles, lw, ei, ea)
     calls = [
         (nebp, (particles, lw, ei, ea, anchor), dict(validate=False)),
-        (nebp.corrected_messages, (embedding, log_phi, ei, anchor), {}),
+        (nebp.corrected_messages, (embedding, log_phi, ei, anchor, particles,
+                                   lw, ea), {}),
         (bp, (particles, lw, ei, ea), dict(anchor=anchor, validate=False)),
         (bp, (particles, lw, ei, ea),
          dict(anchor=anchor, validate=False, return_messages=False)),

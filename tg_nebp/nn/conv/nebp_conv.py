@@ -12,12 +12,16 @@ from tg_nebp.data.validation import (check_layer_inputs, check_number,
                                      check_positive_int)
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
-from tg_nebp.utils import (compute_dtype, log_normalize, long_edge_index,
-                            plain_tensor, weighted_moments)
+from tg_nebp.utils import (compute_dtype, floored_exp, log_normalize,
+                            logaddexp, long_edge_index, plain_tensor,
+                            weighted_moments)
 
 __all__ = ['NEBPConv', 'node_embedding']
 
 EMBEDDING_DIM = 20  # [mean (4), vec(covariance) (16)]
+# what g_e reads of the two embeddings: mean difference, both covariances
+EDGE_FEATURES = 4 + 2 * 16
+MLP_OPTIONS = dict(act='leaky_relu', norm=None, plain_last=True)
 
 
 def node_embedding(particles: Tensor, log_weights: Tensor) -> Tensor:
@@ -149,7 +153,9 @@ class NEBPConv(MessagePassing):
                  chunk_size: Optional[int] = None, compile: bool = False,
                  num_samples: Union[int, str] = 1):
         super().__init__(aggr='add', node_dim=0)
-        num_particles = check_positive_int(num_particles, 'num_particles')
+        if num_particles is not None:  # None: a correction for any K
+            num_particles = check_positive_int(num_particles,
+                                               'num_particles')
         message_dim = check_positive_int(message_dim, 'message_dim')
         hidden_dim = check_positive_int(hidden_dim, 'hidden_dim')
         feature_scale = check_number(feature_scale, 'feature_scale')
@@ -162,20 +168,26 @@ class NEBPConv(MessagePassing):
         self._corrected_messages = torch.compile(
             self.corrected_messages,
             dynamic=True) if compile else self.corrected_messages
-        edge_features = 4 + 2 * 16  # mean difference, both covariances
-        mlp = dict(act='leaky_relu', norm=None, plain_last=True)
-        self.g_e = MLP([edge_features + num_particles, hidden_dim,
-                        message_dim], **mlp)
-        self.g_s = MLP([message_dim, hidden_dim, 1], **mlp)
-        self.g_v = MLP([message_dim, hidden_dim, num_particles], **mlp)
+        self.build_correction(message_dim, hidden_dim)
         self.g_n = MLP([EMBEDDING_DIM + message_dim, hidden_dim,
-                        EMBEDDING_DIM], **mlp) if node_update else None
+                        EMBEDDING_DIM], **MLP_OPTIONS) if node_update else None
+
+    def build_correction(self, message_dim: int, hidden_dim: int) -> None:
+        r"""Builds the correction's networks (in this order, which fixes
+        their seeded initial weights): :math:`g_e` of the node features and
+        the :math:`K` message values, the scale :math:`g_s`, and :math:`g_v`
+        of :math:`K` offsets."""
+        self.g_e = MLP([EDGE_FEATURES + self.num_particles, hidden_dim,
+                        message_dim], **MLP_OPTIONS)
+        self.g_s = MLP([message_dim, hidden_dim, 1], **MLP_OPTIONS)
+        self.g_v = MLP([message_dim, hidden_dim, self.num_particles],
+                       **MLP_OPTIONS)
 
     def reset_parameters(self):
         super().reset_parameters()
-        for mlp in (self.g_e, self.g_s, self.g_v, self.g_n):
-            if mlp is not None:
-                mlp.reset_parameters()
+        for network in self.children():  # the correction's networks
+            if network is not self.bp:
+                network.reset_parameters()
 
     def forward(
         self,
@@ -237,7 +249,8 @@ class NEBPConv(MessagePassing):
                 raise ValueError("'anchor' is required by NEBPConv")
             if embedding is not None:
                 check_embedding(embedding, num_nodes)
-        if particles.size(1) != self.num_particles:
+        if (self.num_particles is not None
+                and particles.size(1) != self.num_particles):
             raise ValueError(f"'particles' holds K = {particles.size(1)} "
                              f"particles per node but this NEBPConv was "
                              f"built for K = {self.num_particles}")
@@ -253,7 +266,8 @@ class NEBPConv(MessagePassing):
         # 2. GNN messages and 3. corrected messages, per edge (the compiled
         # region takes plain tensors; aggregation stays a segment sum)
         log_corrected, message = self._corrected_messages(
-            embedding, log_phi, plain_tensor(edge_index), anchor)
+            embedding, log_phi, plain_tensor(edge_index), anchor, particles,
+            log_weights, edge_attr)
         out = self.propagate(edge_index, log_messages=log_corrected,
                              size=(num_nodes, num_nodes))
         out = out.masked_fill(anchor.view(-1, 1), 0.0)
@@ -265,36 +279,50 @@ class NEBPConv(MessagePassing):
         return log_weights + out, embedding
 
     def corrected_messages(self, embedding: Tensor, log_phi: Tensor,
-                           edge_index: Tensor,
-                           anchor: Tensor) -> Tuple[Tensor, Tensor]:
+                           edge_index: Tensor, anchor: Tensor,
+                           particles: Tensor, log_weights: Tensor,
+                           edge_attr: Tensor) -> Tuple[Tensor, Tensor]:
         r"""Steps 2 and 3 on every edge: returns the corrected
         log-messages :math:`(|\mathcal{E}|, K)` and the GNN messages
         :math:`\mathbf{m}` :math:`(|\mathcal{E}|, \mathrm{message\_dim})`
-        from the node embeddings and the BP log-messages :obj:`log_phi`.
+        from the node embeddings and the BP log-messages :obj:`log_phi`
+        (the particles, prediction log-weights and link features are for
+        corrections that read them; the paper's does not).
         With :obj:`compile=True` this is the :func:`torch.compile` region
         (no graph breaks): the per-edge-particle chain becomes a few fused
         kernels."""
         # scaled to mean one per edge: a per-edge constant, BP is unchanged
-        log_phi = log_normalize(log_phi) + math.log(self.num_particles)
+        log_phi = log_normalize(log_phi) + math.log(log_phi.size(1))
         message = self.edge_updater(edge_index, h=embedding, log_phi=log_phi)
+        log_offset = _log_relu(self.g_v(message))
+        return self.combine(message, log_phi, log_offset, edge_index,
+                            anchor), message
+
+    def combine(self, message: Tensor, log_phi: Tensor, log_offset: Tensor,
+                edge_index: Tensor, anchor: Tensor) -> Tensor:
+        r"""The corrected log-messages :math:`\operatorname{logaddexp}(\log
+        g_s(\mathbf{m}) + \log \boldsymbol{\phi}, \log g_v)` from the
+        mean-one BP log-messages and the log-offsets; anchors' messages
+        stay BP's unless :obj:`correct_anchor_edges`."""
         log_scaled = torch.nn.functional.logsigmoid(
             self.g_s(message)) + log_phi
-        log_offset = _log_relu(self.g_v(message))
-        # logaddexp(-inf, -inf) has a NaN gradient: keep such entries out
-        dead = torch.isneginf(log_scaled) & torch.isneginf(log_offset)
-        log_corrected = torch.logaddexp(log_scaled.masked_fill(dead, 0.0),
-                                        log_offset).masked_fill(
-                                            dead, float('-inf'))
+        log_corrected = logaddexp(log_scaled, log_offset)
         if not self.correct_anchor_edges:
             from_anchor = anchor[edge_index[0]].view(-1, 1)
             log_corrected = torch.where(from_anchor, log_phi, log_corrected)
-        return log_corrected, message
+        return log_corrected
 
     def edge_update(self, h_i: Tensor, h_j: Tensor,
                     log_phi: Tensor) -> Tensor:
-        features = torch.cat([h_j[:, :4] - h_i[:, :4], h_i[:, 4:], h_j[:, 4:]],
-                             dim=-1) / self.feature_scale
-        return self.g_e(torch.cat([features, log_phi.exp()], dim=-1))
+        return self.g_e(torch.cat([self.embedding_features(h_i, h_j),
+                                   floored_exp(log_phi)], dim=-1))
+
+    def embedding_features(self, h_i: Tensor, h_j: Tensor) -> Tensor:
+        r"""What :math:`g_e` reads of the two node embeddings
+        :math:`(|\mathcal{E}|, 36)`: the difference of the means and both
+        covariances, divided by :obj:`feature_scale`."""
+        return torch.cat([h_j[:, :4] - h_i[:, :4], h_i[:, 4:], h_j[:, 4:]],
+                         dim=-1) / self.feature_scale
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages
