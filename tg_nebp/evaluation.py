@@ -26,8 +26,8 @@ def track_dataset(tracker: ParticleBP, dataset: Iterable,
     position errors and NEES values, flattened over agents, time steps and
     realizations (:obj:`"errors"`, :obj:`"nees"`), the index of the
     realization each value belongs to (:obj:`"realization"`), plus the
-    estimates of the first realization (:obj:`"first_mean"`, :obj:`"first_states"`,
-    :obj:`"first_anchor"`) for plots.
+    estimates of the first realization (:obj:`"first_mean"`,
+    :obj:`"first_states"`, :obj:`"first_anchor"`) for plots.
 
     Realization :math:`r` draws its particles from its own generator,
     seeded with :obj:`derive_seed(seed, r)`, so two trackers run with the

@@ -68,8 +68,9 @@ class EquivariantNEBPConv(NEBPConv):
     output is negative for every particle no gradient reaches it again; a
     layer trained that way had every offset at zero, which leaves BP's
     beliefs unchanged (the scale alone is a per-edge constant). The offsets
-    start at 5 % of the mean-one message. Its first layer is split into an edge part, computed once per
-    edge, and a particle part, so the per-particle work is
+    start at 5 % of the mean-one message. Its first layer is split into an
+    edge part, computed once per edge, and a particle part, so the
+    per-particle work is
     :math:`O(|\mathcal{E}| K \cdot \mathrm{particle\_dim})`. Everything
     else (BP messages, embeddings, :math:`g_n`, anchors, aggregation,
     dtypes) is :class:`NEBPConv`'s.
