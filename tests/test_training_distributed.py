@@ -7,8 +7,6 @@ gloo processes against single-process training, one in float64 through
 Run as a script by :obj:`torchrun`, this file is the float64 worker."""
 import json
 import math
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,7 +14,6 @@ import pytest
 import torch
 import torch.distributed as dist
 
-import tg_nebp
 from tg_nebp import training
 from tg_nebp.cli import main
 from tg_nebp.datasets import Scenario
@@ -24,22 +21,7 @@ from tg_nebp.filters import NEBP
 from tg_nebp.training import (_check_global_batches, _local_batches,
                               load_checkpoint, train, validation_loss)
 
-PACKAGE_ROOT = str(Path(tg_nebp.__file__).resolve().parents[1])
-
-
-def torchrun(*args, timeout=120):
-    r"""Runs :obj:`torchrun` with two processes on a free port, single
-    threaded, importing this tg_nebp."""
-    path = [PACKAGE_ROOT] + os.environ.get('PYTHONPATH', '').split(os.pathsep)
-    env = dict(os.environ, OMP_NUM_THREADS='1',
-               PYTHONPATH=os.pathsep.join(filter(None, path)))
-    done = subprocess.run(
-        [sys.executable, '-m', 'torch.distributed.run', '--standalone',
-         '--nproc_per_node=2', *map(str, args)], env=env,
-        capture_output=True, text=True, timeout=timeout)
-    assert done.returncode == 0, done.stdout + done.stderr
-    return done.stdout
-
+from helpers import torchrun
 
 def realizations(count, steps=8, offset=0, dtype=torch.float32):
     scenario = Scenario.load('paper_train').replace(num_steps=steps)
@@ -120,7 +102,7 @@ def test_uneven_global_batches_are_refused(num_realizations, batch_size,
 def test_train_refuses_uneven_batches_before_any_collective(monkeypatch):
     # a fake world of two: train must fail before touching the (absent)
     # process group
-    monkeypatch.setattr(training, '_world', lambda: (2, 0))
+    monkeypatch.setattr(training, 'process_group', lambda: (2, 0))
     data = realizations(3, steps=2)
     with pytest.raises(ValueError, match='train_set'):
         train(make_model(), data, epochs=1, batch_size=2)

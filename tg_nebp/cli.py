@@ -5,7 +5,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import List, NoReturn, Optional
+from typing import Callable, List, NoReturn, Optional
 
 import torch
 import torch.distributed as dist
@@ -20,6 +20,7 @@ from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
+from tg_nebp.utils import process_group
 
 __all__ = ['main']
 
@@ -146,7 +147,8 @@ def _bar(total: int, desc: str, quiet: bool = False):
     return tqdm(total=total, desc=desc, unit='step', disable=quiet)
 
 
-def _evaluate(args) -> int:
+def _evaluate_on(args, device: str) -> int:
+    rank = process_group()[1]
     dataset, = load_datasets(args.root, (args.scenario, args.realizations,
                                          args.seed))
     models = dict(motion=dataset.scenario.motion_model,
@@ -170,12 +172,17 @@ def _evaluate(args) -> int:
                              num_samples=args.samples or 1,
                              regularize=args.regularize,
                              ess_threshold=args.ess_threshold, **models)
-    with _bar(len(dataset) * dataset.scenario.num_steps,
-              f'{args.method} K={tracker.num_particles}', args.quiet) as bar:
-        result = evaluate_method(args.method, tracker.to(args.device).eval(),
-                                 dataset, args.batch_size, args.device,
+    world_size = process_group()[0]
+    share = len(range(rank, len(dataset), world_size))  # rank 0's
+    with _bar(share * dataset.scenario.num_steps,
+              f'{args.method} K={tracker.num_particles}',
+              args.quiet or rank > 0) as bar:
+        result = evaluate_method(args.method, tracker.to(device).eval(),
+                                 dataset, args.batch_size, device,
                                  args.seed, Path(args.out),
                                  progress=bar.update)
+    if rank > 0:
+        return 0
     entry = result['entry']
     print(f"{args.method}: RMSE {entry['rmse']:.3f} m, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
@@ -183,27 +190,33 @@ def _evaluate(args) -> int:
     return 0
 
 
-def _train(args) -> int:
-    # under torchrun (WORLD_SIZE > 1) every process joins the group here:
-    # NCCL with one GPU per process (LOCAL_RANK), gloo on the CPU
-    launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
-                and not dist.is_initialized())
-    device = args.device
-    if launched:
-        if device.startswith('cuda'):
-            device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
-            torch.cuda.set_device(device)
-        dist.init_process_group('nccl' if device.startswith('cuda') else
-                                'gloo')
-    try:
-        return _train_on(args, device)
-    finally:
+def _in_process_group(run: Callable[[argparse.Namespace, str], int]
+                      ) -> Callable[[argparse.Namespace], int]:
+    r"""The command :obj:`run(args, device)`, which under torchrun
+    (WORLD_SIZE > 1) every process runs in the process group it joins
+    first: NCCL with one GPU per process (LOCAL_RANK), gloo on the CPU."""
+
+    def command(args) -> int:
+        launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
+                    and not dist.is_initialized())
+        device = args.device
         if launched:
-            dist.destroy_process_group()
+            if device.startswith('cuda'):
+                device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
+                torch.cuda.set_device(device)
+            dist.init_process_group('nccl' if device.startswith('cuda')
+                                    else 'gloo')
+        try:
+            return run(args, device)
+        finally:
+            if launched:
+                dist.destroy_process_group()
+
+    return command
 
 
 def _train_on(args, device: str) -> int:
-    rank = dist.get_rank() if dist.is_initialized() else 0
+    rank = process_group()[1]
     train_set, val_set = load_datasets(
         args.root, (args.scenario, args.realizations, args.seed),
         (args.scenario, args.val_realizations, args.seed + 1))
@@ -283,8 +296,14 @@ def build_parser() -> argparse.ArgumentParser:
         'localization.')
     sub = parser.add_subparsers(dest='command', required=True)
 
-    ev = sub.add_parser('evaluate', help='run a tracker on the test network '
-                        'and write DIR/metrics.json')
+    ev = sub.add_parser(
+        'evaluate', help='run a tracker on the test network and write '
+        'DIR/metrics.json', description='Runs BP or NEBP on the test '
+        'realizations and merges its entry into DIR/metrics.json. Sharded '
+        'over N processes: "torchrun --nproc_per_node=N -m tg_nebp evaluate '
+        '..." (gloo on the CPU; NCCL with --device cuda, one GPU per '
+        'process): rank r tracks realizations r, r + N, ..., rank 0 gathers '
+        'the errors, prints and writes; the metrics equal one process\'s.')
     ev.add_argument('--method', choices=['bp', 'nebp'], default='bp')
     ev.add_argument('--checkpoint', default=None,
                     help='NEBP checkpoint (with --method nebp)')
@@ -304,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(ev)
     _add_samples(ev, None)
     _add_resampling(ev)
-    ev.set_defaults(run=_evaluate)
+    ev.set_defaults(run=_in_process_group(_evaluate_on))
 
     tr = sub.add_parser(
         'train', help='train NEBP (default: on the paper\'s training '
@@ -347,7 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(tr)
     _add_samples(tr, 1)
     _add_resampling(tr)
-    tr.set_defaults(run=_train)
+    tr.set_defaults(run=_in_process_group(_train_on))
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
                         'training, BP and NEBP evaluation, report, figures')

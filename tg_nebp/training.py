@@ -23,7 +23,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP
 from tg_nebp.io import atomic_write, first_line, one_line
-from tg_nebp.utils import derive_seed
+from tg_nebp.utils import derive_seed, process_group
 
 __all__ = ['train', 'train_epoch', 'adam', 'step_loss', 'position_loss',
            'save_checkpoint', 'load_checkpoint', 'nebp_from_checkpoint',
@@ -118,16 +118,8 @@ def nebp_from_checkpoint(path: Union[str, Path],
     return model
 
 
-def _world() -> Tuple[int, int]:
-    r"""The world size and this process's rank (:obj:`(1, 0)` outside an
-    initialized process group)."""
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_world_size(), dist.get_rank()
-    return 1, 0
-
-
 def _sum_over_ranks(values: Sequence[float], device: str) -> List[float]:
-    if _world()[0] == 1:
+    if process_group()[0] == 1:
         return list(values)
     # float64, as the Python floats that a single process sums
     summed = torch.tensor(values, dtype=torch.float64, device=device)
@@ -201,7 +193,7 @@ def validation_loss(model: NEBP, dataset, batch_size: int, device: str,
     realizations :math:`r, r + W, \dots` in batches of
     :obj:`batch_size // W` and the sums are all-reduced, so every rank
     returns the single-process value."""
-    world_size, rank = _world()
+    world_size, rank = process_group()
     shard = list(range(rank, len(dataset), world_size))
     local = max(batch_size // world_size, 1)
     total, count = 0.0, 0
@@ -222,7 +214,7 @@ def _sum_gradients_over_ranks(model: torch.nn.Module):
     # ranks it is the gradient of the global batch's sum, as in a single
     # process (no wrapper module, so nothing depends on how the tracker
     # names its learnable parts)
-    if _world()[0] == 1:
+    if process_group()[0] == 1:
         return
     for parameter in model.parameters():
         if parameter.grad is not None:
@@ -269,7 +261,7 @@ def train_epoch(model: NEBP, train_set, optimizer: torch.optim.Optimizer,
                 progress: Optional[Callable[[dict], None]] = None) -> float:
     r"""One epoch of :func:`train`: an optimizer step per time step of
     every batch; returns the mean loss per agent (over all ranks)."""
-    world_size, rank = _world()
+    world_size, rank = process_group()
     model.train()
     total, count, step_index = 0.0, 0, 0
     for indices in _local_batches(train_set, batch_size, seed, epoch,
@@ -368,7 +360,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     if epochs < 1 or batch_size < 1 or not lr > 0:
         raise ValueError(f"'epochs' and 'batch_size' must be positive and "
                          f"'lr' > 0, got {epochs}, {batch_size}, {lr}")
-    world_size, rank = _world()
+    world_size, rank = process_group()
     _check_global_batches(len(train_set), batch_size, world_size)
     model.to(device)
     optimizer = (optimizer or adam(lr))(model.parameters())

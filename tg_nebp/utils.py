@@ -2,6 +2,7 @@ r"""Small tensor helpers shared by the layers and the trackers."""
 from typing import Tuple
 
 import torch
+import torch.distributed as dist
 from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
@@ -17,6 +18,7 @@ __all__ = [
     'as_edge_index',
     'long_edge_index',
     'derive_seed',
+    'process_group',
 ]
 
 
@@ -206,3 +208,13 @@ def derive_seed(seed: int, *parts: int) -> int:
     for part in parts:
         value = (value * 1_000_003 + int(part)) % (2**63 - 1)
     return value
+
+
+def process_group() -> Tuple[int, int]:
+    r"""The world size and this process's rank in the initialized
+    :mod:`torch.distributed` process group (:obj:`torchrun`), or
+    :obj:`(1, 0)` outside one: what training, evaluation and data
+    generation use to split their work."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_world_size(), dist.get_rank()
+    return 1, 0
