@@ -21,6 +21,8 @@ from tg_nebp.filters import NEBP
 from tg_nebp.training import (_check_global_batches, _local_batches,
                               load_checkpoint, train, validation_loss)
 
+from tg_nebp.training_log import read_training_log
+
 from helpers import torchrun
 
 def realizations(count, steps=8, offset=0, dtype=torch.float32):
@@ -205,8 +207,9 @@ def test_torchrun_cli_trains_as_one_process(tmp_path, capsys):
             '--val-realizations', '1', '--epochs', '2', '--batch-size', '2',
             '--lr', '1e-6', '--seed', '1', '--root', tmp_path / 'data',
             '--quiet']
-    stdout = torchrun('-m', 'tg_nebp', *args, '--out', tmp_path / 'ddp')
-    # rank 0 alone prints
+    stdout = torchrun('-m', 'tg_nebp', *args, '--out', tmp_path / 'ddp',
+                      '--log-dir', tmp_path / 'log')
+    # rank 0 alone prints and logs
     assert stdout.count('epoch 0:') == 1 and stdout.count('epoch 1:') == 1
     assert stdout.count('checkpoint ->') == 1
     assert main([*map(str, args), '--out', str(tmp_path / 'single')]) == 0
@@ -221,6 +224,10 @@ def test_torchrun_cli_trains_as_one_process(tmp_path, capsys):
     assert_moved_and_equal(a['model'], b['model'], initial, rtol=1e-4,
                            atol=5e-7)
     assert len(a['progress']['history']) == len(b['progress']['history']) == 2
+    log = read_training_log(tmp_path / 'log')
+    assert len(log['steps']) == 2 * 2 * 50  # epochs x batches x steps
+    assert [e['val_loss'] for e in log['epochs']] == [
+        h['val_loss'] for h in b['progress']['history']]
     for got, want in zip(b['progress']['history'],
                          a['progress']['history']):
         for loss in ('train_loss', 'val_loss'):

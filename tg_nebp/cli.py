@@ -1,6 +1,7 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 :obj:`reproduce`, :obj:`frontier` and :obj:`bench`."""
 import argparse
+import contextlib
 import math
 import os
 import sys
@@ -19,7 +20,9 @@ from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.reproduce import PRESET_NAMES, reproduce
-from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
+from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
+                              steps_per_epoch, train)
+from tg_nebp.training_log import TrainingLog
 from tg_nebp.utils import process_group
 
 __all__ = ['main']
@@ -228,26 +231,36 @@ def _train_on(args, device: str) -> int:
                  num_samples=args.samples, regularize=args.regularize,
                  ess_threshold=args.ess_threshold, variant=args.variant)
     checkpoint = Path(args.out) / 'nebp.pt'
-    steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
-    with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
+    steps = steps_per_epoch(len(train_set), args.batch_size,
+                            scenario.num_steps)
+    done = (load_checkpoint(checkpoint)['progress'].get('history', [])
+            if args.resume and checkpoint.exists() else [])
+    log = (TrainingLog(args.log_dir, steps, done)
+           if args.log_dir is not None and rank == 0 else None)
+    with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar, \
+            (log or contextlib.nullcontext()):
 
         def progress(info):
             bar.set_postfix(epoch=info['epoch'], loss=f"{info['loss']:.4f}")
             bar.update(1)
+            if log is not None:
+                log.step(info)
 
-        if args.resume and checkpoint.exists():
-            done = len(load_checkpoint(checkpoint)['progress'].get(
-                'history', []))
-            bar.update(min(done, args.epochs) * steps)
+        bar.update(min(len(done), args.epochs) * steps)
         history = train(model, train_set, val_set, args.epochs,
                         args.batch_size, args.lr, args.seed, device,
-                        checkpoint, args.resume, progress)
+                        checkpoint, args.resume, progress,
+                        on_epoch=log.epoch if log is not None else None)
     if rank == 0:
         for h in history:
             print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
                   f"validation loss {h['val_loss']:.4f} (m^2 per "
                   f"agent-step)")
         print(f'checkpoint -> {checkpoint}')
+        if log is not None:
+            events = ', TensorBoard events' if log.tensorboard else ''
+            print(f'log -> {log.log_dir} (steps.csv, epochs.csv, '
+                  f'history.png{events})')
     return 0
 
 
@@ -362,6 +375,11 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument('--out', default='results/train')
     tr.add_argument('--resume', action='store_true',
                     help='continue from DIR/nebp.pt')
+    tr.add_argument('--log-dir', default=None, metavar='LOG',
+                    help='write the loss of every step (LOG/steps.csv) and '
+                    'epoch (LOG/epochs.csv), TensorBoard event files if '
+                    'tensorboard is installed, and LOG/history.png at the '
+                    'end (default: no log)')
     tr.add_argument('--quiet', action='store_true')
     _add_common(tr)
     _add_samples(tr, 1)
@@ -443,6 +461,8 @@ def _check_paths(args):
         raise ValueError(f"--root '{root}' is a file, not a folder")
     if getattr(args, 'out', None) is not None:
         check_writable_folder(args.out, '--out')
+    if getattr(args, 'log_dir', None) is not None:
+        check_writable_folder(args.log_dir, '--log-dir')
 
 
 def main(argv: Optional[List[str]] = None) -> int:

@@ -25,9 +25,9 @@ from tg_nebp.filters import NEBP
 from tg_nebp.io import atomic_write, first_line, one_line
 from tg_nebp.utils import derive_seed, process_group
 
-__all__ = ['train', 'train_epoch', 'adam', 'step_loss', 'position_loss',
-           'save_checkpoint', 'load_checkpoint', 'nebp_from_checkpoint',
-           'CHECKPOINT_VERSION']
+__all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
+           'position_loss', 'save_checkpoint', 'load_checkpoint',
+           'nebp_from_checkpoint', 'CHECKPOINT_VERSION']
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
 # 2: models stored as {'name': ..., 'params': ...}
@@ -255,6 +255,13 @@ def _resume(checkpoint, model: NEBP, optimizer, settings: dict
     return list(saved.get('history', []))
 
 
+def steps_per_epoch(num_realizations: int, batch_size: int,
+                    num_steps: int) -> int:
+    r"""Optimizer steps in one epoch of :func:`train`: one per time step
+    of every (global) batch, the last one possibly partial."""
+    return -(-num_realizations // batch_size) * num_steps
+
+
 def train_epoch(model: NEBP, train_set, optimizer: torch.optim.Optimizer,
                 epoch: int, batch_size: int, seed: int, device: str,
                 loss: Callable = step_loss,
@@ -292,7 +299,8 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
           resume: bool = False,
           progress: Optional[Callable[[dict], None]] = None,
           optimizer: Optional[Callable] = None,
-          loss: Callable = step_loss) -> List[Dict]:
+          loss: Callable = step_loss,
+          on_epoch: Optional[Callable[[dict], None]] = None) -> List[Dict]:
     r"""Trains :obj:`model` as in the paper: Adam, one optimizer step per
     time step on :math:`\sum_i \|\hat{\mathbf{p}}_i - \mathbf{p}_i\|^2`
     summed over the batch's agents, resampling cutting the gradient. After
@@ -302,8 +310,10 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     same device). Every realization draws its particles from its own
     generator, seeded with :obj:`(seed, epoch, index)`, so the result does
     not depend on how a batch is split. The pieces are replaceable: the
-    optimizer (a factory), the loss of a time step, and the per-step hook
-    :obj:`progress`; :func:`train_epoch` is one epoch on its own.
+    optimizer (a factory), the loss of a time step, and the hooks
+    :obj:`progress` (per step) and :obj:`on_epoch` (a
+    :class:`~tg_nebp.training_log.TrainingLog` takes both);
+    :func:`train_epoch` is one epoch on its own.
 
     **Distributed training.** Started by :obj:`torchrun` with an initialized
     process group of :math:`W > 1` processes (:obj:`tg-nebp train` does it:
@@ -322,7 +332,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     equal (as runs on different thread counts); in float64 they agree far
     longer. :obj:`batch_size` must be a multiple of :math:`W` and
     :obj:`len(train_set)` of :obj:`batch_size`. Only rank 0 writes
-    checkpoints and calls :obj:`progress` (all ranks read a checkpoint to
+    checkpoints and calls :obj:`progress` and :obj:`on_epoch` (all ranks read a checkpoint to
     resume, so it must be on a shared file system); every rank returns the
     same history.
 
@@ -352,6 +362,8 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
             tracker's :class:`~tg_nebp.filters.particle_bp.StepOutput` and
             the batch, a sum over the batch's agents.
             (default: :func:`step_loss`)
+        on_epoch (callable, optional): Called after every epoch (and its
+            checkpoint) with its history entry. (default: :obj:`None`)
 
     Returns:
         The history: one :obj:`{"epoch", "train_loss", "val_loss"}` per
@@ -382,4 +394,6 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
                                      **settings))
             if world_size > 1:  # every rank returns with the file written
                 dist.barrier()
+        if on_epoch is not None and rank == 0:
+            on_epoch(history[-1])
     return history
