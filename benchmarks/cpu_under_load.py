@@ -1,13 +1,14 @@
 r"""The CPU path on a busy machine: :obj:`tg-nebp bench` of
 :class:`ParticleBPConv` (forward), the naive eager baseline and, optionally,
 the tracker, with 0 or more busy processes beside it (pure-Python spinners,
-one core each) and 1 or 2 threads.
+one core each, or :obj:`--load tracker`: the BP tracker in a loop with
+torch's default threads) and every :obj:`--threads` setting of the bench
+(a count, or :obj:`auto`, the thread governor).
 
-    python benchmarks/cpu_under_load.py --busy 0 2 --threads 1 2
+    python benchmarks/cpu_under_load.py --busy 0 2 --threads 1 2 auto
 
-Every cell runs :obj:`tg-nebp bench --json` in a fresh process (the
-thread count set by :obj:`OMP_NUM_THREADS` and :obj:`--threads` of this
-script), with the spinners started a second before and stopped after it;
+Every cell runs :obj:`tg-nebp bench --json --threads T` in a fresh
+process, with the busy processes started before and stopped after it;
 the matrix is run :obj:`--rounds` times in turn and the median of the
 rounds' medians is printed, in ms per call (s per step for the tracker).
 Run it on an otherwise quiet machine: the spinners are the only load it
@@ -16,7 +17,6 @@ import argparse
 import itertools
 import json
 import multiprocessing
-import os
 import statistics
 import subprocess
 import sys
@@ -28,14 +28,26 @@ def spin():
         pass
 
 
+def track():
+    import torch
+
+    from tg_nebp import ParticleBP
+    from tg_nebp.datasets import Scenario
+
+    data = Scenario.load('paper_test').generate(
+        torch.Generator().manual_seed(0))
+    tracker = ParticleBP(1000)
+    while True:
+        for _ in tracker.steps(data, torch.Generator().manual_seed(0)):
+            pass
+
+
 def bench(threads, particles, ops, repeats, extra):
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads),
-               MKL_NUM_THREADS=str(threads))
     done = subprocess.run(
         [sys.executable, '-m', 'tg_nebp', 'bench', '--ops', *ops,
          '--particles', str(particles), '--forward-only', '--json',
-         '--repeats', str(repeats), *extra], env=env, capture_output=True,
-        text=True, check=True)
+         '--repeats', str(repeats), '--threads', threads, *extra],
+        capture_output=True, text=True, check=True)
     rows = [json.loads(line) for line in done.stdout.splitlines()
             if line.startswith('{')]
     return {row['operation']: (row['s_per_step']
@@ -46,7 +58,9 @@ def bench(threads, particles, ops, repeats, extra):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--busy', type=int, nargs='+', default=[0, 2])
-    parser.add_argument('--threads', type=int, nargs='+', default=[1, 2])
+    parser.add_argument('--threads', nargs='+', default=['1', '2', 'auto'])
+    parser.add_argument('--load', choices=['spin', 'tracker'],
+                        default='spin', help='what a busy process runs')
     parser.add_argument('--ops', nargs='+', default=['bp', 'naive'])
     parser.add_argument('--particles', type=int, default=1000)
     parser.add_argument('--repeats', type=int, default=20)
@@ -58,11 +72,12 @@ def main():
     results = {cell: {op: [] for op in args.ops} for cell in cells}
     for _ in range(args.rounds):
         for busy, threads in cells:
-            spinners = [multiprocessing.Process(target=spin, daemon=True)
+            target = spin if args.load == 'spin' else track
+            spinners = [multiprocessing.Process(target=target, daemon=True)
                         for _ in range(busy)]
             for s in spinners:
                 s.start()
-            time.sleep(1.0 if busy else 0.0)
+            time.sleep(5.0 if busy else 0.0)  # the tracker's setup done
             try:
                 got = bench(threads, args.particles, args.ops, args.repeats,
                             args.bench_args)
@@ -72,9 +87,9 @@ def main():
                     s.join()
             for op in args.ops:
                 results[(busy, threads)][op].append(got[op])
-    print(f'K = {args.particles}, median of {args.rounds} rounds (each a '
-          f'median of {args.repeats} calls); ms per call, s per step for '
-          f'the tracker')
+    print(f'K = {args.particles}, busy processes: {args.load}, median of '
+          f'{args.rounds} rounds (each a median of {args.repeats} calls); '
+          f'ms per call, s per step for the tracker')
     print('| busy processes | threads | ' + ' | '.join(args.ops) + ' |')
     print('| --- | --- | ' + ' | '.join('---' for _ in args.ops) + ' |')
     for busy, threads in cells:

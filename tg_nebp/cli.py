@@ -23,6 +23,7 @@ from tg_nebp.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
                               steps_per_epoch, train)
 from tg_nebp.training_log import TrainingLog
+from tg_nebp.threads import ThreadGovernor
 from tg_nebp.utils import process_group
 
 __all__ = ['main']
@@ -120,9 +121,21 @@ def _device(name: str) -> str:
     return name
 
 
+def _threads(text: str):
+    return 'auto' if text == 'auto' else _positive(text)
+
+
 def _add_common(parser: argparse.ArgumentParser):
     parser.add_argument('--device', type=_device, default='cpu',
                         help="'cpu' (default) or 'cuda'")
+    parser.add_argument('--threads', type=_threads, default=None,
+                        metavar='N|auto',
+                        help="torch's CPU threads: a number, or 'auto' (as "
+                        'many as the cores that other processes leave free, '
+                        'checked after every time step; BP only, whose '
+                        'results do not depend on the thread count) '
+                        "(default: 'auto' for BP runs, torch's default for "
+                        'NEBP)')
     parser.add_argument('--root', default='datasets',
                         help='dataset root (default: datasets)')
     parser.add_argument('--compile', action='store_true',
@@ -144,6 +157,19 @@ def _measurement(args, scenario):
     if args.measurement is None:
         return measurement
     return model_like(args.measurement, 'measurement', measurement)
+
+
+def _governed(progress: Callable, args) -> Callable:
+    # the thread governor takes its reading after every time step
+    governor = getattr(args, 'governor', None)
+    if governor is None:
+        return progress
+
+    def step(count):
+        progress(count)
+        governor.update()
+
+    return step
 
 
 def _bar(total: int, desc: str, quiet: bool = False):
@@ -183,7 +209,7 @@ def _evaluate_on(args, device: str) -> int:
         result = evaluate_method(args.method, tracker.to(device).eval(),
                                  dataset, args.batch_size, device,
                                  args.seed, Path(args.out),
-                                 progress=bar.update)
+                                 progress=_governed(bar.update, args))
     if rank > 0:
         return 0
     entry = result['entry']
@@ -280,7 +306,8 @@ def _frontier(args) -> int:
     with _bar(len(points) * len(dataset) * dataset.scenario.num_steps,
               f'frontier ({len(points)} points)', args.quiet) as bar:
         result = run_frontier(points, dataset, out, args.seed, args.device,
-                              args.batch_size, progress=bar.update,
+                              args.batch_size,
+                              progress=_governed(bar.update, args),
                               log=bar.write if not args.quiet else print,
                               compile=args.compile)
     write_text(out / 'frontier.md', frontier_table(result))
@@ -465,6 +492,43 @@ def _check_paths(args):
         check_writable_folder(args.log_dir, '--log-dir')
 
 
+def _thread_invariant(args) -> bool:
+    # particle BP gives bit-identical results for any thread count (tested);
+    # NEBP's learned layers round by thread count. bench measures speed
+    # only and passes the setting on to its measurement processes
+    return (args.command in ('frontier', 'bench') or
+            (args.command == 'evaluate' and args.method == 'bp'))
+
+
+@contextlib.contextmanager
+def _threads_in_force(args):
+    r"""--threads for the run: a count, or a governor (:obj:`auto`, the
+    default of BP runs) that :func:`_governed` progress hooks update; the
+    thread count is restored afterwards."""
+    threads = args.threads
+    if threads is None:
+        threads = 'auto' if _thread_invariant(args) else None
+    elif threads == 'auto' and not _thread_invariant(args):
+        raise ValueError("--threads auto is for BP runs (evaluate --method "
+                         "bp, frontier, bench): NEBP's results depend on the "
+                         "thread count; give a number")
+    if args.command == 'bench':  # its measurement processes set it
+        args.threads = threads
+        yield
+        return
+    initial = torch.get_num_threads()
+    args.governor = None
+    if threads == 'auto' and not args.device.startswith('cuda'):
+        args.governor = ThreadGovernor()
+    elif isinstance(threads, int):
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != initial:
+            torch.set_num_threads(initial)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     r"""The :obj:`tg-nebp` entry point. A user error (bad flag, missing or
     malformed file, unwritable output) prints one line starting with
@@ -475,7 +539,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     'results/reproduce')
     try:
         _check_paths(args)
-        return args.run(args)
+        with _threads_in_force(args):
+            return args.run(args)
     except ValueError as e:  # bad input: a clear message, no traceback
         return _print_error(e)
     except OSError as e:  # a file or folder that cannot be read or written
