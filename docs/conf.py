@@ -89,6 +89,9 @@ python_display_short_literal_types = True
 # would run them in docs/examples), see execute_notebook() below.
 nb_execution_mode = 'off'
 nb_merge_streams = True
+# the notebooks' only stderr output is tqdm's warning that ipywidgets is
+# missing (and its progress bars where one runs): not content
+nb_output_stderr = 'remove'
 # set TG_NEBP_DOCS_EXECUTE=0 to render the notebooks without running them
 EXECUTE_NOTEBOOKS = os.environ.get('TG_NEBP_DOCS_EXECUTE', '1') != '0'
 NOTEBOOK_CELL_TIMEOUT = 600  # seconds per cell
