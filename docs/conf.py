@@ -38,25 +38,25 @@ source_suffix = {'.rst': 'restructuredtext', '.md': 'myst-nb',
                  '.ipynb': 'myst-nb'}
 root_doc = 'index'
 # the figures and tables that README.md links to live in docs/ as well;
-# the tables are included by results.rst, not pages of their own
+# the tables are included by results.md, not pages of their own
 exclude_patterns = ['_build', 'frontier_*.md', '**/.ipynb_checkpoints']
 
 # -- cross-references -------------------------------------------------------
 
 # Every :class:, :func:, :meth:, :attr: and :mod: reference must resolve
-# (-n). Two kinds of names are exempt, nothing else:
+# (-n). These names are exempt, nothing else:
 # - :obj: follows PyG's docstring convention, in which it marks literals
 #   and argument names (:obj:`None`, :obj:`"bp"`, :obj:`num_particles`)
 #   as often as objects, so it is not required to resolve;
 # - the build has no network, hence no intersphinx: names of Python,
-#   PyTorch, PyG, NumPy and Matplotlib cannot be resolved.
+#   PyTorch, PyG, NumPy and Matplotlib cannot be resolved;
+# - the words of the Args: blocks' types that are no names ("optional").
 nitpicky = True
 nitpick_ignore_regex = [
     (r'py:obj', r'(?s).*'),
     (r'py:.*', r'(torch|torch_geometric|torch_sparse|numpy|matplotlib|'
                r'argparse|pathlib|typing|collections|os)(\..*)?'),
-    # words of the Args: blocks' types that are no names
-    (r'py:class', r'optional|iterable'),
+    (r'py:class', r'optional|iterable|sequence'),
     (r'py:.*', r'(None|True|False|int|float|bool|str|bytes|dict|list|'
                r'tuple|set|callable|object|type|Tensor|Generator|'
                r'Exception|ValueError|TypeError|OSError|RuntimeError|'
@@ -102,7 +102,6 @@ myst_enable_extensions = ['dollarmath', 'amsmath']
 
 html_theme = 'furo'
 html_title = f'tg_nebp {release}'
-html_static_path = []
 
 
 # -- build steps ------------------------------------------------------------
@@ -152,6 +151,7 @@ def home(module: str, name: str) -> str:
 
 
 def pyg_class(name: str) -> type:
+    r"""The class of the full name :obj:`name`."""
     module, _, cls = name.rpartition('.')
     return getattr(importlib.import_module(module), cls)
 
