@@ -2,7 +2,7 @@ r"""Sphinx configuration of the tg_nebp documentation.
 
 Build (warnings are errors, unresolved cross-references included), from the
 repository root: ``.ci/docs``, i.e.
-``python3 -m sphinx -n -W --keep-going -b html docs docs/_build/html``.
+``python3 -m sphinx -E -n -W --keep-going -b html docs docs/_build/html``.
 """
 import datetime
 import importlib
