@@ -35,6 +35,7 @@ PAPER_PARTICLES = 50_000  # the paper's K (from the authors' code)
 SCENARIOS = dict(train='paper_train', test='paper_test',
                  nlos_train='paper_train_nlos', nlos_test='paper_test_nlos')
 
+#: The sizes of :obj:`tg-nebp reproduce --preset beyond` by device.
 BEYOND = {
     # 2 CPU cores: each model trains in under 30 minutes; fixed before any
     # test result was seen

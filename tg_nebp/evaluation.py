@@ -16,7 +16,10 @@ from tg_nebp.utils import derive_seed, process_group
 __all__ = ['track_dataset', 'summarize', 'evaluate_method',
            'OUTAGE_THRESHOLDS', 'CONFIDENCE']
 
+#: The error thresholds in metres of the reported outage
+#: probabilities.
 OUTAGE_THRESHOLDS = (0.5, 1.0, 2.0)
+#: The confidence levels of the reported P(accept H0).
 CONFIDENCE = (0.50, 0.95, 0.99)
 
 

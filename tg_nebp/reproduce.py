@@ -25,6 +25,7 @@ __all__ = ['PRESETS', 'PRESET_NAMES', 'reproduce']
 # the test seed so that BP and NEBP see the same prior particles.
 TRAIN_SEED, VAL_SEED, TEST_SEED = 1, 2, 0
 
+#: The sizes of the paper's experiment by preset name.
 PRESETS = {
     # 2 CPU cores, well under 15 minutes; a shorter training budget than the
     # paper's, so a larger (fixed, not tuned on test data) learning rate
@@ -36,9 +37,9 @@ PRESETS = {
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
                   test_realizations=400, eval_batch_size=4),
 }
-# every preset name: the paper's experiment at the sizes above, and
-# 'beyond', the equivariant NEBP at several K, on marginalized BP and under
-# NLOS mismatch (tg_nebp.beyond, its sizes in BEYOND by device)
+#: The names of the presets, the paper's experiment at the sizes above and
+#: 'beyond' (the equivariant NEBP at several K, on marginalized BP and
+#: under NLOS mismatch; tg_nebp.beyond, its sizes in BEYOND by device).
 PRESET_NAMES = sorted([*PRESETS, 'beyond'])
 
 

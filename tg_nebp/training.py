@@ -31,6 +31,7 @@ __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
 # 2: models stored as {'name': ..., 'params': ...}
+#: The format version that :func:`save_checkpoint` writes.
 CHECKPOINT_VERSION = 3
 # version 2 differs only in lacking the NEBP variant (the paper's)
 READABLE_VERSIONS = (2, 3)
@@ -91,10 +92,11 @@ def nebp_from_checkpoint(path: Union[str, Path],
                          compile: bool = False,
                          num_samples: Optional[Union[int, str]] = None
                          ) -> NEBP:
-    r"""Rebuilds an :class:`NEBP` tracker from a checkpoint (with
-    :obj:`compile`, see :class:`NEBP`). The paper variant's :math:`g_e` and
-    :math:`g_v` are sized by :math:`K`, so a different :obj:`num_particles`
-    is an error; the equivariant variant runs at any :math:`K`."""
+    r"""Rebuilds an :class:`~tg_nebp.filters.NEBP` tracker from a
+    checkpoint (with :obj:`compile`, see :class:`~tg_nebp.filters.NEBP`).
+    The paper variant's :math:`g_e` and :math:`g_v` are sized by :math:`K`,
+    so a different :obj:`num_particles` is an error; the equivariant
+    variant runs at any :math:`K`."""
     state = load_checkpoint(path)
     trained = state['config'].get('num_particles')
     variant = state['config'].get('variant', 'paper')

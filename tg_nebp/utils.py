@@ -39,8 +39,9 @@ def weighted_moments(particles: Tensor, log_weights: Tensor):
     \mathbf{x}_i^{(k)}` and covariance :math:`\sum_k w_i^{(k)}
     (\mathbf{x}_i^{(k)} - \hat{\mathbf{x}}_i)(\mathbf{x}_i^{(k)} -
     \hat{\mathbf{x}}_i)^\top` of particles :math:`(N, K, D)` with
-    log-weights :math:`(N, K)`, normalized here (:func:`log_normalize`), so
-    that the weights sum to one whatever their scale. A row of zero weights
+    log-weights :math:`(N, K)`, normalized here
+    (:func:`~tg_nebp.utils.log_normalize`), so that the weights sum to one
+    whatever their scale. A row of zero weights
     gives zeros: validation rejects such rows before."""
     dtype = torch.promote_types(particles.dtype, log_weights.dtype)
     particles = particles.to(dtype)
@@ -62,7 +63,7 @@ def log_normalize(log_weights: Tensor) -> Tensor:
     tied particles each get weight one. A row of zero weights (all
     :math:`-\infty`) has no normalization: it stays :math:`-\infty` with a
     zero gradient, never NaN; callers that need a distribution reject it
-    (:func:`~tg_nebp.data.validation.check_particles`)."""
+    (:func:`~tg_nebp.data.check_particles`)."""
     zero = torch.isneginf(log_weights).all(-1, keepdim=True)
     # a finite stand-in keeps log_softmax's NaN out of both passes
     normalized = log_weights.masked_fill(zero, 0.0).log_softmax(-1)
