@@ -115,9 +115,10 @@ def public(module: str):
 # the packages and modules that have a page in docs/api
 API_PAGES = ['tg_nebp.nn.conv', 'tg_nebp.filters', 'tg_nebp.models',
              'tg_nebp.data', 'tg_nebp.datasets', 'tg_nebp.metrics',
-             'tg_nebp.evaluation', 'tg_nebp.training', 'tg_nebp.frontier',
+             'tg_nebp.evaluation', 'tg_nebp.training',
+             'tg_nebp.training_log', 'tg_nebp.frontier',
              'tg_nebp.reproduce', 'tg_nebp.beyond', 'tg_nebp.plot',
-             'tg_nebp.io', 'tg_nebp.utils', 'tg_nebp.ops',
+             'tg_nebp.io', 'tg_nebp.utils', 'tg_nebp.threads', 'tg_nebp.ops',
              'tg_nebp.reference']
 
 

@@ -56,8 +56,8 @@ def read_training_log(log_dir: Union[str, Path]
 
 class TrainingLog:
     r"""Records a run of :func:`~tg_nebp.training.train` in
-    :obj:`log_dir`: pass :meth:`step` as its :obj:`progress` hook and
-    :meth:`epoch` as its :obj:`on_epoch` hook.
+    :obj:`log_dir`: pass its :obj:`step` method as the :obj:`progress`
+    hook and its :obj:`epoch` method as the :obj:`on_epoch` hook.
 
     * :obj:`steps.csv`: :obj:`epoch, step, loss` after every optimizer step
       (step counts from 1 within the epoch; the loss is per agent and time
@@ -123,7 +123,8 @@ class TrainingLog:
 
     def step(self, info: dict):
         r"""Records :obj:`{"epoch", "step", "loss"}` of one optimizer
-        step (the :obj:`progress` hook of :func:`train`)."""
+        step (the :obj:`progress` hook of
+        :func:`~tg_nebp.training.train`)."""
         row = dict(epoch=info['epoch'], step=info['step'], loss=info['loss'])
         self._step_writer.writerow([_cell(row[k]) for k in STEP_FIELDS])
         self._steps.flush()
@@ -134,7 +135,7 @@ class TrainingLog:
 
     def epoch(self, entry: dict):
         r"""Records :obj:`{"epoch", "train_loss", "val_loss"}` of one epoch
-        (the :obj:`on_epoch` hook of :func:`train`)."""
+        (the :obj:`on_epoch` hook of :func:`~tg_nebp.training.train`)."""
         self.epochs.append({k: entry[k] for k in EPOCH_FIELDS})
         _write_rows(self.log_dir / 'epochs.csv', EPOCH_FIELDS, self.epochs)
         if self._writer is not None:
