@@ -2,10 +2,17 @@ r"""Helpers shared by the tests (on the path through pytest's
 :obj:`pythonpath` setting): generators, small networks, random snapshots and
 stand-ins for the NEBP MLPs."""
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import torch
 
+import tg_nebp
 from tg_nebp.datasets import Scenario
+
+PACKAGE_ROOT = str(Path(tg_nebp.__file__).resolve().parents[1])
 
 
 def gen(seed):
@@ -83,3 +90,17 @@ def mixed_k_checkpoint(path):
     state['model'] = NEBP(num_particles=16).state_dict()
     torch.save(state, path)
     return path
+
+
+def torchrun(*args, timeout=120):
+    r"""Runs :obj:`torchrun` with two processes on a free port, single
+    threaded, importing this tg_nebp; returns its standard output."""
+    path = [PACKAGE_ROOT] + os.environ.get('PYTHONPATH', '').split(os.pathsep)
+    env = dict(os.environ, OMP_NUM_THREADS='1',
+               PYTHONPATH=os.pathsep.join(filter(None, path)))
+    done = subprocess.run(
+        [sys.executable, '-m', 'torch.distributed.run', '--standalone',
+         '--nproc_per_node=2', *map(str, args)], env=env,
+        capture_output=True, text=True, timeout=timeout)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done.stdout

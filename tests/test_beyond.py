@@ -14,7 +14,8 @@ from tg_nebp.evaluation import summarize, track_dataset
 from tg_nebp.filters import ParticleBP
 from tg_nebp.io import write_json
 from tg_nebp.models import GaussianRange, NLOSRange
-from tg_nebp.training import nebp_from_checkpoint
+from tg_nebp.training import load_checkpoint, nebp_from_checkpoint
+from tg_nebp.training_log import read_training_log
 
 from helpers import tiny_scenario
 
@@ -56,6 +57,13 @@ def test_every_method_equals_an_independent_run(tiny):
                  'consistency.png', 'nlos_outage.png',
                  'nlos_consistency.png', 'particles.png'):
         assert (out / name).stat().st_size > 0, name
+    for model in ('paired', 'marginalized', 'nlos'):  # the training logs
+        epochs = read_training_log(out / model)['epochs']
+        assert epochs == [{k: h[k] for k in ('epoch', 'train_loss',
+                                             'val_loss')} for h in
+                          load_checkpoint(out / model / 'nebp.pt')[
+                              'progress']['history']]
+        assert (out / model / 'history.png').stat().st_size > 0
     report = (out / 'report.md').read_text()
     assert all(f'| {name} |' in report for name in names)
     assert '| NEBP, paper Fig. 2 | paper_test | 50000 | 400 | 0.377 |' in \

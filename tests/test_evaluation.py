@@ -2,9 +2,12 @@ r"""Tests of :mod:`tg_nebp.evaluation`."""
 import torch
 
 from tg_nebp import ParticleBP
+from tg_nebp.cli import main
 from tg_nebp.evaluation import track_dataset
+from tg_nebp.io import read_json
+from tg_nebp.utils import derive_seed
 
-from helpers import gen, tiny_scenario
+from helpers import gen, tiny_scenario, torchrun
 
 
 def test_results_do_not_depend_on_the_batch_size():
@@ -14,9 +17,10 @@ def test_results_do_not_depend_on_the_batch_size():
     one = track_dataset(tracker, data, batch_size=1, seed=7)
     for batch_size in (2, 5):
         other = track_dataset(tracker, data, batch_size=batch_size, seed=7)
-        # per realization and step the agents' entries, in another order
-        assert torch.allclose(one['errors'].sort().values,
-                              other['errors'].sort().values, atol=1e-5)
+        # one order (realization, agent, time step) for every batch size
+        assert torch.equal(one['realization'], other['realization'])
+        assert torch.allclose(one['errors'], other['errors'], atol=1e-5)
+        assert torch.allclose(one['nees'], other['nees'], rtol=1e-4)
     assert torch.equal(one['first_mean'], track_dataset(
         tracker, data, batch_size=2, seed=7)['first_mean'])
 
@@ -34,3 +38,38 @@ def test_progress_counts_realization_steps_and_realizations_are_named():
         owners = result['realization']
         assert owners.shape == result['errors'].shape
         assert torch.bincount(owners).tolist() == [agents * 3] * 5
+
+
+def test_values_are_ordered_by_realization_agent_and_time():
+    # against each realization tracked alone, its steps read one by one
+    data = [tiny_scenario(steps=3).generate(gen(r)) for r in range(3)]
+    tracker = ParticleBP(16)
+    result = track_dataset(tracker, data, batch_size=2, seed=7)
+    assert result['realization'].tolist() == sorted(
+        result['realization'].tolist())
+    for r, d in enumerate(data):
+        alone = [step.mean[:, :2] for step in tracker.steps(
+            d, [torch.Generator().manual_seed(derive_seed(7, r))])]
+        agents = (~d.anchor).nonzero().flatten().tolist()
+        want = [float((alone[t][i] - d.states[i, t, :2]).norm())
+                for i in agents for t in range(3)]
+        got = result['errors'][result['realization'] == r].tolist()
+        assert len(got) == len(want)
+        for g, w in zip(got, want):
+            assert abs(g - w) <= 1e-5 * (1 + w)
+
+
+def test_torchrun_evaluate_shards_and_equals_one_process(tmp_path, capsys):
+    # 3 realizations over 2 processes: rank 0 tracks 0 and 2, rank 1 tracks
+    # 1; rank 0 gathers, prints and writes metrics equal to one process's
+    args = ['evaluate', '--particles', '32', '--realizations', '3',
+            '--seed', '4', '--root', tmp_path / 'data', '--quiet']
+    stdout = torchrun('-m', 'tg_nebp', *args, '--out', tmp_path / 'ddp')
+    assert stdout.count('bp: RMSE') == 1
+    assert main([*map(str, args), '--out', str(tmp_path / 'one')]) == 0
+    capsys.readouterr()
+    sharded = read_json(tmp_path / 'ddp' / 'metrics.json')['bp']
+    single = read_json(tmp_path / 'one' / 'metrics.json')['bp']
+    sharded.pop('seconds')
+    single.pop('seconds')
+    assert sharded == single

@@ -7,8 +7,6 @@ gloo processes against single-process training, one in float64 through
 Run as a script by :obj:`torchrun`, this file is the float64 worker."""
 import json
 import math
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,7 +14,6 @@ import pytest
 import torch
 import torch.distributed as dist
 
-import tg_nebp
 from tg_nebp import training
 from tg_nebp.cli import main
 from tg_nebp.datasets import Scenario
@@ -24,22 +21,9 @@ from tg_nebp.filters import NEBP
 from tg_nebp.training import (_check_global_batches, _local_batches,
                               load_checkpoint, train, validation_loss)
 
-PACKAGE_ROOT = str(Path(tg_nebp.__file__).resolve().parents[1])
+from tg_nebp.training_log import read_training_log
 
-
-def torchrun(*args, timeout=120):
-    r"""Runs :obj:`torchrun` with two processes on a free port, single
-    threaded, importing this tg_nebp."""
-    path = [PACKAGE_ROOT] + os.environ.get('PYTHONPATH', '').split(os.pathsep)
-    env = dict(os.environ, OMP_NUM_THREADS='1',
-               PYTHONPATH=os.pathsep.join(filter(None, path)))
-    done = subprocess.run(
-        [sys.executable, '-m', 'torch.distributed.run', '--standalone',
-         '--nproc_per_node=2', *map(str, args)], env=env,
-        capture_output=True, text=True, timeout=timeout)
-    assert done.returncode == 0, done.stdout + done.stderr
-    return done.stdout
-
+from helpers import torchrun
 
 def realizations(count, steps=8, offset=0, dtype=torch.float32):
     scenario = Scenario.load('paper_train').replace(num_steps=steps)
@@ -120,7 +104,7 @@ def test_uneven_global_batches_are_refused(num_realizations, batch_size,
 def test_train_refuses_uneven_batches_before_any_collective(monkeypatch):
     # a fake world of two: train must fail before touching the (absent)
     # process group
-    monkeypatch.setattr(training, '_world', lambda: (2, 0))
+    monkeypatch.setattr(training, 'process_group', lambda: (2, 0))
     data = realizations(3, steps=2)
     with pytest.raises(ValueError, match='train_set'):
         train(make_model(), data, epochs=1, batch_size=2)
@@ -223,8 +207,9 @@ def test_torchrun_cli_trains_as_one_process(tmp_path, capsys):
             '--val-realizations', '1', '--epochs', '2', '--batch-size', '2',
             '--lr', '1e-6', '--seed', '1', '--root', tmp_path / 'data',
             '--quiet']
-    stdout = torchrun('-m', 'tg_nebp', *args, '--out', tmp_path / 'ddp')
-    # rank 0 alone prints
+    stdout = torchrun('-m', 'tg_nebp', *args, '--out', tmp_path / 'ddp',
+                      '--log-dir', tmp_path / 'log')
+    # rank 0 alone prints and logs
     assert stdout.count('epoch 0:') == 1 and stdout.count('epoch 1:') == 1
     assert stdout.count('checkpoint ->') == 1
     assert main([*map(str, args), '--out', str(tmp_path / 'single')]) == 0
@@ -239,6 +224,10 @@ def test_torchrun_cli_trains_as_one_process(tmp_path, capsys):
     assert_moved_and_equal(a['model'], b['model'], initial, rtol=1e-4,
                            atol=5e-7)
     assert len(a['progress']['history']) == len(b['progress']['history']) == 2
+    log = read_training_log(tmp_path / 'log')
+    assert len(log['steps']) == 2 * 2 * 50  # epochs x batches x steps
+    assert [e['val_loss'] for e in log['epochs']] == [
+        h['val_loss'] for h in b['progress']['history']]
     for got, want in zip(b['progress']['history'],
                          a['progress']['history']):
         for loss in ('train_loss', 'val_loss'):

@@ -25,9 +25,11 @@ import multiprocessing
 import queue as queue_module
 import statistics
 import time
-from typing import Callable, Optional
+from typing import Callable, Optional, Union
 
 import torch
+
+from tg_nebp.threads import ThreadGovernor
 
 __all__ = ['add_arguments', 'run_bench', 'measure', 'OPERATIONS']
 
@@ -79,10 +81,13 @@ def _sync(device):
         torch.cuda.synchronize()
 
 
-def _timed(fn: Callable, repeats: int, device: str) -> float:
+def _timed(fn: Callable, repeats: int, device: str,
+           before: Optional[Callable] = None) -> float:
     fn()  # warm-up
     times = []
     for _ in range(repeats):
+        if before is not None:  # untimed: the thread governor's reading
+            before()
         _sync(device)
         start = time.perf_counter()
         fn()
@@ -171,14 +176,24 @@ def measure(operation: str, num_agents: int, num_particles: int,
             device: str = 'cpu', batch: int = 1, repeats: int = 10,
             steps: int = 5, seed: int = 0, chunk_size: Optional[int] = None,
             compile: bool = False, backward: bool = True,
-            num_samples: int = 1) -> dict:
-    r"""Runs one measurement in this process; returns a dict of figures."""
+            num_samples: int = 1,
+            threads: Union[None, int, str] = None) -> dict:
+    r"""Runs one measurement in this process; returns a dict of figures.
+    :obj:`threads` sets torch's intra-op threads: a count, :obj:`"auto"` (a
+    :class:`~tg_nebp.threads.ThreadGovernor` updated before every timed
+    call and after every tracker step) or :obj:`None` (torch's default)."""
     from torch_geometric import EdgeIndex
 
     from tg_nebp.filters import ParticleBP
     from tg_nebp.nn.conv import NEBPConv
     from tg_nebp.training import position_loss
 
+    governor = None
+    if threads == 'auto':
+        governor = ThreadGovernor()
+    elif threads is not None:
+        torch.set_num_threads(threads)
+    before = governor.update if governor is not None else None
     data = network(num_agents, batch, steps + 2, seed).to(device)
     edge_index, ranges = data.edges_by_step()[0]
     num_nodes, num_edges = data.num_nodes, edge_index.size(1)
@@ -211,10 +226,12 @@ def measure(operation: str, num_agents: int, num_particles: int,
                 stamps.append(time.perf_counter())
                 if len(stamps) > steps:
                     break
+                if before is not None:  # timed: part of the step's cost
+                    before()
         figures.update(
             s_per_step=statistics.median(  # the first step is a warm-up
                 b - a for a, b in zip(stamps, stamps[1:])),
-            peak_mb=peak.megabytes())
+            peak_mb=peak.megabytes(), threads=torch.get_num_threads())
         return figures
 
     particles = tracker.predict(tracker.sample_prior(data, generator),
@@ -268,7 +285,7 @@ def measure(operation: str, num_agents: int, num_particles: int,
         peak = _Peak(device)
         forward()
         figures['forward_peak_mb'] = peak.megabytes()
-        seconds = _timed(forward, repeats, device)
+        seconds = _timed(forward, repeats, device, before)
     figures.update(forward_ms=seconds * 1e3,
                    forward_edge_particles_per_s=edge_particles / seconds,
                    forward_peak_in_ek_floats=figures['forward_peak_mb'] *
@@ -279,10 +296,11 @@ def measure(operation: str, num_agents: int, num_particles: int,
         peak = _Peak(device)
         forward_backward()
         figures['forward_backward_peak_mb'] = peak.megabytes()
-        seconds = _timed(forward_backward, repeats, device)
+        seconds = _timed(forward_backward, repeats, device, before)
         figures.update(
             forward_backward_ms=seconds * 1e3,
             forward_backward_edge_particles_per_s=edge_particles / seconds)
+    figures['threads'] = torch.get_num_threads()  # in force at the end
     return figures
 
 
@@ -350,7 +368,7 @@ def run_bench(args) -> int:
             args=(queue, operation, num_agents, num_particles, args.device,
                   args.batch, args.repeats, args.steps, args.seed,
                   args.chunk_size, args.compile, not args.forward_only,
-                  num_samples))
+                  num_samples, args.threads))
         child.start()
         figures = _result(queue, child)
         child.join()

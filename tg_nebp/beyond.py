@@ -22,7 +22,9 @@ from tg_nebp.filters import NEBP, ParticleBP
 from tg_nebp.io import atomic_write, read_json, write_json, write_text
 from tg_nebp.models import model_like
 from tg_nebp.reference import PAPER_TABLE
-from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
+from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
+                              steps_per_epoch, train)
+from tg_nebp.training_log import TrainingLog
 
 __all__ = ['BEYOND', 'reproduce_beyond']
 
@@ -33,6 +35,7 @@ PAPER_PARTICLES = 50_000  # the paper's K (from the authors' code)
 SCENARIOS = dict(train='paper_train', test='paper_test',
                  nlos_train='paper_train_nlos', nlos_test='paper_test_nlos')
 
+#: The sizes of :obj:`tg-nebp reproduce --preset beyond` by device.
 BEYOND = {
     # 2 CPU cores: each model trains in under 30 minutes; fixed before any
     # test result was seen
@@ -88,22 +91,25 @@ def _train_arm(name: str, arm: dict, config: dict, root: str, device: str,
                  **options)
     checkpoint = out / name / 'nebp.pt'
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
-    done = (len(load_checkpoint(checkpoint)['progress']['history'])
-            if checkpoint.exists() else 0)
+    previous = (load_checkpoint(checkpoint)['progress']['history']
+                if checkpoint.exists() else [])
+    done = len(previous)
     log(f"training the equivariant NEBP '{name}' (K="
         f"{config['train_particles']}, {len(train_set)} realizations of "
         f"{scenario.name}, {arm['epochs']} epochs, {done} done)")
-    steps = (arm['epochs'] - done) * (len(train_set) //
-                                      config['batch_size']) * \
-        scenario.num_steps
-    bar = progress_factory(steps, f'train {name}') if progress_factory \
-        else None
+    steps = steps_per_epoch(len(train_set), config['batch_size'],
+                            scenario.num_steps)
+    bar = progress_factory((arm['epochs'] - done) * steps,
+                           f'train {name}') if progress_factory else None
     start = time.perf_counter()
-    history = train(model, train_set, val_set, epochs=arm['epochs'],
-                    batch_size=config['batch_size'], lr=config['lr'],
-                    seed=TRAIN_SEED, device=device, checkpoint=checkpoint,
-                    resume=checkpoint.exists(),
-                    progress=(lambda info: bar.update(1)) if bar else None)
+    with TrainingLog(checkpoint.parent, steps, previous) as training_log:
+        history = train(model, train_set, val_set, epochs=arm['epochs'],
+                        batch_size=config['batch_size'], lr=config['lr'],
+                        seed=TRAIN_SEED, device=device,
+                        checkpoint=checkpoint, resume=checkpoint.exists(),
+                        progress=lambda info: (training_log.step(info),
+                                               bar and bar.update(1)),
+                        on_epoch=training_log.epoch)
     if bar:
         bar.close()
     if done < arm['epochs']:
@@ -216,7 +222,8 @@ def _report(metrics: dict, histories: dict, config: dict, device: str,
               '(every method on the line-of-sight test network; the '
               "paper's curves dashed), `nlos_outage.png`, "
               '`nlos_consistency.png`, `particles.png` (P_out(1 m) and '
-              'P(accept) against K).', '']
+              'P(accept) against K), and each model\'s `<model>/history.png` '
+              '(its training losses; `steps.csv`, `epochs.csv`).', '']
     return '\n'.join(lines)
 
 

@@ -1,11 +1,12 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 :obj:`reproduce`, :obj:`frontier` and :obj:`bench`."""
 import argparse
+import contextlib
 import math
 import os
 import sys
 from pathlib import Path
-from typing import List, NoReturn, Optional
+from typing import Callable, List, NoReturn, Optional
 
 import torch
 import torch.distributed as dist
@@ -19,7 +20,11 @@ from tg_nebp.io import check_writable_folder, one_line, write_text
 from tg_nebp.models import MODELS, model_like
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.reproduce import PRESET_NAMES, reproduce
-from tg_nebp.training import load_checkpoint, nebp_from_checkpoint, train
+from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
+                              steps_per_epoch, train)
+from tg_nebp.training_log import TrainingLog
+from tg_nebp.threads import ThreadGovernor
+from tg_nebp.utils import process_group
 
 __all__ = ['main']
 
@@ -116,9 +121,21 @@ def _device(name: str) -> str:
     return name
 
 
+def _threads(text: str):
+    return 'auto' if text == 'auto' else _positive(text)
+
+
 def _add_common(parser: argparse.ArgumentParser):
     parser.add_argument('--device', type=_device, default='cpu',
                         help="'cpu' (default) or 'cuda'")
+    parser.add_argument('--threads', type=_threads, default=None,
+                        metavar='N|auto',
+                        help="torch's CPU threads: a number, or 'auto' (as "
+                        'many as the cores that other processes leave free, '
+                        'checked after every time step; BP only, whose '
+                        'results do not depend on the thread count) '
+                        "(default: 'auto' for BP runs, torch's default for "
+                        'NEBP)')
     parser.add_argument('--root', default='datasets',
                         help='dataset root (default: datasets)')
     parser.add_argument('--compile', action='store_true',
@@ -142,11 +159,25 @@ def _measurement(args, scenario):
     return model_like(args.measurement, 'measurement', measurement)
 
 
+def _governed(progress: Callable, args) -> Callable:
+    # the thread governor takes its reading after every time step
+    governor = getattr(args, 'governor', None)
+    if governor is None:
+        return progress
+
+    def step(count):
+        progress(count)
+        governor.update()
+
+    return step
+
+
 def _bar(total: int, desc: str, quiet: bool = False):
     return tqdm(total=total, desc=desc, unit='step', disable=quiet)
 
 
-def _evaluate(args) -> int:
+def _evaluate_on(args, device: str) -> int:
+    rank = process_group()[1]
     dataset, = load_datasets(args.root, (args.scenario, args.realizations,
                                          args.seed))
     models = dict(motion=dataset.scenario.motion_model,
@@ -170,12 +201,17 @@ def _evaluate(args) -> int:
                              num_samples=args.samples or 1,
                              regularize=args.regularize,
                              ess_threshold=args.ess_threshold, **models)
-    with _bar(len(dataset) * dataset.scenario.num_steps,
-              f'{args.method} K={tracker.num_particles}', args.quiet) as bar:
-        result = evaluate_method(args.method, tracker.to(args.device).eval(),
-                                 dataset, args.batch_size, args.device,
+    world_size = process_group()[0]
+    share = len(range(rank, len(dataset), world_size))  # rank 0's
+    with _bar(share * dataset.scenario.num_steps,
+              f'{args.method} K={tracker.num_particles}',
+              args.quiet or rank > 0) as bar:
+        result = evaluate_method(args.method, tracker.to(device).eval(),
+                                 dataset, args.batch_size, device,
                                  args.seed, Path(args.out),
-                                 progress=bar.update)
+                                 progress=_governed(bar.update, args))
+    if rank > 0:
+        return 0
     entry = result['entry']
     print(f"{args.method}: RMSE {entry['rmse']:.3f} m, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
@@ -183,27 +219,33 @@ def _evaluate(args) -> int:
     return 0
 
 
-def _train(args) -> int:
-    # under torchrun (WORLD_SIZE > 1) every process joins the group here:
-    # NCCL with one GPU per process (LOCAL_RANK), gloo on the CPU
-    launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
-                and not dist.is_initialized())
-    device = args.device
-    if launched:
-        if device.startswith('cuda'):
-            device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
-            torch.cuda.set_device(device)
-        dist.init_process_group('nccl' if device.startswith('cuda') else
-                                'gloo')
-    try:
-        return _train_on(args, device)
-    finally:
+def _in_process_group(run: Callable[[argparse.Namespace, str], int]
+                      ) -> Callable[[argparse.Namespace], int]:
+    r"""The command :obj:`run(args, device)`, which under torchrun
+    (WORLD_SIZE > 1) every process runs in the process group it joins
+    first: NCCL with one GPU per process (LOCAL_RANK), gloo on the CPU."""
+
+    def command(args) -> int:
+        launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
+                    and not dist.is_initialized())
+        device = args.device
         if launched:
-            dist.destroy_process_group()
+            if device.startswith('cuda'):
+                device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
+                torch.cuda.set_device(device)
+            dist.init_process_group('nccl' if device.startswith('cuda')
+                                    else 'gloo')
+        try:
+            return run(args, device)
+        finally:
+            if launched:
+                dist.destroy_process_group()
+
+    return command
 
 
 def _train_on(args, device: str) -> int:
-    rank = dist.get_rank() if dist.is_initialized() else 0
+    rank = process_group()[1]
     train_set, val_set = load_datasets(
         args.root, (args.scenario, args.realizations, args.seed),
         (args.scenario, args.val_realizations, args.seed + 1))
@@ -215,26 +257,36 @@ def _train_on(args, device: str) -> int:
                  num_samples=args.samples, regularize=args.regularize,
                  ess_threshold=args.ess_threshold, variant=args.variant)
     checkpoint = Path(args.out) / 'nebp.pt'
-    steps = -(-len(train_set) // args.batch_size) * scenario.num_steps
-    with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar:
+    steps = steps_per_epoch(len(train_set), args.batch_size,
+                            scenario.num_steps)
+    done = (load_checkpoint(checkpoint)['progress'].get('history', [])
+            if args.resume and checkpoint.exists() else [])
+    log = (TrainingLog(args.log_dir, steps, done)
+           if args.log_dir is not None and rank == 0 else None)
+    with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar, \
+            (log or contextlib.nullcontext()):
 
         def progress(info):
             bar.set_postfix(epoch=info['epoch'], loss=f"{info['loss']:.4f}")
             bar.update(1)
+            if log is not None:
+                log.step(info)
 
-        if args.resume and checkpoint.exists():
-            done = len(load_checkpoint(checkpoint)['progress'].get(
-                'history', []))
-            bar.update(min(done, args.epochs) * steps)
+        bar.update(min(len(done), args.epochs) * steps)
         history = train(model, train_set, val_set, args.epochs,
                         args.batch_size, args.lr, args.seed, device,
-                        checkpoint, args.resume, progress)
+                        checkpoint, args.resume, progress,
+                        on_epoch=log.epoch if log is not None else None)
     if rank == 0:
         for h in history:
             print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
                   f"validation loss {h['val_loss']:.4f} (m^2 per "
                   f"agent-step)")
         print(f'checkpoint -> {checkpoint}')
+        if log is not None:
+            events = ', TensorBoard events' if log.tensorboard else ''
+            print(f'log -> {log.log_dir} (steps.csv, epochs.csv, '
+                  f'history.png{events})')
     return 0
 
 
@@ -254,7 +306,8 @@ def _frontier(args) -> int:
     with _bar(len(points) * len(dataset) * dataset.scenario.num_steps,
               f'frontier ({len(points)} points)', args.quiet) as bar:
         result = run_frontier(points, dataset, out, args.seed, args.device,
-                              args.batch_size, progress=bar.update,
+                              args.batch_size,
+                              progress=_governed(bar.update, args),
                               log=bar.write if not args.quiet else print,
                               compile=args.compile)
     write_text(out / 'frontier.md', frontier_table(result))
@@ -283,8 +336,14 @@ def build_parser() -> argparse.ArgumentParser:
         'localization.')
     sub = parser.add_subparsers(dest='command', required=True)
 
-    ev = sub.add_parser('evaluate', help='run a tracker on the test network '
-                        'and write DIR/metrics.json')
+    ev = sub.add_parser(
+        'evaluate', help='run a tracker on the test network and write '
+        'DIR/metrics.json', description='Runs BP or NEBP on the test '
+        'realizations and merges its entry into DIR/metrics.json. Sharded '
+        'over N processes: "torchrun --nproc_per_node=N -m tg_nebp evaluate '
+        '..." (gloo on the CPU; NCCL with --device cuda, one GPU per '
+        'process): rank r tracks realizations r, r + N, ..., rank 0 gathers '
+        'the errors, prints and writes; the metrics equal one process\'s.')
     ev.add_argument('--method', choices=['bp', 'nebp'], default='bp')
     ev.add_argument('--checkpoint', default=None,
                     help='NEBP checkpoint (with --method nebp)')
@@ -304,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(ev)
     _add_samples(ev, None)
     _add_resampling(ev)
-    ev.set_defaults(run=_evaluate)
+    ev.set_defaults(run=_in_process_group(_evaluate_on))
 
     tr = sub.add_parser(
         'train', help='train NEBP (default: on the paper\'s training '
@@ -343,11 +402,16 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument('--out', default='results/train')
     tr.add_argument('--resume', action='store_true',
                     help='continue from DIR/nebp.pt')
+    tr.add_argument('--log-dir', default=None, metavar='LOG',
+                    help='write the loss of every step (LOG/steps.csv) and '
+                    'epoch (LOG/epochs.csv), TensorBoard event files if '
+                    'tensorboard is installed, and LOG/history.png at the '
+                    'end (default: no log)')
     tr.add_argument('--quiet', action='store_true')
     _add_common(tr)
     _add_samples(tr, 1)
     _add_resampling(tr)
-    tr.set_defaults(run=_train)
+    tr.set_defaults(run=_in_process_group(_train_on))
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
                         'training, BP and NEBP evaluation, report, figures')
@@ -424,6 +488,45 @@ def _check_paths(args):
         raise ValueError(f"--root '{root}' is a file, not a folder")
     if getattr(args, 'out', None) is not None:
         check_writable_folder(args.out, '--out')
+    if getattr(args, 'log_dir', None) is not None:
+        check_writable_folder(args.log_dir, '--log-dir')
+
+
+def _thread_invariant(args) -> bool:
+    # particle BP gives bit-identical results for any thread count (tested);
+    # NEBP's learned layers round by thread count. bench measures speed
+    # only and passes the setting on to its measurement processes
+    return (args.command in ('frontier', 'bench') or
+            (args.command == 'evaluate' and args.method == 'bp'))
+
+
+@contextlib.contextmanager
+def _threads_in_force(args):
+    r"""--threads for the run: a count, or a governor (:obj:`auto`, the
+    default of BP runs) that :func:`_governed` progress hooks update; the
+    thread count is restored afterwards."""
+    threads = args.threads
+    if threads is None:
+        threads = 'auto' if _thread_invariant(args) else None
+    elif threads == 'auto' and not _thread_invariant(args):
+        raise ValueError("--threads auto is for BP runs (evaluate --method "
+                         "bp, frontier, bench): NEBP's results depend on the "
+                         "thread count; give a number")
+    if args.command == 'bench':  # its measurement processes set it
+        args.threads = threads
+        yield
+        return
+    initial = torch.get_num_threads()
+    args.governor = None
+    if threads == 'auto' and not args.device.startswith('cuda'):
+        args.governor = ThreadGovernor()
+    elif isinstance(threads, int):
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != initial:
+            torch.set_num_threads(initial)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -436,7 +539,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     'results/reproduce')
     try:
         _check_paths(args)
-        return args.run(args)
+        with _threads_in_force(args):
+            return args.run(args)
     except ValueError as e:  # bad input: a clear message, no traceback
         return _print_error(e)
     except OSError as e:  # a file or folder that cannot be read or written

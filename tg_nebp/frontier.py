@@ -19,6 +19,7 @@ from tg_nebp.io import read_json, write_json
 __all__ = ['GridPoint', 'grid', 'pareto_front', 'run_frontier',
            'frontier_table', 'FRONTIER_VERSION']
 
+#: The format version of :obj:`frontier.json`.
 FRONTIER_VERSION = 1
 
 # what a point is ranked by: P_out(1 m) (lower is better) and the distance of
@@ -30,12 +31,16 @@ OUTAGE_KEY, CONFIDENCE_KEY = '1.0', '0.95'
 class GridPoint(dict):
     r"""One configuration of the grid: :obj:`particles`, :obj:`samples`,
     :obj:`resampler`, :obj:`regularize`, :obj:`ess_threshold`; its
-    :attr:`key` names it in :obj:`frontier.json`."""
+    :attr:`~tg_nebp.frontier.GridPoint.key` names it in
+    :obj:`frontier.json`."""
     @property
     def key(self) -> str:
+        r"""The point's name, :obj:`"particles=K samples=M ..."`."""
         return ' '.join(f'{name}={value}' for name, value in self.items())
 
     def tracker(self, **models) -> ParticleBP:
+        r"""The :class:`~tg_nebp.filters.ParticleBP` of this point, with
+        the motion and measurement models :obj:`models`."""
         return ParticleBP(self['particles'], num_samples=self['samples'],
                           resampler=self['resampler'],
                           regularize=self['regularize'],
@@ -123,7 +128,7 @@ def run_frontier(points: Iterable[GridPoint], dataset, out: Path,
         log (callable, optional): Receives one line per point.
             (default: :obj:`print`)
         compile (bool, optional): Fuse the per-edge work with
-            :func:`torch.compile` (see :class:`ParticleBP`).
+            :func:`torch.compile` (see :class:`~tg_nebp.filters.ParticleBP`).
             (default: :obj:`False`)
     """
     path = Path(out) / 'frontier.json'

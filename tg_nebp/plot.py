@@ -1,7 +1,8 @@
 r"""Figures of the paper's Fig. 2 (tracks, outage and consistency curves,
-with the paper's digitized curves for comparison) and of the accuracy-cost
-frontier. Needs matplotlib
-(:obj:`pip install tg_nebp[plot]`)."""
+with the paper's digitized curves for comparison), of the accuracy-cost
+frontier and of a training run's losses, with matplotlib (a dependency of
+the default install)."""
+import math
 from pathlib import Path
 from typing import Dict, Union
 
@@ -12,7 +13,8 @@ from tg_nebp.io import atomic_write
 from tg_nebp.reference import paper_curves
 
 __all__ = ['plot_tracks', 'plot_outage', 'plot_consistency',
-           'plot_frontier', 'plot_outage_against_particles']
+           'plot_frontier', 'plot_outage_against_particles',
+           'plot_training_history']
 
 COLORS = {'bp': 'tab:blue', 'nebp': 'tab:red'}
 PAPER_SERIES = {'bp': 'BP', 'nebp': 'NEBP'}
@@ -200,4 +202,38 @@ def plot_outage_against_particles(entries: Dict[str, Dict[int, dict]],
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=7, loc='lower right')
+    _save(fig, path)
+
+
+def plot_training_history(log: Dict[str, list], steps_per_epoch: int,
+                          path: Union[str, Path]):
+    r"""The training loss of every optimizer step (thin) and of every epoch,
+    and the validation loss of every epoch, against the epoch, from
+    :func:`~tg_nebp.training_log.read_training_log`'s
+    :obj:`{"steps": [...], "epochs": [...]}` (either may be empty: a run
+    resumed from a checkpoint without a log has only its epochs)."""
+    fig, ax = _figure((6, 4))
+    steps, epochs = log['steps'], log['epochs']
+    if steps:
+        ax.plot([s['epoch'] + s['step'] / steps_per_epoch for s in steps],
+                [s['loss'] for s in steps], color='tab:blue', lw=0.5,
+                alpha=0.4, label='training, per step')
+    done = [e['epoch'] + 1 for e in epochs]
+    ax.plot(done, [e['train_loss'] for e in epochs], 'o-', color='tab:blue',
+            label='training, per epoch')
+    ax.plot(done, [e['val_loss'] for e in epochs], 's-', color='tab:red',
+            label='validation')
+    losses = [v for v in [s['loss'] for s in steps] + [
+        v for e in epochs for v in (e['train_loss'], e['val_loss'])]
+        if not math.isnan(v)]  # no validation set: NaN
+    if losses and min(losses) > 0:
+        from matplotlib.ticker import StrMethodFormatter
+        ax.set_yscale('log')
+        for axis in (ax.yaxis.set_major_formatter,
+                     ax.yaxis.set_minor_formatter):
+            axis(StrMethodFormatter('{x:g}'))
+    ax.set_xlabel('epoch')
+    ax.set_ylabel('loss per agent and step [m$^2$]')
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
     _save(fig, path)

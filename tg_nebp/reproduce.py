@@ -16,7 +16,8 @@ from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import NEBP, ParticleBP
 from tg_nebp.io import read_json, write_text
 from tg_nebp.reference import PAPER_TABLE
-from tg_nebp.training import train
+from tg_nebp.training import steps_per_epoch, train
+from tg_nebp.training_log import TrainingLog
 
 __all__ = ['PRESETS', 'PRESET_NAMES', 'reproduce']
 
@@ -24,6 +25,7 @@ __all__ = ['PRESETS', 'PRESET_NAMES', 'reproduce']
 # the test seed so that BP and NEBP see the same prior particles.
 TRAIN_SEED, VAL_SEED, TEST_SEED = 1, 2, 0
 
+#: The sizes of the paper's experiment by preset name.
 PRESETS = {
     # 2 CPU cores, well under 15 minutes; a shorter training budget than the
     # paper's, so a larger (fixed, not tuned on test data) learning rate
@@ -35,9 +37,9 @@ PRESETS = {
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
                   test_realizations=400, eval_batch_size=4),
 }
-# every preset name: the paper's experiment at the sizes above, and
-# 'beyond', the equivariant NEBP at several K, on marginalized BP and under
-# NLOS mismatch (tg_nebp.beyond, its sizes in BEYOND by device)
+#: The names of the presets, the paper's experiment at the sizes above and
+#: 'beyond' (the equivariant NEBP at several K, on marginalized BP and
+#: under NLOS mismatch; tg_nebp.beyond, its sizes in BEYOND by device).
 PRESET_NAMES = sorted([*PRESETS, 'beyond'])
 
 
@@ -71,7 +73,8 @@ def _report(metrics: dict, preset: str, config: dict, device: str,
               f"{h['val_loss']:.4f} |" for h in history]
     lines += ['', 'Losses are per agent and time step (m^2). Figures: '
               '`tracks.png`, `outage.png`, `consistency.png` (the paper\'s '
-              'curves dashed).', '']
+              'curves dashed), `history.png` (the training losses; '
+              '`steps.csv`, `epochs.csv`).', '']
     return '\n'.join(lines)
 
 
@@ -117,14 +120,18 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
         f"{config['epochs']} epochs)")
     torch.manual_seed(TRAIN_SEED)  # the GNN's initial weights
     nebp = NEBP(k, **models)
-    bar = progress_factory(config['epochs'] * len(train_set) // max(
-        config['batch_size'], 1) * scenario.num_steps, 'train') \
+    steps = steps_per_epoch(len(train_set), config['batch_size'],
+                            scenario.num_steps)
+    bar = progress_factory(config['epochs'] * steps, 'train') \
         if progress_factory else None
-    history = train(nebp, train_set, val_set, epochs=config['epochs'],
-                    batch_size=config['batch_size'], lr=config['lr'],
-                    seed=TRAIN_SEED, device=device,
-                    checkpoint=out / 'nebp.pt',
-                    progress=(lambda info: bar.update(1)) if bar else None)
+    with TrainingLog(out, steps) as training_log:
+        history = train(nebp, train_set, val_set, epochs=config['epochs'],
+                        batch_size=config['batch_size'], lr=config['lr'],
+                        seed=TRAIN_SEED, device=device,
+                        checkpoint=out / 'nebp.pt',
+                        progress=lambda info: (training_log.step(info),
+                                               bar and bar.update(1)),
+                        on_epoch=training_log.epoch)
     if bar:
         bar.close()
     for h in history:

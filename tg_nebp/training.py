@@ -23,14 +23,15 @@ from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP
 from tg_nebp.io import atomic_write, first_line, one_line
-from tg_nebp.utils import derive_seed
+from tg_nebp.utils import derive_seed, process_group
 
-__all__ = ['train', 'train_epoch', 'adam', 'step_loss', 'position_loss',
-           'save_checkpoint', 'load_checkpoint', 'nebp_from_checkpoint',
-           'CHECKPOINT_VERSION']
+__all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
+           'position_loss', 'save_checkpoint', 'load_checkpoint',
+           'nebp_from_checkpoint', 'CHECKPOINT_VERSION']
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
 # 2: models stored as {'name': ..., 'params': ...}
+#: The format version that :func:`save_checkpoint` writes.
 CHECKPOINT_VERSION = 3
 # version 2 differs only in lacking the NEBP variant (the paper's)
 READABLE_VERSIONS = (2, 3)
@@ -91,10 +92,11 @@ def nebp_from_checkpoint(path: Union[str, Path],
                          compile: bool = False,
                          num_samples: Optional[Union[int, str]] = None
                          ) -> NEBP:
-    r"""Rebuilds an :class:`NEBP` tracker from a checkpoint (with
-    :obj:`compile`, see :class:`NEBP`). The paper variant's :math:`g_e` and
-    :math:`g_v` are sized by :math:`K`, so a different :obj:`num_particles`
-    is an error; the equivariant variant runs at any :math:`K`."""
+    r"""Rebuilds an :class:`~tg_nebp.filters.NEBP` tracker from a
+    checkpoint (with :obj:`compile`, see :class:`~tg_nebp.filters.NEBP`).
+    The paper variant's :math:`g_e` and :math:`g_v` are sized by :math:`K`,
+    so a different :obj:`num_particles` is an error; the equivariant
+    variant runs at any :math:`K`."""
     state = load_checkpoint(path)
     trained = state['config'].get('num_particles')
     variant = state['config'].get('variant', 'paper')
@@ -118,16 +120,8 @@ def nebp_from_checkpoint(path: Union[str, Path],
     return model
 
 
-def _world() -> Tuple[int, int]:
-    r"""The world size and this process's rank (:obj:`(1, 0)` outside an
-    initialized process group)."""
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_world_size(), dist.get_rank()
-    return 1, 0
-
-
 def _sum_over_ranks(values: Sequence[float], device: str) -> List[float]:
-    if _world()[0] == 1:
+    if process_group()[0] == 1:
         return list(values)
     # float64, as the Python floats that a single process sums
     summed = torch.tensor(values, dtype=torch.float64, device=device)
@@ -201,7 +195,7 @@ def validation_loss(model: NEBP, dataset, batch_size: int, device: str,
     realizations :math:`r, r + W, \dots` in batches of
     :obj:`batch_size // W` and the sums are all-reduced, so every rank
     returns the single-process value."""
-    world_size, rank = _world()
+    world_size, rank = process_group()
     shard = list(range(rank, len(dataset), world_size))
     local = max(batch_size // world_size, 1)
     total, count = 0.0, 0
@@ -222,7 +216,7 @@ def _sum_gradients_over_ranks(model: torch.nn.Module):
     # ranks it is the gradient of the global batch's sum, as in a single
     # process (no wrapper module, so nothing depends on how the tracker
     # names its learnable parts)
-    if _world()[0] == 1:
+    if process_group()[0] == 1:
         return
     for parameter in model.parameters():
         if parameter.grad is not None:
@@ -263,13 +257,20 @@ def _resume(checkpoint, model: NEBP, optimizer, settings: dict
     return list(saved.get('history', []))
 
 
+def steps_per_epoch(num_realizations: int, batch_size: int,
+                    num_steps: int) -> int:
+    r"""Optimizer steps in one epoch of :func:`train`: one per time step
+    of every (global) batch, the last one possibly partial."""
+    return -(-num_realizations // batch_size) * num_steps
+
+
 def train_epoch(model: NEBP, train_set, optimizer: torch.optim.Optimizer,
                 epoch: int, batch_size: int, seed: int, device: str,
                 loss: Callable = step_loss,
                 progress: Optional[Callable[[dict], None]] = None) -> float:
     r"""One epoch of :func:`train`: an optimizer step per time step of
     every batch; returns the mean loss per agent (over all ranks)."""
-    world_size, rank = _world()
+    world_size, rank = process_group()
     model.train()
     total, count, step_index = 0.0, 0, 0
     for indices in _local_batches(train_set, batch_size, seed, epoch,
@@ -300,7 +301,8 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
           resume: bool = False,
           progress: Optional[Callable[[dict], None]] = None,
           optimizer: Optional[Callable] = None,
-          loss: Callable = step_loss) -> List[Dict]:
+          loss: Callable = step_loss,
+          on_epoch: Optional[Callable[[dict], None]] = None) -> List[Dict]:
     r"""Trains :obj:`model` as in the paper: Adam, one optimizer step per
     time step on :math:`\sum_i \|\hat{\mathbf{p}}_i - \mathbf{p}_i\|^2`
     summed over the batch's agents, resampling cutting the gradient. After
@@ -310,8 +312,10 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     same device). Every realization draws its particles from its own
     generator, seeded with :obj:`(seed, epoch, index)`, so the result does
     not depend on how a batch is split. The pieces are replaceable: the
-    optimizer (a factory), the loss of a time step, and the per-step hook
-    :obj:`progress`; :func:`train_epoch` is one epoch on its own.
+    optimizer (a factory), the loss of a time step, and the hooks
+    :obj:`progress` (per step) and :obj:`on_epoch` (a
+    :class:`~tg_nebp.training_log.TrainingLog` takes both);
+    :func:`train_epoch` is one epoch on its own.
 
     **Distributed training.** Started by :obj:`torchrun` with an initialized
     process group of :math:`W > 1` processes (:obj:`tg-nebp train` does it:
@@ -330,7 +334,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     equal (as runs on different thread counts); in float64 they agree far
     longer. :obj:`batch_size` must be a multiple of :math:`W` and
     :obj:`len(train_set)` of :obj:`batch_size`. Only rank 0 writes
-    checkpoints and calls :obj:`progress` (all ranks read a checkpoint to
+    checkpoints and calls :obj:`progress` and :obj:`on_epoch` (all ranks read a checkpoint to
     resume, so it must be on a shared file system); every rank returns the
     same history.
 
@@ -360,6 +364,8 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
             tracker's :class:`~tg_nebp.filters.particle_bp.StepOutput` and
             the batch, a sum over the batch's agents.
             (default: :func:`step_loss`)
+        on_epoch (callable, optional): Called after every epoch (and its
+            checkpoint) with its history entry. (default: :obj:`None`)
 
     Returns:
         The history: one :obj:`{"epoch", "train_loss", "val_loss"}` per
@@ -368,7 +374,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     if epochs < 1 or batch_size < 1 or not lr > 0:
         raise ValueError(f"'epochs' and 'batch_size' must be positive and "
                          f"'lr' > 0, got {epochs}, {batch_size}, {lr}")
-    world_size, rank = _world()
+    world_size, rank = process_group()
     _check_global_batches(len(train_set), batch_size, world_size)
     model.to(device)
     optimizer = (optimizer or adam(lr))(model.parameters())
@@ -390,4 +396,6 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
                                      **settings))
             if world_size > 1:  # every rank returns with the file written
                 dist.barrier()
+        if on_epoch is not None and rank == 0:
+            on_epoch(history[-1])
     return history

@@ -2,6 +2,7 @@ r"""Small tensor helpers shared by the layers and the trackers."""
 from typing import Tuple
 
 import torch
+import torch.distributed as dist
 from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
@@ -17,6 +18,7 @@ __all__ = [
     'as_edge_index',
     'long_edge_index',
     'derive_seed',
+    'process_group',
 ]
 
 
@@ -37,8 +39,9 @@ def weighted_moments(particles: Tensor, log_weights: Tensor):
     \mathbf{x}_i^{(k)}` and covariance :math:`\sum_k w_i^{(k)}
     (\mathbf{x}_i^{(k)} - \hat{\mathbf{x}}_i)(\mathbf{x}_i^{(k)} -
     \hat{\mathbf{x}}_i)^\top` of particles :math:`(N, K, D)` with
-    log-weights :math:`(N, K)`, normalized here (:func:`log_normalize`), so
-    that the weights sum to one whatever their scale. A row of zero weights
+    log-weights :math:`(N, K)`, normalized here
+    (:func:`~tg_nebp.utils.log_normalize`), so that the weights sum to one
+    whatever their scale. A row of zero weights
     gives zeros: validation rejects such rows before."""
     dtype = torch.promote_types(particles.dtype, log_weights.dtype)
     particles = particles.to(dtype)
@@ -60,7 +63,7 @@ def log_normalize(log_weights: Tensor) -> Tensor:
     tied particles each get weight one. A row of zero weights (all
     :math:`-\infty`) has no normalization: it stays :math:`-\infty` with a
     zero gradient, never NaN; callers that need a distribution reject it
-    (:func:`~tg_nebp.data.validation.check_particles`)."""
+    (:func:`~tg_nebp.data.check_particles`)."""
     zero = torch.isneginf(log_weights).all(-1, keepdim=True)
     # a finite stand-in keeps log_softmax's NaN out of both passes
     normalized = log_weights.masked_fill(zero, 0.0).log_softmax(-1)
@@ -206,3 +209,13 @@ def derive_seed(seed: int, *parts: int) -> int:
     for part in parts:
         value = (value * 1_000_003 + int(part)) % (2**63 - 1)
     return value
+
+
+def process_group() -> Tuple[int, int]:
+    r"""The world size and this process's rank in the initialized
+    :mod:`torch.distributed` process group (:obj:`torchrun`), or
+    :obj:`(1, 0)` outside one: what training, evaluation and data
+    generation use to split their work."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_world_size(), dist.get_rank()
+    return 1, 0

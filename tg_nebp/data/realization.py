@@ -65,7 +65,9 @@ class Realization(Data):
     :class:`~torch_geometric.loader.DataLoader` batches sequences of different
     network sizes (see the module docstring for the fields).
 
-    Batching needs no override of :meth:`__inc__` or :meth:`__cat_dim__`:
+    Batching needs no override of
+    :meth:`~torch_geometric.data.Data.__inc__` or
+    :meth:`~torch_geometric.data.Data.__cat_dim__`:
     :obj:`edge_index` is incremented by the number of nodes, every node and
     edge field (:obj:`states`, :obj:`prior_cov`, :obj:`edge_time`, ...) is
     concatenated along its first dimension, and the integer

@@ -14,7 +14,7 @@ from tg_nebp.data.validation import (check_positive_int, check_realization,
                                      is_integer)
 from tg_nebp.datasets.scenario import Scenario
 from tg_nebp.io import atomic_write, first_line
-from tg_nebp.utils import derive_seed
+from tg_nebp.utils import derive_seed, process_group
 
 __all__ = ['CooperativeLocalizationDataset', 'load_datasets']
 
@@ -229,8 +229,8 @@ def load_datasets(root: str, *specs: Tuple[Union[str, Scenario], int, int]
     0 generates (or finds) the files first and the other ranks then read
     them, so concurrent processes never write the same file. Used by
     :obj:`tg-nebp train`, :obj:`evaluate` and :obj:`reproduce`."""
-    distributed = dist.is_available() and dist.is_initialized()
-    rank = dist.get_rank() if distributed else 0
+    world_size, rank = process_group()
+    distributed = world_size > 1
     if rank > 0:
         dist.barrier()
     datasets = [CooperativeLocalizationDataset(root, scenario, count, seed,

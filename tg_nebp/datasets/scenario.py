@@ -33,10 +33,11 @@ def _is_sequence(value) -> bool:
 @dataclasses.dataclass(frozen=True)
 class Scenario:
     r"""The definition of a cooperative-localization network, from which
-    :meth:`generate` draws realizations. The paper's networks are JSON files
-    in the repository's top-level :obj:`datasets/` folder
-    (:obj:`"paper_train"`: 25 agents, 5 anchors; :obj:`"paper_test"`: 100
-    agents, 13 anchors), loaded with :meth:`load`.
+    :meth:`~tg_nebp.datasets.Scenario.generate` draws realizations. The
+    paper's networks are JSON files in the repository's top-level
+    :obj:`datasets/` folder (:obj:`"paper_train"`: 25 agents, 5 anchors;
+    :obj:`"paper_test"`: 100 agents, 13 anchors), loaded with
+    :meth:`load`.
 
     Args:
         name (str): Name (part of the processed file name).

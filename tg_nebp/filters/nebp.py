@@ -16,8 +16,9 @@ class NEBP(ParticleBP):
     r"""The Neural Enhanced BP tracker for cooperative localization, from the
     `"Neural Enhanced Belief Propagation for Cooperative Localization"
     <https://arxiv.org/abs/2105.12903>`_ paper: the time loop of
-    :class:`ParticleBP` (prior, prediction, update, estimate, resampling;
-    shared, not copied) with :class:`~tg_nebp.nn.conv.NEBPConv` in place of
+    :class:`~tg_nebp.filters.ParticleBP` (prior, prediction, update,
+    estimate, resampling; shared, not copied) with
+    :class:`~tg_nebp.nn.conv.NEBPConv` in place of
     :class:`~tg_nebp.nn.conv.ParticleBPConv`. Its learnable parameters are
     those of :obj:`self.conv` (the :class:`~tg_nebp.nn.conv.NEBPConv` in
     place of BP's); train it with :func:`tg_nebp.training.train`

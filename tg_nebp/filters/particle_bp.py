@@ -150,8 +150,9 @@ class ParticleBP(torch.nn.Module):
         motion (MotionModel, optional): Motion model.
             (default: :obj:`ConstantVelocityDrag()`)
         measurement (MeasurementModel, optional): Measurement model; its
-            :attr:`features` are the link features the realization must
-            hold. (default: :obj:`GaussianRange()`)
+            :attr:`~tg_nebp.models.MeasurementModel.features` are the
+            link features the realization must hold.
+            (default: :obj:`GaussianRange()`)
         resampler (str or callable, optional): :obj:`"multinomial"` (the
             paper's), :obj:`"systematic"`, or a function of
             :obj:`(log_weights, num_samples, generator)` returning indices.
@@ -167,15 +168,16 @@ class ParticleBP(torch.nn.Module):
             resampling, every particle is moved by Gaussian noise with
             covariance :math:`h^2` times the node's weighted particle
             covariance; :obj:`"silverman"` takes :math:`h` from
-            :func:`~tg_nebp.filters.resampling.silverman_bandwidth`.
+            :func:`~tg_nebp.filters.silverman_bandwidth`.
             (default: :obj:`None`, the paper's plain resampling)
         ess_threshold (float, optional): Resample a node only when its
             effective sample size falls below this fraction of :math:`K`;
             the others carry their weights into the next prediction.
             (default: :obj:`None`, resample every step as the paper)
         compile (bool, optional): Fuse the convolution's per-edge work with
-            :func:`torch.compile` (see :class:`ParticleBPConv`); for BP on
-            CUDA the fused Triton kernel is used either way.
+            :func:`torch.compile` (see
+            :class:`~tg_nebp.nn.conv.ParticleBPConv`); for BP on CUDA the
+            fused Triton kernel is used either way.
             (default: :obj:`False`)
 
     Shapes:

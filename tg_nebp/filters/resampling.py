@@ -180,6 +180,8 @@ def _inverse_cdf(probs: Tensor, points: Tensor) -> Tensor:
     return index.clamp_(max=probs.size(-1) - 1)
 
 
+#: The resamplers by name (:obj:`--resampler` of the CLI, the
+#: :obj:`resampler` argument of the trackers).
 RESAMPLERS = {
     'multinomial': multinomial_resample,
     'systematic': systematic_resample,

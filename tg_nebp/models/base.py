@@ -48,7 +48,8 @@ __all__ = [
     'redraw_negative',
 ]
 
-# role -> name -> class
+#: The registered models by role (:obj:`"motion"`, :obj:`"measurement"`)
+#: and name. Naming a subclass registers it.
 MODELS: Dict[str, Dict[str, type]] = {'motion': {}, 'measurement': {}}
 
 
@@ -63,9 +64,9 @@ def _definer(cls: type, attribute: str) -> Optional[type]:
 
 class Model:
     r"""What both roles share: a registered name, constructor parameters
-    that are JSON values (:meth:`params`), the configuration built from
-    them, equality by configuration, and the fast-path gate
-    (:meth:`provides`)."""
+    that are JSON values (:meth:`~tg_nebp.models.Model.params`), the
+    configuration built from them, equality by configuration, and the
+    fast-path gate (:meth:`~tg_nebp.models.Model.provides`)."""
     role: ClassVar[str] = ''
     name: ClassVar[str] = ''
     # the method whose formula the fast pieces compute, per role
@@ -88,8 +89,8 @@ class Model:
         registry[name] = cls
 
     def params(self) -> Dict[str, Any]:
-        r"""The constructor arguments as JSON values: :obj:`type(self)(
-        **self.params())` rebuilds the model."""
+        r"""The constructor arguments as JSON values:
+        :obj:`type(self)(**self.params())` rebuilds the model."""
         raise NotImplementedError(f'{type(self).__name__} must implement '
                                   f'params()')
 
@@ -167,16 +168,20 @@ def model_from_config(config: Any, role: str) -> 'Model':
 
 
 class MotionModel(Model):
-    r"""The motion role: :meth:`sample` draws :math:`\mathbf{x}_n \sim
-    p(\mathbf{x}_n | \mathbf{x}_{n-1})` for states :math:`(*, D)`, with
-    :math:`D` = :attr:`state_dim` and the position in the first two
-    entries."""
+    r"""The motion role: :meth:`~tg_nebp.models.MotionModel.sample` draws
+    :math:`\mathbf{x}_n \sim p(\mathbf{x}_n | \mathbf{x}_{n-1})` for
+    states :math:`(*, D)`, with :math:`D` =
+    :attr:`~tg_nebp.models.MotionModel.state_dim` and the position in the
+    first two entries."""
     role = 'motion'
     formula = 'sample'
+    #: The state dimension :math:`D`.
     state_dim: ClassVar[int] = 4
 
     def sample(self, states: Tensor,
                generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""Draws the next states :math:`(*, D)` given the states
+        :obj:`states` :math:`(*, D)` one time step earlier."""
         raise NotImplementedError
 
 
@@ -197,16 +202,27 @@ class MeasurementModel(Model):
     """
     role = 'measurement'
     formula = 'log_likelihood'
+    #: The names of the link features that the likelihood reads, the
+    #: leading columns of :obj:`edge_attr`.
     features: ClassVar[Tuple[str, ...]] = ('range', )
-    # the link features that generation writes, a superset of 'features'
+    #: The link features that generation writes, a superset of
+    #: :attr:`~MeasurementModel.features`.
     generated_features: ClassVar[Tuple[str, ...]] = ('range', )
+    #: The state entries that the likelihood reads.
     state_entries: ClassVar[Tuple[int, ...]] = (0, 1, 2, 3)
 
     def log_likelihood(self, z: Tensor, sender: Tensor,
                        receiver: Tensor) -> Tensor:
+        r""":math:`\log p(\mathbf{z}_{j \to i} | \mathbf{x}_j^{(k)},
+        \mathbf{x}_i^{(k)})` :math:`(E, K)` for link features :obj:`z`
+        :math:`(E, F)` and paired states :obj:`sender` and :obj:`receiver`
+        :math:`(E, K, D)`."""
         raise NotImplementedError
 
     def connect(self, pos: Tensor, receiver: Tensor) -> Tensor:
+        r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
+        between nodes at positions :obj:`pos` :math:`(N, 2)`, into the
+        nodes of the bool mask :obj:`receiver` :math:`(N)`."""
         raise NotImplementedError
 
     def sample_links(self, num_nodes: int,
@@ -226,8 +242,9 @@ class MeasurementModel(Model):
                         link_state, edge_index: Tensor,
                         generator: Optional[torch.Generator] = None
                         ) -> Tensor:
-        r"""Link features :math:`(E, F)` (:attr:`generated_features`) of the
-        links :obj:`edge_index` between true states :obj:`states_j` and
+        r"""Link features :math:`(E, F)`
+        (:attr:`~MeasurementModel.generated_features`) of the links
+        :obj:`edge_index` between true states :obj:`states_j` and
         :obj:`states_i` :math:`(E, D)`."""
         raise NotImplementedError
 
@@ -235,10 +252,13 @@ class MeasurementModel(Model):
 class RangeModel(MeasurementModel):
     r"""A measurement model whose likelihood depends on the states through
     the distance :math:`d = \|\mathbf{p}_j - \mathbf{p}_i\|` only:
-    subclasses implement :meth:`log_likelihood_of_distance` (and may
-    provide :meth:`distance_gradient`, a closed-form :math:`\partial \log p
-    / \partial d`, and :meth:`log_likelihood_of_distance_`, an in-place
-    variant). Pairs within :obj:`max_range` measure.
+    subclasses implement
+    :meth:`~tg_nebp.models.RangeModel.log_likelihood_of_distance` (and may
+    provide :meth:`~tg_nebp.models.GaussianRange.distance_gradient`, a
+    closed-form :math:`\partial \log p / \partial d`, and
+    :meth:`~tg_nebp.models.GaussianRange.log_likelihood_of_distance_`, an
+    in-place variant, as :class:`~tg_nebp.models.GaussianRange` does).
+    Pairs within :obj:`max_range` measure.
 
     Args:
         max_range (float, optional): Communication range in metres.
@@ -274,10 +294,11 @@ class RangeModel(MeasurementModel):
     def sample_ranges(self, distances: Tensor, link_state=None,
                       edge_index: Optional[Tensor] = None,
                       generator: Optional[torch.Generator] = None) -> Tensor:
-        r"""Link features :math:`(E, F)` (:attr:`generated_features`)
-        measured at the true :obj:`distances` :math:`(E)` of the links
-        :obj:`edge_index` with the per-link state :obj:`link_state` of
-        :meth:`sample_links`."""
+        r"""Link features :math:`(E, F)`
+        (:attr:`~MeasurementModel.generated_features`) measured at the true
+        :obj:`distances` :math:`(E)` of the links :obj:`edge_index` with the
+        per-link state :obj:`link_state` of
+        :meth:`~MeasurementModel.sample_links`."""
         raise NotImplementedError
 
     def connect(self, pos: Tensor, receiver: Tensor,

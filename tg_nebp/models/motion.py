@@ -71,8 +71,8 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
 
 class ConstantVelocity(ConstantVelocityDrag, name='constant-velocity'):
     r"""The nearly-constant-velocity model (white-noise acceleration) of
-    tracking: :class:`ConstantVelocityDrag` without drag, stable at any
-    speed,
+    tracking: :class:`~tg_nebp.models.ConstantVelocityDrag` without drag,
+    stable at any speed,
 
     .. math::
         \mathbf{x}_n = \mathbf{F} \mathbf{x}_{n-1} + \mathbf{W}

@@ -8,7 +8,8 @@ from typing import Dict, Tuple
 
 __all__ = ['paper_curves', 'PAPER_TABLE']
 
-# read off Fig. 2 (test network, 400 realizations)
+#: The outage probabilities and P(accept H0) of BP and NEBP, read off
+#: Fig. 2 (test network, 400 realizations).
 PAPER_TABLE = {
     'bp': {'outage': {'0.5': 0.571, '1.0': 0.161, '2.0': 0.020},
            'accept': {'0.50': 0.232, '0.95': 0.590, '0.99': 0.708}},

@@ -28,11 +28,12 @@ INITIAL_LOG_OFFSET = math.log(0.05)
 
 class EquivariantNEBPConv(NEBPConv):
     r"""A particle-equivariant Neural Enhanced BP iteration: the correction
-    of :class:`NEBPConv` (from the `"Neural Enhanced Belief Propagation for
-    Cooperative Localization" <https://arxiv.org/abs/2105.12903>`_ paper)
-    with networks that never see a particle index, so one set of weights
-    runs at any particle count :math:`K` and permuting a node's particles
-    permutes its corrected messages the same way.
+    of :class:`~tg_nebp.nn.conv.NEBPConv` (from the `"Neural Enhanced
+    Belief Propagation for Cooperative Localization"
+    <https://arxiv.org/abs/2105.12903>`_ paper) with networks that never
+    see a particle index, so one set of weights runs at any particle count
+    :math:`K` and permuting a node's particles permutes its corrected
+    messages the same way.
 
     The paper's :math:`g_e` reads the :math:`K`-vector BP message and its
     :math:`g_v` writes a :math:`K`-vector of offsets, so they exist for one

@@ -84,8 +84,9 @@ class ParticleBPConv(MessagePassing):
             \mathbf{x}_i)`. A :class:`~tg_nebp.models.RangeModel` gets the
             coordinate-plane path and the fast pieces it provides (in-place,
             closed-form gradient, fused kernel); any other model gets its
-            :meth:`log_likelihood` on the gathered state entries and
-            gradients by autograd. (default: :obj:`GaussianRange()`)
+            :meth:`~tg_nebp.models.MeasurementModel.log_likelihood` on the
+            gathered state entries and gradients by autograd.
+            (default: :obj:`GaussianRange()`)
         chunk_size (int, optional): Edges processed at once; bounds the
             temporary memory to about :obj:`chunk_size * K` floats whatever
             :math:`|\mathcal{E}|` (times :math:`\min(M, 16)` for the
