@@ -177,7 +177,7 @@ def _bar(total: int, desc: str, quiet: bool = False):
 
 
 def _evaluate_on(args, device: str) -> int:
-    rank = process_group()[1]
+    world_size, rank = process_group()
     dataset, = load_datasets(args.root, (args.scenario, args.realizations,
                                          args.seed))
     models = dict(motion=dataset.scenario.motion_model,
@@ -201,7 +201,6 @@ def _evaluate_on(args, device: str) -> int:
                              num_samples=args.samples or 1,
                              regularize=args.regularize,
                              ess_threshold=args.ess_threshold, **models)
-    world_size = process_group()[0]
     share = len(range(rank, len(dataset), world_size))  # rank 0's
     with _bar(share * dataset.scenario.num_steps,
               f'{args.method} K={tracker.num_particles}',

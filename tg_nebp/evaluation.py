@@ -25,7 +25,8 @@ CONFIDENCE = (0.50, 0.95, 0.99)
 
 def track_dataset(tracker: ParticleBP, dataset: Sequence,
                   batch_size: int = 1, device: str = 'cpu', seed: int = 0,
-                  progress: Optional[Callable] = None) -> Dict[str, torch.Tensor]:
+                  progress: Optional[Callable] = None
+                  ) -> Dict[str, torch.Tensor]:
     r"""Tracks every realization of :obj:`dataset` and returns the agents'
     position errors and NEES values (:obj:`"errors"`, :obj:`"nees"`), the
     index of the realization each value belongs to (:obj:`"realization"`),
@@ -70,6 +71,7 @@ def track_dataset(tracker: ParticleBP, dataset: Sequence,
             generator = [torch.Generator(device).manual_seed(
                 derive_seed(seed, r)) for r in indices]
             agents = ~batch.anchor
+            holds_first = indices[0] == 0  # its estimates go to the plots
             errors, nees, means = [], [], []
             for step in tracker.steps(batch, generator):
                 truth = batch.states[:, step.t, :2]
@@ -77,7 +79,8 @@ def track_dataset(tracker: ParticleBP, dataset: Sequence,
                 errors.append(metrics.position_errors(est, truth)[agents])
                 nees.append(
                     metrics.nees(est, step.cov[:, :2, :2], truth)[agents])
-                means.append(step.mean)
+                if holds_first:
+                    means.append(step.mean)
                 if progress is not None:  # realization-steps
                     progress(batch.num_graphs)
             # [agents, T]: row-major flattening is agent, then time step
@@ -87,7 +90,7 @@ def track_dataset(tracker: ParticleBP, dataset: Sequence,
             for g, r in enumerate(indices):
                 tracked[r] = (errors[owner == g].flatten(),
                               nees[owner == g].flatten())
-            if indices[0] == 0:
+            if holds_first:
                 nodes = slice(0, int(batch.ptr[1]))
                 first = {
                     'first_mean': torch.stack(means, 1)[nodes].cpu(),

@@ -334,9 +334,9 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
     equal (as runs on different thread counts); in float64 they agree far
     longer. :obj:`batch_size` must be a multiple of :math:`W` and
     :obj:`len(train_set)` of :obj:`batch_size`. Only rank 0 writes
-    checkpoints and calls :obj:`progress` and :obj:`on_epoch` (all ranks read a checkpoint to
-    resume, so it must be on a shared file system); every rank returns the
-    same history.
+    checkpoints and calls :obj:`progress` and :obj:`on_epoch` (all ranks
+    read a checkpoint to resume, so it must be on a shared file system);
+    every rank returns the same history.
 
     Args:
         model (NEBP): The tracker to train (moved to :obj:`device`).
