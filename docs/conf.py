@@ -39,7 +39,8 @@ source_suffix = {'.rst': 'restructuredtext', '.md': 'myst-nb',
 root_doc = 'index'
 # the figures and tables that README.md links to live in docs/ as well;
 # the tables are included by results.md, not pages of their own
-exclude_patterns = ['_build', 'frontier_*.md', '**/.ipynb_checkpoints']
+exclude_patterns = ['_build', 'frontier_*.md', 'compare_*.md',
+                    '**/.ipynb_checkpoints']
 
 # -- cross-references -------------------------------------------------------
 
@@ -114,6 +115,8 @@ def public(module: str):
 
 # the packages and modules that have a page in docs/api
 API_PAGES = ['tg_nebp.nn.conv', 'tg_nebp.filters', 'tg_nebp.models',
+             'tg_nebp.bounds', 'tg_nebp.gaussian',
+             'tg_nebp.experiments.compare',
              'tg_nebp.data', 'tg_nebp.datasets', 'tg_nebp.metrics',
              'tg_nebp.evaluation', 'tg_nebp.training',
              'tg_nebp.training_log', 'tg_nebp.frontier',

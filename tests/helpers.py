@@ -104,3 +104,118 @@ def torchrun(*args, timeout=120):
         capture_output=True, text=True, timeout=timeout)
     assert done.returncode == 0, done.stdout + done.stderr
     return done.stdout
+
+
+def linear_offset_model():
+    r"""A measurement model that is linear in the states with Gaussian
+    noise, for the tests that compare against a Kalman filter: agent
+    :math:`i` measures the displacement :math:`\mathbf{p}_j -
+    \mathbf{p}_i` of its neighbour plus a constant offset (validation wants
+    a non-negative first link feature) plus :math:`\mathcal{N}(\mathbf{0},
+    \sigma^2 \mathbf{I})`. Its Fisher information is the closed form
+    :math:`\mathbf{H}^\top \mathbf{H} / \sigma^2`. Registered once per
+    test session."""
+    from tg_nebp.models import MODELS
+    if 'test-linear-offset' in MODELS['measurement']:
+        return MODELS['measurement']['test-linear-offset']
+    from tg_nebp.models import GaussianRange, MeasurementModel
+
+    class LinearOffset(MeasurementModel, name='test-linear-offset'):
+        features = ('offset_dx', 'offset_dy')
+        generated_features = features
+        state_entries = (0, 1)
+        OFFSET = 1000.0
+
+        def __init__(self, sigma=0.5, max_range=20.0):
+            self.sigma, self.max_range = sigma, max_range
+
+        def params(self):
+            return dict(sigma=self.sigma, max_range=self.max_range)
+
+        def log_likelihood(self, z, sender, receiver):
+            residual = (z[:, None, :2] - self.OFFSET -
+                        (sender[..., :2] - receiver[..., :2]))
+            return (-0.5 * residual.square().sum(-1) / self.sigma**2 -
+                    2 * math.log(self.sigma * math.sqrt(2 * math.pi)))
+
+        def connect(self, pos, receiver):
+            return GaussianRange(max_range=self.max_range).connect(
+                pos, receiver)
+
+        def sample_features(self, states_j, states_i, link_state,
+                            edge_index, generator=None):
+            noise = torch.randn(states_j.shape[:-1] + (2, ),
+                                dtype=states_j.dtype, generator=generator)
+            return (states_j[:, :2] - states_i[:, :2] + self.OFFSET +
+                    self.sigma * noise)
+
+        def fisher_information(self, z, sender, receiver, generator=None):
+            dim = sender.size(-1)
+            h = torch.zeros(2, 2 * dim, dtype=sender.dtype)
+            h[:, :2] = torch.eye(2)
+            h[:, dim:dim + 2] = -torch.eye(2)
+            return (h.t() @ h / self.sigma**2).expand(sender.size(0), -1, -1)
+
+    return LinearOffset
+
+
+def linear_kalman_filter(data, motion, measurement):
+    r"""The Kalman filter of a realization with a linear motion model and
+    :func:`linear_offset_model`'s measurements, written independently of
+    the library: one joint state over the agents, float64 numpy, one
+    vector measurement at a time in a plain loop, Joseph-form updates.
+    Returns the agents' means :math:`(A, T, S)`, their marginal
+    covariances :math:`(A, T, S, S)` and the agents' node indices."""
+    import numpy as np
+    anchor = data.anchor.numpy()
+    agents = np.flatnonzero(~anchor)
+    index = {int(n): a for a, n in enumerate(agents)}
+    size = data.prior_mean.size(1)
+    count = len(agents)
+    # the linear transition's matrices, read off the model at one state
+    zero = torch.zeros(1, size, dtype=torch.float64)
+    F = motion.jacobian(zero)[0].numpy()
+    Q = motion.noise_covariance(zero)[0].numpy()
+    x = data.prior_mean.double().numpy()[agents].reshape(-1)
+    P = np.zeros((count * size, count * size))
+    for a, n in enumerate(agents):
+        P[a * size:(a + 1) * size, a * size:(a + 1) * size] = \
+            data.prior_cov.double().numpy()[n]
+    known = data.prior_mean.double().numpy()
+    means, covs = [], []
+    sigma2 = measurement.sigma**2
+    for t in range(int(data.num_steps)):
+        Fj = np.kron(np.eye(count), F)
+        x = Fj @ x
+        P = Fj @ P @ Fj.T + np.kron(np.eye(count), Q)
+        for e in np.flatnonzero(data.edge_time.numpy() == t):
+            j, i = (int(v) for v in data.edge_index[:, e])
+            z = data.edge_attr[e, :2].double().numpy() - measurement.OFFSET
+            H = np.zeros((2, count * size))
+            H[:, index[i] * size:index[i] * size + 2] = -np.eye(2)
+            constant = np.zeros(2)
+            if anchor[j]:
+                constant = known[j, :2]
+            else:
+                H[:, index[j] * size:index[j] * size + 2] = np.eye(2)
+            S = H @ P @ H.T + sigma2 * np.eye(2)
+            K = P @ H.T @ np.linalg.inv(S)
+            x = x + K @ (z - H @ x - constant)
+            A = np.eye(count * size) - K @ H
+            P = A @ P @ A.T + sigma2 * K @ K.T
+        means.append(x.reshape(count, size).copy())
+        covs.append(np.stack([P[a * size:(a + 1) * size,
+                                a * size:(a + 1) * size]
+                              for a in range(count)]))
+    return (np.stack(means, 1), np.stack(covs, 1), agents)
+
+
+def linear_scenario(steps=4, num_agents=4, sigma=0.5):
+    r"""A small network of :func:`linear_offset_model` measurements and
+    linear (drag-free) motion."""
+    from tg_nebp.models import ConstantVelocity
+    return Scenario(name='linear', num_agents=num_agents,
+                    anchor_positions=((0.0, 0.0), (12.0, 0.0)),
+                    agent_start_low=2.0, agent_start_high=10.0,
+                    num_steps=steps, motion=ConstantVelocity(0.1),
+                    measurement=linear_offset_model()(sigma))

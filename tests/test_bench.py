@@ -31,7 +31,7 @@ def test_measure_reports_the_measured_graph(operation):
 
 
 def test_measure_skips_what_does_not_fit(monkeypatch):
-    monkeypatch.setattr(bench, '_free_bytes', lambda device: 2**20)
+    monkeypatch.setattr(bench, 'free_memory_bytes', lambda device: 2**20)
     figures = bench.measure('nebp', 100, 1000)
     assert 'needs about' in figures['skipped']
     assert 'forward_ms' not in figures

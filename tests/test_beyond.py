@@ -97,11 +97,12 @@ def test_every_method_equals_an_independent_run(tiny):
         # values are the r-th of three equal, contiguous chunks
         chunks = [summarize(e, n) for e, n in zip(
             result['errors'].chunk(3), result['nees'].chunk(3))]
-        per = torch.tensor([[c['outage']['1.0'], c['accept']['0.95']]
-                            for c in chunks], dtype=torch.float64)
+        per = torch.tensor([[c['outage']['1.0'], c['accept']['0.95'],
+                             c['rmse']] for c in chunks],
+                           dtype=torch.float64)
         spread = metrics[name]['spread']
         assert torch.tensor(spread['realizations']).double().allclose(per)
-        for column, key in enumerate(('outage_1m', 'accept_0.95')):
+        for column, key in enumerate(('outage_1m', 'accept_0.95', 'rmse')):
             values = per[:, column]
             assert spread[key] == pytest.approx(dict(
                 mean=float(values.mean()), std=float(values.std()),

@@ -1,4 +1,5 @@
 r"""Tests of :mod:`tg_nebp.evaluation`."""
+import pytest
 import torch
 
 from tg_nebp import ParticleBP
@@ -73,3 +74,55 @@ def test_torchrun_evaluate_shards_and_equals_one_process(tmp_path, capsys):
     sharded.pop('seconds')
     single.pop('seconds')
     assert sharded == single
+
+
+def test_bound_dataset_orders_and_summarizes_like_a_tracker():
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.evaluation import (bound_dataset, spread, summarize_bound,
+                                    summarize_result)
+    from tg_nebp.metrics import gaussian_outage
+
+    data = [tiny_scenario(steps=3).generate(gen(r)) for r in range(3)]
+    bound = PosteriorCRB()
+    result = bound_dataset(bound, data, batch_size=2)
+    assert result['realization'].tolist() == [0] * 9 + [1] * 9 + [2] * 9
+    # realization 1 alone, agent-major then time, as track_dataset orders
+    cov = bound(data[1])[~data[1].anchor][..., :2, :2]
+    mine = result['realization'] == 1
+    torch.testing.assert_close(result['squared_error'][mine],
+                               cov.diagonal(dim1=-2, dim2=-1).sum(-1)
+                               .flatten())
+    torch.testing.assert_close(result['outage'][mine], gaussian_outage(
+        cov, (0.5, 1.0, 2.0)).flatten(0, 1))
+    entry = summarize_result(result)
+    assert entry == summarize_bound(result['squared_error'],
+                                    result['outage'])
+    assert entry['rmse'] == pytest.approx(
+        float(result['squared_error'].mean().sqrt()))
+    assert entry['accept'] == {'0.50': 0.5, '0.95': 0.95, '0.99': 0.99}
+    per = spread(result)
+    assert len(per['realizations']) == 3
+    floors = [float(result['squared_error'][result['realization'] == r]
+                    .mean().sqrt()) for r in range(3)]
+    assert [row[2] for row in per['realizations']] == pytest.approx(floors)
+    assert per['rmse']['mean'] == pytest.approx(sum(floors) / 3)
+
+
+def test_evaluate_writes_the_bound_and_the_iekf(tmp_path, capsys):
+    common = ['--realizations', '2', '--root', str(tmp_path / 'data'),
+              '--out', str(tmp_path), '--quiet', '--scenario',
+              str(tmp_path / 'tiny.json')]
+    from tg_nebp.io import write_json
+    import dataclasses
+    write_json(tmp_path / 'tiny.json',
+               {k: v for k, v in dataclasses.asdict(
+                   tiny_scenario(steps=3)).items()})
+    assert main(['evaluate', '--method', 'pcrb', *common]) == 0
+    assert main(['evaluate', '--method', 'iekf', '--marginal', *common]) == 0
+    out = capsys.readouterr().out
+    assert 'pcrb: RMSE floor' in out and 'iekf-marginal: RMSE' in out
+    written = read_json(tmp_path / 'metrics.json')
+    assert written['pcrb']['accept']['0.95'] == 0.95
+    assert written['iekf-marginal']['marginal'] is True
+    assert written['iekf-marginal']['iterations'] == 5
+    assert written['pcrb']['rmse'] < written['iekf-marginal']['rmse']

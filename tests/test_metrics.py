@@ -262,3 +262,62 @@ def test_empty_selection_is_an_error():
                  lambda: metrics.consistency_curve(torch.empty(0), [0.95])):
         with pytest.raises(ValueError, match='empty'):
             call()
+
+
+# -- the outage of a Gaussian error (the bound's efficient estimator) --------
+
+@pytest.mark.parametrize('dim', [1, 2, 3])
+def test_gaussian_outage_isotropic_is_chi_square(dim):
+    from scipy.stats import chi2
+    variance = 0.3
+    cov = variance * torch.eye(dim, dtype=torch.float64).expand(2, -1, -1)
+    thresholds = [0.1, 0.5, 1.0, 2.0]
+    out = metrics.gaussian_outage(cov, thresholds)
+    assert out.shape == (2, 4)
+    expected = [chi2.sf(r**2 / variance, dim) for r in thresholds]
+    np.testing.assert_allclose(out[0].numpy(), expected, rtol=1e-9,
+                               atol=1e-15)
+
+
+@pytest.mark.parametrize('eigenvalues', [(1.0, 0.1), (1.0, 0.001),
+                                         (0.05, 0.02)])
+def test_gaussian_outage_2d_against_adaptive_quadrature(eigenvalues):
+    # P(l1 z1^2 + l2 z2^2 > r^2) = 1 - int phi(z1) (2 Phi(...) - 1) dz1,
+    # scipy's adaptive quadrature; the covariance rotated
+    from scipy import integrate, stats
+    l1, l2 = eigenvalues
+    rotation = torch.tensor([[0.6, -0.8], [0.8, 0.6]], dtype=torch.float64)
+    cov = rotation @ torch.diag(torch.tensor(eigenvalues,
+                                             dtype=torch.float64)) @ \
+        rotation.t()
+    for r in (0.1, 0.5, 1.0, 2.0):
+        edge = r / l1**0.5
+        inside = integrate.quad(
+            lambda z: stats.norm.pdf(z) * (2 * stats.norm.cdf(
+                np.sqrt(max(r * r - l1 * z * z, 0) / l2)) - 1), -edge, edge,
+            epsabs=1e-14, epsrel=1e-12, limit=200)[0]
+        got = float(metrics.gaussian_outage(cov, [r]))
+        assert abs(got - (1 - inside)) < 1e-9
+
+
+def test_gaussian_outage_3d_against_monte_carlo():
+    g = torch.Generator().manual_seed(0)
+    root = torch.randn(3, 3, generator=g, dtype=torch.float64)
+    cov = root @ root.t() / 3 + 0.05 * torch.eye(3, dtype=torch.float64)
+    count = 1_000_000
+    errors = torch.randn(count, 3, generator=g, dtype=torch.float64) @ \
+        torch.linalg.cholesky(cov).t()
+    norms = errors.norm(dim=-1)
+    for r in (0.3, 1.0, 2.0):
+        p = float((norms > r).double().mean())
+        got = float(metrics.gaussian_outage(cov, [r]))
+        assert abs(got - p) < 5 * max(p * (1 - p), 1e-6)**0.5 / count**0.5
+
+
+def test_gaussian_outage_refuses_what_it_cannot_do():
+    with pytest.raises(ValueError, match='D in 1, 2, 3'):
+        metrics.gaussian_outage(torch.eye(4), [1.0])
+    with pytest.raises(ValueError, match='positive definite'):
+        metrics.gaussian_outage(torch.zeros(2, 2), [1.0])
+    with pytest.raises(ValueError, match='non-negative'):
+        metrics.gaussian_outage(torch.eye(2), [-1.0])

@@ -30,6 +30,7 @@ from typing import Callable, Optional, Union
 import torch
 
 from tg_nebp.threads import ThreadGovernor
+from tg_nebp.utils import free_memory_bytes
 
 __all__ = ['add_arguments', 'run_bench', 'measure', 'OPERATIONS']
 
@@ -130,16 +131,6 @@ class _Peak:
         return max(peak - self.base, 0) / 2**20
 
 
-def _free_bytes(device: str) -> int:
-    if device.startswith('cuda'):
-        return torch.cuda.mem_get_info()[0]
-    with open('/proc/meminfo') as f:
-        for line in f:
-            if line.startswith('MemAvailable:'):
-                return int(line.split()[1]) * 1024
-    return 2**62  # pragma: no cover - not Linux
-
-
 def _naive(particles, log_weights, edge_index, ranges, measurement):
     # the plain eager baseline: gather [E, K, D], the model's likelihood,
     # scatter-add
@@ -208,9 +199,10 @@ def measure(operation: str, num_agents: int, num_particles: int,
                 num_edges * num_particles +
                 _FLOATS_PER_NODE_PARTICLE[operation] *
                 num_nodes * num_particles)
-    if need > 0.9 * _free_bytes(device):
+    free = free_memory_bytes(device)
+    if need > 0.9 * free:
         figures['skipped'] = (f'needs about {need / 2**30:.1f} GiB, '
-                              f'{_free_bytes(device) / 2**30:.1f} GiB free')
+                              f'{free / 2**30:.1f} GiB free')
         return figures
 
     tracker = ParticleBP(num_particles, chunk_size=chunk_size,

@@ -17,7 +17,7 @@ from typing import Callable, Dict, Optional
 import torch
 
 from tg_nebp.datasets import load_datasets
-from tg_nebp.evaluation import evaluate_method, summarize
+from tg_nebp.evaluation import evaluate_method, spread
 from tg_nebp.filters import NEBP, ParticleBP
 from tg_nebp.io import atomic_write, read_json, write_json, write_text
 from tg_nebp.models import model_like
@@ -155,27 +155,6 @@ def _evaluations(config: dict, scenarios: dict, out: Path) -> Dict[str,
     return methods
 
 
-def _spread(result: dict, level: float = 1.0) -> dict:
-    # per-realization P_out(level) and P(accept at 0.95): mean, sample std,
-    # min, max over the realizations
-    per = []
-    for r in result['realization'].unique().tolist():
-        mine = result['realization'] == r
-        entry = summarize(result['errors'][mine], result['nees'][mine])
-        per.append([entry['outage'][f'{level:.1f}'],
-                    entry['accept']['0.95']])
-    per = torch.tensor(per, dtype=torch.float64)
-    std = per.std(0) if len(per) > 1 else torch.zeros(2)
-    return {'realizations': per.tolist(),
-            'outage_1m': dict(mean=float(per[:, 0].mean()),
-                              std=float(std[0]), min=float(per[:, 0].min()),
-                              max=float(per[:, 0].max())),
-            'accept_0.95': dict(mean=float(per[:, 1].mean()),
-                                std=float(std[1]),
-                                min=float(per[:, 1].min()),
-                                max=float(per[:, 1].max()))}
-
-
 def _report(metrics: dict, histories: dict, config: dict, device: str,
             seconds: float) -> str:
     lines = [
@@ -287,7 +266,7 @@ def reproduce_beyond(device: str = 'cpu', out: str = 'results/beyond',
 
     metrics = read_json(out / 'metrics.json')
     for method, result in results.items():
-        metrics[method]['spread'] = _spread(result)
+        metrics[method]['spread'] = spread(result)
     metrics = {method: metrics[method] for method in results}
     write_json(out / 'metrics.json', metrics)
 

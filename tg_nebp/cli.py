@@ -1,5 +1,5 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
-:obj:`reproduce`, :obj:`frontier` and :obj:`bench`."""
+:obj:`reproduce`, :obj:`frontier`, :obj:`compare` and :obj:`bench`."""
 import argparse
 import contextlib
 import math
@@ -13,7 +13,8 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from tg_nebp.datasets import load_datasets
-from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.filters import NEBP, CentralizedIEKF, ParticleBP
 from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line, write_text
@@ -176,43 +177,71 @@ def _bar(total: int, desc: str, quiet: bool = False):
     return tqdm(total=total, desc=desc, unit='step', disable=quiet)
 
 
-def _evaluate_on(args, device: str) -> int:
-    world_size, rank = process_group()
-    dataset, = load_datasets(args.root, (args.scenario, args.realizations,
-                                         args.seed))
-    models = dict(motion=dataset.scenario.motion_model,
-                  measurement=_measurement(args, dataset.scenario))
+# the options that only some methods take: (flag, attribute, its unset
+# value, the methods that take it)
+_METHOD_OPTIONS = (
+    ('--checkpoint', 'checkpoint', None, ('nebp', )),
+    ('--particles', 'particles', None, ('bp', 'nebp')),
+    ('--samples', 'samples', None, ('bp', 'nebp')),
+    ('--regularize', 'regularize', None, ('bp', )),
+    ('--ess-threshold', 'ess_threshold', None, ('bp', )),
+    ('--measurement', 'measurement', None, ('bp', 'iekf')),
+    ('--iterations', 'iterations', None, ('bp', 'iekf')),
+    ('--marginal', 'marginal', False, ('iekf', )),
+)
+
+
+def _check_method_options(args) -> None:
+    for flag, name, unset, methods in _METHOD_OPTIONS:
+        if getattr(args, name) != unset and args.method not in methods:
+            raise ValueError(f"{flag} is for --method {' or '.join(methods)}"
+                             f", not {args.method}")
+
+
+def _evaluated(args, scenario):
+    # the tracker (or bound) of --method, and its metrics.json key
+    models = dict(motion=scenario.motion_model,
+                  measurement=_measurement(args, scenario))
+    if args.method == 'pcrb':
+        return PosteriorCRB(scenario.motion_model,
+                            scenario.measurement_model), 'pcrb'
+    if args.method == 'iekf':
+        tracker = CentralizedIEKF(args.iterations or 5,
+                                  marginal=args.marginal, **models)
+        return tracker, 'iekf-marginal' if args.marginal else 'iekf'
     if args.method == 'nebp':
         if args.checkpoint is None:
             raise ValueError("--method nebp needs --checkpoint PATH")
-        if args.measurement is not None:
-            raise ValueError("--measurement is for --method bp; NEBP runs "
-                             "with its checkpoint's measurement model")
-        if args.regularize is not None or args.ess_threshold is not None:
-            raise ValueError("--regularize and --ess-threshold are for "
-                             "--method bp; NEBP resamples as it was "
-                             "trained")
-        tracker = nebp_from_checkpoint(args.checkpoint, args.particles,
-                                       compile=args.compile,
-                                       num_samples=args.samples)
-    else:
-        tracker = ParticleBP(args.particles or 1000, args.iterations,
-                             resampler=args.resampler, compile=args.compile,
-                             num_samples=args.samples or 1,
-                             regularize=args.regularize,
-                             ess_threshold=args.ess_threshold, **models)
+        return nebp_from_checkpoint(args.checkpoint, args.particles,
+                                    compile=args.compile,
+                                    num_samples=args.samples), 'nebp'
+    return ParticleBP(args.particles or 1000, args.iterations or 1,
+                      resampler=args.resampler, compile=args.compile,
+                      num_samples=args.samples or 1,
+                      regularize=args.regularize,
+                      ess_threshold=args.ess_threshold, **models), 'bp'
+
+
+def _evaluate_on(args, device: str) -> int:
+    world_size, rank = process_group()
+    _check_method_options(args)
+    dataset, = load_datasets(args.root, (args.scenario, args.realizations,
+                                         args.seed))
+    tracker, key = _evaluated(args, dataset.scenario)
     share = len(range(rank, len(dataset), world_size))  # rank 0's
+    particles = getattr(tracker, 'num_particles', None)
     with _bar(share * dataset.scenario.num_steps,
-              f'{args.method} K={tracker.num_particles}',
+              key + (f' K={particles}' if particles else ''),
               args.quiet or rank > 0) as bar:
-        result = evaluate_method(args.method, tracker.to(device).eval(),
+        result = evaluate_method(key, tracker.to(device).eval(),
                                  dataset, args.batch_size, device,
                                  args.seed, Path(args.out),
                                  progress=_governed(bar.update, args))
     if rank > 0:
         return 0
     entry = result['entry']
-    print(f"{args.method}: RMSE {entry['rmse']:.3f} m, outage "
+    what = 'RMSE floor' if key == 'pcrb' else 'RMSE'
+    print(f"{key}: {what} {entry['rmse']:.3f} m, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
           f"{entry['seconds']:.1f} s -> {Path(args.out) / 'metrics.json'}")
     return 0
@@ -316,6 +345,26 @@ def _frontier(args) -> int:
     return 0
 
 
+def _compare(args) -> int:
+    from tg_nebp.experiments.compare import (compare_points, compare_table,
+                                             run_compare)
+    from tg_nebp.plot import plot_compare
+
+    out = Path(args.out)
+    with _bar(None, 'compare', args.quiet) as bar:
+        result = run_compare(args.root, args.scenario, args.realizations,
+                             args.seed, out, args.checkpoint, args.device,
+                             args.batch_size, args.methods,
+                             progress=_governed(bar.update, args),
+                             log=bar.write if not args.quiet else print)
+    write_text(out / 'compare.md', compare_table(result))
+    plot_compare(compare_points(result), out / 'compare.png')
+    print(f"{sum(map(len, result['results'].values()))} rows -> "
+          f"{out / 'compare.json'}, {out / 'compare.md'}, "
+          f"{out / 'compare.png'}")
+    return 0
+
+
 def _reproduce(args) -> int:
     metrics = reproduce(args.preset, args.device, args.out, args.root,
                         progress_factory=lambda total, desc: _bar(
@@ -336,14 +385,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest='command', required=True)
 
     ev = sub.add_parser(
-        'evaluate', help='run a tracker on the test network and write '
-        'DIR/metrics.json', description='Runs BP or NEBP on the test '
-        'realizations and merges its entry into DIR/metrics.json. Sharded '
-        'over N processes: "torchrun --nproc_per_node=N -m tg_nebp evaluate '
-        '..." (gloo on the CPU; NCCL with --device cuda, one GPU per '
-        'process): rank r tracks realizations r, r + N, ..., rank 0 gathers '
-        'the errors, prints and writes; the metrics equal one process\'s.')
-    ev.add_argument('--method', choices=['bp', 'nebp'], default='bp')
+        'evaluate', help='run a tracker (or the bound) on the test network '
+        'and write DIR/metrics.json', description='Runs a method on the test '
+        'realizations and merges its entry into DIR/metrics.json: particle '
+        'BP (bp), NEBP from a checkpoint (nebp), the centralized iterated EKF '
+        '(iekf; iekf-marginal with --marginal) or the posterior Cramer-Rao '
+        'bound of the same realizations (pcrb: its RMSE is the floor, its '
+        'outage that of an efficient estimator). Sharded over N processes: '
+        '"torchrun --nproc_per_node=N -m tg_nebp evaluate ..." (gloo on the '
+        'CPU; NCCL with --device cuda, one GPU per process): rank r tracks '
+        'realizations r, r + N, ..., rank 0 gathers the errors, prints and '
+        'writes; the metrics equal one process\'s.')
+    ev.add_argument('--method', choices=['bp', 'nebp', 'iekf', 'pcrb'],
+                    default='bp', help="bp (default), nebp, iekf or pcrb")
+    ev.add_argument('--marginal', action='store_true',
+                    help='iekf: keep only every agent\'s marginal between '
+                    'steps (the ideal of a distributed filter)')
     ev.add_argument('--checkpoint', default=None,
                     help='NEBP checkpoint (with --method nebp)')
     ev.add_argument('--particles', type=_positive, default=None,
@@ -351,11 +408,13 @@ def build_parser() -> argparse.ArgumentParser:
                     "checkpoint's K for NEBP; any K for an equivariant "
                     'checkpoint)')
     _add_test_data(ev, realizations=10)
-    ev.add_argument('--iterations', type=_positive, default=1,
-                    help='message passing iterations per step (default: 1)')
+    ev.add_argument('--iterations', type=_positive, default=None,
+                    help='message passing iterations per step (bp, default: '
+                    '1) or Gauss-Newton iterations per step (iekf, default: '
+                    '5)')
     ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
                     default='multinomial')
-    _add_measurement(ev, 'BP')
+    _add_measurement(ev, 'BP\'s or the IEKF')
     ev.add_argument('--out', default='results/evaluate',
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -457,6 +516,41 @@ def build_parser() -> argparse.ArgumentParser:
     fr.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(fr)
     fr.set_defaults(run=_frontier)
+
+    cp = sub.add_parser(
+        'compare', help='one table of every method against the bound; '
+        'writes DIR/compare.json, DIR/compare.md and DIR/compare.png',
+        description='Runs the posterior Cramer-Rao bound, the centralized '
+        'IEKF (Gaussian, Student-t and the scenario\'s likelihood; joint '
+        'and marginals-only), particle BP (the paper\'s configuration and '
+        'the recommended one) and NEBP from every --checkpoint on the same '
+        'realizations and prior particle draws of every scenario, and '
+        'writes DIR/compare.json after every method, then the table '
+        'DIR/compare.md and DIR/compare.png. Run again to resume or to add '
+        'checkpoints: rows already in the file are skipped; a file made '
+        'with other realizations, seed, device or scenario contents is an '
+        'error.')
+    cp.add_argument('--scenario', nargs='+', default=['paper_test',
+                                                      'paper_test_nlos'],
+                    metavar='NAME|FILE', help='scenarios (default: '
+                    'paper_test paper_test_nlos)')
+    cp.add_argument('--realizations', type=_positive, default=20,
+                    help='realizations per scenario (default: 20)')
+    cp.add_argument('--seed', type=_non_negative, default=0,
+                    help='seed of data and particles (default: 0)')
+    cp.add_argument('--batch-size', type=_positive, default=1,
+                    help='realizations tracked together (default: 1)')
+    cp.add_argument('--checkpoint', nargs='+', default=[], metavar='PATH',
+                    help='NEBP checkpoints, one row each')
+    cp.add_argument('--methods', nargs='+', default=None, metavar='PREFIX',
+                    help='run only the rows whose key starts with one of '
+                    'these (pcrb, iekf, iekf-marginal, bp-paper, '
+                    'bp-recommended, nebp; default: all)')
+    cp.add_argument('--out', default='results/compare',
+                    help='output folder (default: results/compare)')
+    cp.add_argument('--quiet', action='store_true', help='no progress bar')
+    _add_common(cp)
+    cp.set_defaults(run=_compare)
 
     from tg_nebp.bench import add_arguments, run_bench
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '

@@ -1,19 +1,22 @@
-r"""Running a tracker over a dataset and summarizing its accuracy and
-consistency, shared by the CLI, the notebooks and the benchmarks."""
+r"""Running a tracker, or the bound, over a dataset and summarizing its
+accuracy and consistency, shared by the CLI, the compare table, the
+notebooks and the benchmarks."""
 import time
 from pathlib import Path
-from typing import Callable, Dict, Optional, Sequence
+from typing import Callable, Dict, Optional, Sequence, Union
 
 import torch
 import torch.distributed as dist
 from torch_geometric.data import Batch
 
 from tg_nebp import metrics
-from tg_nebp.filters import ParticleBP
+from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.filters import Tracker
 from tg_nebp.io import read_json, write_json
 from tg_nebp.utils import derive_seed, process_group
 
-__all__ = ['track_dataset', 'summarize', 'evaluate_method',
+__all__ = ['track_dataset', 'bound_dataset', 'summarize', 'summarize_bound',
+           'summarize_result', 'spread', 'evaluate_method',
            'OUTAGE_THRESHOLDS', 'CONFIDENCE']
 
 #: The error thresholds in metres of the reported outage
@@ -23,7 +26,30 @@ OUTAGE_THRESHOLDS = (0.5, 1.0, 2.0)
 CONFIDENCE = (0.50, 0.95, 0.99)
 
 
-def track_dataset(tracker: ParticleBP, dataset: Sequence,
+def _realization_batches(dataset: Sequence, batch_size: int, device: str):
+    # this process's realizations (r, r + W, ... under torchrun), batched:
+    # (their indices, the batch)
+    world_size, rank = process_group()
+    mine = list(range(rank, len(dataset), world_size))
+    for start in range(0, len(mine), batch_size):
+        indices = mine[start:start + batch_size]
+        yield indices, Batch.from_data_list(
+            [dataset[r] for r in indices]).to(device)
+
+
+def _gathered(tracked: dict, first: dict):
+    # every rank's {realization: values} and rank 0's first-realization
+    # estimates, on every rank (one process: as they are)
+    world_size = process_group()[0]
+    if world_size > 1:
+        shares = [None] * world_size
+        dist.all_gather_object(shares, (tracked, first))
+        tracked = {r: v for share, _ in shares for r, v in share.items()}
+        first = shares[0][1]  # rank 0 tracked realization 0
+    return tracked, first
+
+
+def track_dataset(tracker: Tracker, dataset: Sequence,
                   batch_size: int = 1, device: str = 'cpu', seed: int = 0,
                   progress: Optional[Callable] = None
                   ) -> Dict[str, torch.Tensor]:
@@ -60,25 +86,22 @@ def track_dataset(tracker: ParticleBP, dataset: Sequence,
             process's share under :obj:`torchrun`) ends full for any
             :obj:`batch_size`. (default: :obj:`None`)
     """
-    world_size, rank = process_group()
-    mine = list(range(rank, len(dataset), world_size))
     tracked, first = {}, {}  # realization -> (errors, nees); realization 0
     with torch.no_grad():
-        for start in range(0, len(mine), batch_size):
-            indices = mine[start:start + batch_size]
-            batch = Batch.from_data_list(
-                [dataset[r] for r in indices]).to(device)
+        for indices, batch in _realization_batches(dataset, batch_size,
+                                                   device):
             generator = [torch.Generator(device).manual_seed(
                 derive_seed(seed, r)) for r in indices]
             agents = ~batch.anchor
             holds_first = indices[0] == 0  # its estimates go to the plots
             errors, nees, means = [], [], []
+            dim = batch.states.size(-1) // 2
             for step in tracker.steps(batch, generator):
-                truth = batch.states[:, step.t, :2]
-                est = step.mean[:, :2]
+                truth = batch.states[:, step.t, :dim]
+                est = step.mean[:, :dim]
                 errors.append(metrics.position_errors(est, truth)[agents])
                 nees.append(
-                    metrics.nees(est, step.cov[:, :2, :2], truth)[agents])
+                    metrics.nees(est, step.cov[:, :dim, :dim], truth)[agents])
                 if holds_first:
                     means.append(step.mean)
                 if progress is not None:  # realization-steps
@@ -97,11 +120,7 @@ def track_dataset(tracker: ParticleBP, dataset: Sequence,
                     'first_states': batch.states[nodes].cpu(),
                     'first_anchor': batch.anchor[nodes].cpu(),
                 }
-    if world_size > 1:
-        shares = [None] * world_size
-        dist.all_gather_object(shares, (tracked, first))
-        tracked = {r: v for share, _ in shares for r, v in share.items()}
-        first = shares[0][1]  # rank 0 tracked realization 0
+    tracked, first = _gathered(tracked, first)
     order = sorted(tracked)
     return dict(
         errors=torch.cat([tracked[r][0] for r in order]),
@@ -128,25 +147,135 @@ def summarize(errors: torch.Tensor, nees: torch.Tensor,
     }
 
 
-def evaluate_method(method: str, tracker: ParticleBP, dataset,
-                    batch_size: int, device: str, seed: int, out: Path,
-                    progress: Optional[Callable] = None) -> dict:
-    r"""Tracks :obj:`dataset`, merges the :obj:`method`'s entry into
-    :obj:`out/metrics.json` and returns the raw errors and NEES. Under
-    :obj:`torchrun` the realizations are sharded over the processes (see
-    :func:`track_dataset`) and rank 0 alone writes the file."""
+def bound_dataset(bound: PosteriorCRB, dataset: Sequence,
+                  batch_size: int = 1, device: str = 'cpu', seed: int = 0,
+                  progress: Optional[Callable] = None,
+                  thresholds: Sequence[float] = OUTAGE_THRESHOLDS
+                  ) -> Dict[str, torch.Tensor]:
+    r"""The posterior Cramér-Rao bound of every realization of
+    :obj:`dataset`, as :func:`track_dataset` reports a tracker: per agent
+    and time step (in the same order: realization, agent, time step) the
+    bound on the mean squared position error, the trace of the position
+    block of the bound covariance (:obj:`"squared_error"`), and the outage
+    at each of the :obj:`thresholds` of an efficient estimator, whose error
+    is Gaussian with that covariance (:obj:`"outage"` :math:`(V, R)`,
+    :func:`~tg_nebp.metrics.gaussian_outage`), with :obj:`"realization"`.
+    Sharded under :obj:`torchrun` as :func:`track_dataset`; :obj:`seed`
+    seeds realization :math:`r`'s generator (used only by measurement
+    models whose Fisher information is a Monte Carlo)."""
+    tracked = {}
+    with torch.no_grad():
+        for indices, batch in _realization_batches(dataset, batch_size,
+                                                   device):
+            generator = torch.Generator(device).manual_seed(
+                derive_seed(seed, indices[0]))
+            agents = ~batch.anchor
+            dim = batch.states.size(-1) // 2
+            squared, outage = [], []
+            for step in bound.steps(batch, generator):
+                cov = step.cov[agents, :dim, :dim]
+                squared.append(cov.diagonal(dim1=-2, dim2=-1).sum(-1))
+                outage.append(metrics.gaussian_outage(cov, thresholds))
+                if progress is not None:
+                    progress(batch.num_graphs)
+            squared = torch.stack(squared, 1).cpu()  # [agents, T]
+            outage = torch.stack(outage, 1).cpu()  # [agents, T, R]
+            owner = batch.batch[agents].cpu()
+            for g, r in enumerate(indices):
+                tracked[r] = (squared[owner == g].flatten(),
+                              outage[owner == g].flatten(0, 1))
+    tracked, _ = _gathered(tracked, {})
+    order = sorted(tracked)
+    return dict(
+        squared_error=torch.cat([tracked[r][0] for r in order]),
+        outage=torch.cat([tracked[r][1] for r in order]),
+        realization=torch.cat([torch.full_like(tracked[r][0], r,
+                                               dtype=torch.long)
+                               for r in order]))
+
+
+def summarize_bound(squared_error: torch.Tensor, outage: torch.Tensor,
+                    thresholds: Sequence[float] = OUTAGE_THRESHOLDS,
+                    confidence: Sequence[float] = CONFIDENCE) -> dict:
+    r"""The :obj:`metrics.json` entry of the bound, with the fields of
+    :func:`summarize`: :obj:`"rmse"` is the RMSE floor
+    :math:`\sqrt{\operatorname{mean} \operatorname{tr} \mathbf{B}}`,
+    :obj:`"outage"` the mean outage of an efficient estimator, and
+    :obj:`"accept"` its :math:`\mathbb{P}(\text{accept } H_0)`: the
+    confidence level itself (its NEES is :math:`\chi^2`-distributed)."""
+    mean_outage = outage.double().mean(0)
+    return {
+        'rmse': float(squared_error.double().mean().sqrt()),
+        'outage': {f'{t:.1f}': float(p)
+                   for t, p in zip(thresholds, mean_outage)},
+        'accept': {f'{c:.2f}': float(c) for c in confidence},
+    }
+
+
+def summarize_result(result: Dict[str, torch.Tensor]) -> dict:
+    r"""The :obj:`metrics.json` entry of a result of
+    :func:`track_dataset` (:func:`summarize`) or of :func:`bound_dataset`
+    (:func:`summarize_bound`)."""
+    if 'errors' in result:
+        return summarize(result['errors'], result['nees'])
+    return summarize_bound(result['squared_error'], result['outage'])
+
+
+def _select(result: Dict[str, torch.Tensor], mask: torch.Tensor) -> dict:
+    return {key: result[key][mask]
+            for key in ('errors', 'nees', 'squared_error', 'outage')
+            if key in result}
+
+
+def spread(result: Dict[str, torch.Tensor], level: float = 1.0) -> dict:
+    r"""How the headline figures vary over the realizations of a result of
+    :func:`track_dataset` or :func:`bound_dataset`: each realization's
+    :math:`P_\mathrm{out}` at :obj:`level` metres, P(accept :math:`H_0`)
+    at the 0.95 level and RMSE (:obj:`"realizations"`, one row
+    each), and their mean, sample standard deviation, minimum and maximum
+    (:obj:`"outage_1m"`, :obj:`"accept_0.95"`, :obj:`"rmse"`)."""
+    per = []
+    for r in result['realization'].unique().tolist():
+        entry = summarize_result(_select(result, result['realization'] == r))
+        per.append([entry['outage'][f'{level:.1f}'],
+                    entry['accept']['0.95'], entry['rmse']])
+    per = torch.tensor(per, dtype=torch.float64)
+    std = per.std(0) if len(per) > 1 else torch.zeros(3,
+                                                      dtype=torch.float64)
+    out = {'realizations': per.tolist()}
+    for column, key in enumerate(('outage_1m', 'accept_0.95', 'rmse')):
+        out[key] = dict(mean=float(per[:, column].mean()),
+                        std=float(std[column]),
+                        min=float(per[:, column].min()),
+                        max=float(per[:, column].max()))
+    return out
+
+
+def evaluate_method(method: str, tracker: Union[Tracker, PosteriorCRB],
+                    dataset, batch_size: int, device: str, seed: int,
+                    out: Path, progress: Optional[Callable] = None) -> dict:
+    r"""Tracks :obj:`dataset` (or, for a
+    :class:`~tg_nebp.bounds.PosteriorCRB`, computes the bound of its
+    realizations), merges the :obj:`method`'s entry into
+    :obj:`out/metrics.json` (the accuracy, the tracker's
+    :meth:`~tg_nebp.filters.Tracker.settings`, the realizations, seed,
+    device, scenario and seconds) and returns the raw result
+    (:func:`track_dataset`, :func:`bound_dataset`) with the entry under
+    :obj:`"entry"`. Under :obj:`torchrun` the realizations are sharded
+    over the processes and rank 0 alone writes the file."""
     start = time.perf_counter()
-    result = track_dataset(tracker, dataset, batch_size, device, seed,
-                           progress=progress)
-    entry = summarize(result['errors'], result['nees'])
-    entry.update(particles=tracker.num_particles, realizations=len(dataset),
+    if isinstance(tracker, PosteriorCRB):
+        result = bound_dataset(tracker, dataset, batch_size, device, seed,
+                               progress=progress)
+        settings = dict(measurement=tracker.measurement.config())
+    else:
+        result = track_dataset(tracker, dataset, batch_size, device, seed,
+                               progress=progress)
+        settings = tracker.settings()
+    entry = summarize_result(result)
+    entry.update(settings, realizations=len(dataset),
                  seconds=round(time.perf_counter() - start, 3),
                  device=device, seed=seed,
-                 iterations=tracker.num_iterations,
-                 measurement=tracker.measurement.config(),
-                 samples=tracker.num_samples,
-                 regularize=tracker.regularize,
-                 ess_threshold=tracker.ess_threshold,
                  scenario=getattr(getattr(dataset, 'scenario', None), 'name',
                                   None))
     result['entry'] = entry
@@ -154,6 +283,6 @@ def evaluate_method(method: str, tracker: ParticleBP, dataset,
         return result
     path = out / 'metrics.json'
     everything = read_json(path) if path.exists() else {}
-    everything[method] = entry  # BP and NEBP share one file
+    everything[method] = entry  # the methods share one file
     write_json(path, everything)
     return result

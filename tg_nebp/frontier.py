@@ -14,7 +14,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
 
 from tg_nebp.evaluation import summarize, track_dataset
 from tg_nebp.filters import ParticleBP
-from tg_nebp.io import read_json, write_json
+from tg_nebp.io import read_resumable, write_json
 
 __all__ = ['GridPoint', 'grid', 'pareto_front', 'run_frontier',
            'frontier_table', 'FRONTIER_VERSION']
@@ -133,12 +133,7 @@ def run_frontier(points: Iterable[GridPoint], dataset, out: Path,
     """
     path = Path(out) / 'frontier.json'
     settings = _settings(dataset, seed, device, batch_size, compile)
-    result = read_json(path) if path.exists() else dict(settings=settings,
-                                                        points={})
-    if not isinstance(result, dict) or result.get('settings') != settings:
-        found = result.get('settings') if isinstance(result, dict) else None
-        raise ValueError(f"'{path}' holds a frontier made with {found}, not "
-                         f"{settings}: use another --out folder")
+    result = read_resumable(path, settings, 'points', 'a frontier')
     scenario = dataset.scenario
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model, compile=compile)

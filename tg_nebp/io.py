@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Callable, Union
 
 __all__ = ['atomic_write', 'write_json', 'write_text', 'read_json',
+           'read_resumable',
            'remove_stale_temporaries', 'check_writable_folder', 'one_line',
            'first_line']
 
@@ -121,6 +122,31 @@ def read_json(path: Union[str, Path]) -> Any:
     except OSError as e:
         raise ValueError(f"cannot read '{path}': "
                          f"{e.strerror or e}") from None
+
+
+def read_resumable(path: Union[str, Path], settings: dict, section: str,
+                   what: str = 'a result') -> dict:
+    r"""The content of a resumable result file (:obj:`frontier.json`,
+    :obj:`compare.json`): :obj:`{"settings": settings, section: {}}` if
+    :obj:`path` does not exist, else the file, which must be a JSON object
+    with exactly these :obj:`settings` and a :obj:`section` that maps
+    names to objects; anything else is a :class:`ValueError` naming the
+    file, rather than results of other settings mixed in or a traceback
+    later."""
+    path = Path(path)
+    if not path.exists():
+        return {'settings': settings, section: {}}
+    content = read_json(path)
+    found = content.get('settings') if isinstance(content, dict) else None
+    if found != settings:
+        raise ValueError(f"'{path}' holds {what} made with {found}, not "
+                         f"{settings}: use another --out folder")
+    entries = content.get(section)
+    if not (isinstance(entries, dict) and all(
+            isinstance(e, dict) for e in entries.values())):
+        raise ValueError(f"'{path}' is damaged: its '{section}' must map "
+                         f"names to objects; remove the file to start again")
+    return content
 
 
 def check_writable_folder(path: Union[str, Path], name: str) -> Path:

@@ -8,8 +8,10 @@ an optional boolean :obj:`mask` :math:`(*)` selecting the entries to count
 A diverged filter never reads as a good one: a NaN estimate, error or
 covariance makes the result NaN (RMSE, outage, NEES, consistency), and an
 empty selection is a :class:`ValueError`."""
+import math
 from typing import Optional, Sequence
 
+import numpy as np
 import torch
 from scipy.stats import chi2
 from torch import Tensor
@@ -22,6 +24,7 @@ __all__ = [
     'outage_from_errors',
     'nees',
     'consistency_curve',
+    'gaussian_outage',
 ]
 
 
@@ -156,3 +159,97 @@ def consistency_curve(nees_values: Tensor, confidence: Sequence[float],
     if bool(torch.isnan(values).any()):  # NaN would count as rejected
         accept = torch.full_like(accept, float('nan'))
     return accept.view(confidence.shape).cpu()
+
+
+# quadrature of the direction average in gaussian_outage: midpoint nodes
+# of a quarter circle (2-D) and of an octant's azimuth, Gauss-Legendre
+# nodes of its cos(polar angle) (3-D); their accuracy is tested
+OUTAGE_NODES_2D = 256
+OUTAGE_NODES_3D = (48, 64)
+# covariances per block of the quadrature (its memory)
+_OUTAGE_BLOCK = 4096
+
+
+def _directions(dim: int, dtype, device):
+    # unit vectors u and weights w, sum w = 1, of the average over the
+    # sphere of a function even in every coordinate (one quadrant or octant
+    # stands for all)
+    if dim == 2:
+        angle = (torch.arange(OUTAGE_NODES_2D, dtype=torch.float64) +
+                 0.5) * (math.pi / 2 / OUTAGE_NODES_2D)
+        units = torch.stack([angle.cos(), angle.sin()], -1)
+        weights = torch.full((OUTAGE_NODES_2D, ), 1 / OUTAGE_NODES_2D,
+                             dtype=torch.float64)
+    else:
+        polar, azimuth = OUTAGE_NODES_3D
+        nodes, gauss = np.polynomial.legendre.leggauss(polar)
+        cosine = torch.from_numpy(0.5 * (nodes + 1))  # on [0, 1]
+        angle = (torch.arange(azimuth, dtype=torch.float64) + 0.5) * (
+            math.pi / 2 / azimuth)
+        sine = (1 - cosine.square()).sqrt().view(-1, 1)
+        units = torch.stack([(sine * angle.cos()).flatten(),
+                             (sine * angle.sin()).flatten(),
+                             cosine.view(-1, 1).expand(-1, azimuth).flatten()],
+                            -1)
+        weights = (torch.from_numpy(0.5 * gauss).view(-1, 1) / azimuth
+                   ).expand(-1, azimuth).flatten()
+    return units.to(dtype=dtype, device=device), weights.to(dtype=dtype,
+                                                            device=device)
+
+
+def gaussian_outage(cov: Tensor, thresholds: Sequence[float]) -> Tensor:
+    r"""The outage :math:`\mathbb{P}(\|\mathbf{e}\| > e_{\mathrm{th}})`
+    :math:`(*, R)` of a zero-mean Gaussian error :math:`\mathbf{e} \sim
+    \mathcal{N}(\mathbf{0}, \boldsymbol{\Sigma})` for positive definite
+    covariances :math:`(*, D, D)`, :math:`D \leq 3`, and :math:`R`
+    thresholds: the outage of an efficient estimator whose error
+    covariance is a bound's.
+
+    In polar coordinates the radial integral is an incomplete gamma
+    function, which leaves an average over directions :math:`\mathbf{u}`
+    of the unit sphere (in the eigenbasis, eigenvalues
+    :math:`\lambda_k`, :math:`a(\mathbf{u}) = \sum_k u_k^2 / \lambda_k`):
+
+    .. math::
+        \mathbb{P}(\|\mathbf{e}\| > r) = \mathbb{E}_{\mathbf{u}} \left[
+        \frac{Q\big(\frac{D}{2}, \frac{r^2 a(\mathbf{u})}{2}\big)}
+        {\sqrt{\textstyle\prod_k \lambda_k} \; a(\mathbf{u})^{D/2}}
+        \right]
+
+    with :math:`Q` the regularized upper incomplete gamma function. For
+    :math:`D = 1` it is :math:`\operatorname{erfc}(r / \sqrt{2
+    \lambda})`; for :math:`D = 2` the direction average is the midpoint
+    rule over a quarter circle (:obj:`OUTAGE_NODES_2D` nodes, spectrally
+    accurate for this smooth periodic integrand); for :math:`D = 3`
+    Gauss-Legendre in the cosine of the polar angle times the midpoint
+    rule in the azimuth over an octant (:obj:`OUTAGE_NODES_3D`). Computed
+    in float64: within :math:`10^{-9}` of the exact value for condition
+    numbers up to :math:`10^3` (tested against adaptive quadrature)."""
+    if cov.dim() < 2 or cov.size(-1) != cov.size(-2) or not 1 <= cov.size(
+            -1) <= 3:
+        raise ValueError(f"'cov' must hold D x D covariances with D in 1, "
+                         f"2, 3, got shape {list(cov.shape)}")
+    radii = torch.as_tensor(thresholds, dtype=torch.float64,
+                            device=cov.device).reshape(-1)
+    if not bool((radii >= 0).all()):
+        raise ValueError(f"'thresholds' must be non-negative numbers, got "
+                         f"{radii.tolist()}")
+    dim = cov.size(-1)
+    eigvals = torch.linalg.eigvalsh(cov.double().reshape(-1, dim, dim))
+    if not bool((eigvals[:, 0] > 0).all()):
+        raise ValueError("'cov' must be positive definite")
+    if dim == 1:
+        out = torch.special.erfc(radii / (2 * eigvals).sqrt())
+        return out.view(cov.shape[:-2] + radii.shape)
+    units, weights = _directions(dim, torch.float64, cov.device)
+    parts = []
+    for block in eigvals.split(_OUTAGE_BLOCK):
+        # a [B, U]: the quadratic form of every direction, in the eigenbasis
+        a = (units.square() / block.unsqueeze(1)).sum(-1)
+        scale = block.prod(-1).sqrt().unsqueeze(1) * a.pow(dim / 2)
+        tail = torch.special.gammaincc(
+            torch.full_like(a, dim / 2).unsqueeze(-1),
+            0.5 * a.unsqueeze(-1) * radii.square())
+        parts.append(torch.einsum('bur,u->br', tail / scale.unsqueeze(-1),
+                                  weights))
+    return torch.cat(parts).view(cov.shape[:-2] + radii.shape)

@@ -14,7 +14,7 @@ from tg_nebp.reference import paper_curves
 
 __all__ = ['plot_tracks', 'plot_outage', 'plot_consistency',
            'plot_frontier', 'plot_outage_against_particles',
-           'plot_training_history']
+           'plot_training_history', 'plot_compare']
 
 COLORS = {'bp': 'tab:blue', 'nebp': 'tab:red'}
 PAPER_SERIES = {'bp': 'BP', 'nebp': 'NEBP'}
@@ -236,4 +236,63 @@ def plot_training_history(log: Dict[str, list], steps_per_epoch: int,
     ax.set_ylabel('loss per agent and step [m$^2$]')
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+# the families of the compare table's rows: colour and marker
+_COMPARE_STYLES = (('iekf-marginal', 'tab:orange', 's'),
+                   ('iekf', 'tab:green', 'D'), ('bp', 'tab:blue', 'o'),
+                   ('nebp', 'tab:red', '^'), ('', 'tab:gray', 'v'))
+
+
+def plot_compare(points: Dict[str, list], path: Union[str, Path],
+                 bound: str = 'pcrb'):
+    r"""The compare table as a figure
+    (:func:`~tg_nebp.experiments.compare.compare_points`): one row of
+    panels per scenario, :math:`P_\mathrm{out}` (1 m), P(accept
+    :math:`H_0`) at 0.95 and RMSE as a multiple of the bound's floor
+    against seconds per realization (log scale), every method a point with
+    its spread over the realizations (one standard deviation), the bound's
+    row (:obj:`bound`) a horizontal line: its efficient outage, the ideal
+    0.95 and the floor itself."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter
+    fig = Figure(figsize=(14, 4.2 * len(points)), layout='constrained')
+    panels = fig.subplots(len(points), 3, squeeze=False)
+    plain = FuncFormatter(lambda value, _: f'{value:g}')
+    for row, (scenario, entries) in zip(panels, points.items()):
+        limit = {e['key']: e for e in entries}.get(bound)
+        for ax, (field, label) in zip(row, (
+                ('outage', '$P_{out}$ (1 m)'),
+                ('accept', 'P(accept $H_0$) at 0.95'),
+                ('floor_ratio', 'RMSE / floor'))):
+            for e in entries:
+                if e['key'] == bound or e[field] is None:
+                    continue
+                color, marker = next((c, m) for prefix, c, m in
+                                     _COMPARE_STYLES
+                                     if e['key'].startswith(prefix))
+                (y, err), x = e[field], e['seconds']
+                ax.errorbar(x, y, yerr=err, fmt=marker, color=color, ms=5,
+                            capsize=2, lw=0.8)
+                ax.annotate(e['key'], (x, y), fontsize=6, xytext=(4, 2),
+                            textcoords='offset points')
+            level = {'outage': limit['outage'][0] if limit else None,
+                     'accept': 0.95, 'floor_ratio': 1.0}[field]
+            if level is not None:
+                ax.axhline(level, color='black', ls='--', lw=0.8,
+                           label='bound' if field != 'accept' else 'ideal')
+                ax.legend(fontsize=7, loc='best')
+            if field == 'outage':
+                ax.set_yscale('log')
+            ax.set_xscale('log')
+            # plain numbers on the log axes, seconds' minor ticks too
+            ax.xaxis.set_major_formatter(plain)
+            ax.xaxis.set_minor_formatter(plain)
+            ax.yaxis.set_major_formatter(plain)
+            ax.tick_params(which='minor', labelsize=6)
+            ax.set_xlabel('seconds per realization')
+            ax.set_ylabel(label)
+            ax.set_title(scenario, fontsize=9)
+            ax.grid(alpha=0.3)
     _save(fig, path)

@@ -361,7 +361,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
         optimizer (callable, optional): Builds the optimizer from the
             parameters. (default: :obj:`adam(lr)`)
         loss (callable, optional): The loss of a time step from the
-            tracker's :class:`~tg_nebp.filters.particle_bp.StepOutput` and
+            tracker's :class:`~tg_nebp.filters.StepOutput` and
             the batch, a sum over the batch's agents.
             (default: :func:`step_loss`)
         on_epoch (callable, optional): Called after every epoch (and its

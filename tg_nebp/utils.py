@@ -19,6 +19,7 @@ __all__ = [
     'long_edge_index',
     'derive_seed',
     'process_group',
+    'free_memory_bytes',
 ]
 
 
@@ -219,3 +220,20 @@ def process_group() -> Tuple[int, int]:
     if dist.is_available() and dist.is_initialized():
         return dist.get_world_size(), dist.get_rank()
     return 1, 0
+
+
+def free_memory_bytes(device: str = 'cpu') -> int:
+    r"""The memory free for new tensors on :obj:`device`, in bytes: the
+    CUDA allocator's free memory on a GPU, :obj:`MemAvailable` of
+    :obj:`/proc/meminfo` on the CPU (Linux; unbounded elsewhere). What
+    the memory checks compare their estimates with."""
+    if str(device).startswith('cuda'):
+        return torch.cuda.mem_get_info(torch.device(device))[0]
+    try:
+        with open('/proc/meminfo') as f:
+            for line in f:
+                if line.startswith('MemAvailable:'):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    return 2**62  # pragma: no cover - not Linux

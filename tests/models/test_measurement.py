@@ -296,3 +296,194 @@ def test_nlos_links_switch_as_a_markov_chain():
     assert fixed.step_links(links, g1) is links
     assert torch.equal(torch.rand(3, generator=g1), torch.rand(3,
                                                                generator=g2))
+
+
+# -- what the Gaussian methods and the bound take from a range model --------
+
+def _draw_ranges(model, distance, count, generator):
+    # the ranges of one link, drawn here as the model's docstring describes
+    # its noise (independently of its sampler); NLOS links i.i.d. with
+    # probability p_nlos
+    noise = torch.randn(count, generator=generator, dtype=torch.float64)
+    if isinstance(model, StudentTRange):
+        chi2 = torch.distributions.Chi2(torch.tensor(model.nu,
+                                                     dtype=torch.float64))
+        torch.manual_seed(int(torch.randint(1 << 30, (1, ),
+                                            generator=generator)))
+        noise = noise / (chi2.sample((count, )) / model.nu).sqrt()
+    z = distance + model.sigma * noise
+    if isinstance(model, NLOSRange):
+        nlos = torch.rand(count, generator=generator,
+                          dtype=torch.float64) < model.p_nlos
+        bias = torch.empty(count, dtype=torch.float64).exponential_(
+            1 / model.bias_mean, generator=generator)
+        z = z + nlos * bias
+    return z.view(-1, 1)
+
+
+@pytest.mark.parametrize('model', [
+    GaussianRange(0.5), GaussianRange(2.0), StudentTRange(1.0, 3.0),
+    StudentTRange(0.3, 1.5), NLOSRange(), NLOSRange(0.5, 0.4, 0.3),
+    NLOSRange(1.0, 0.2, 30.0)])
+def test_range_information_is_the_squared_score(model):
+    # E[(d log p / d d)^2] by Monte Carlo over ranges drawn as the model
+    # says, scored by the model's own likelihood, within 5 standard errors
+    g = torch.Generator().manual_seed(0)
+    count = 200_000
+    z = _draw_ranges(model, 10.0, count, g)
+    distances = torch.full((count, 1), 10.0, dtype=torch.float64)
+    squared = model.distance_score(z, distances).square().view(-1)
+    estimate, error = squared.mean(), squared.std() / count**0.5
+    info = model.range_information(z[:1], torch.tensor([10.0],
+                                                       dtype=torch.float64))
+    assert abs(float(info) - float(estimate)) < 5 * float(error), (
+        float(info), float(estimate), float(error))
+
+
+def test_nlos_oracle_information_follows_the_flag():
+    model = NLOSRange(oracle=True)
+    z = torch.tensor([[10.0, 0.0], [10.0, 1.0]], dtype=torch.float64)
+    info = model.range_information(z, torch.full((2, ), 10.0,
+                                                 dtype=torch.float64))
+    assert float(info[0]) == pytest.approx(1 / model.sigma**2, rel=1e-6)
+    # the exponentially modified Gaussian is flatter: less information
+    assert float(info[1]) < float(info[0])
+
+
+def test_generic_range_information_is_a_monte_carlo_of_the_score():
+    # a user's Laplace model has no closed form in the library; its score
+    # is +-1/b, so every draw's squared score is exactly 1 / b^2
+    from tg_nebp.models import RangeModel
+
+    class Laplace(RangeModel, name='test-laplace-information'):
+        def params(self):
+            return dict(max_range=self.max_range)
+
+        def log_likelihood_of_distance(self, z, distances):
+            return -(z[:, :1] - distances).abs() / 0.8 - math.log(1.6)
+
+        def sample_ranges(self, distances, link_state=None,
+                          edge_index=None, generator=None):
+            uniform = torch.rand(distances.shape, generator=generator,
+                                 dtype=distances.dtype) - 0.5
+            return (distances - 0.8 * uniform.sign() *
+                    torch.log1p(-2 * uniform.abs())).view(-1, 1)
+
+    model = Laplace()
+    distances = torch.tensor([3.0, 12.0], dtype=torch.float64)
+    info = model.range_information(distances.view(-1, 1), distances,
+                                   torch.Generator().manual_seed(0))
+    torch.testing.assert_close(info, torch.full_like(info, 1 / 0.8**2))
+
+
+def test_robust_weights():
+    z = torch.tensor([[10.0], [12.0], [7.5], [10.0]], dtype=torch.float64)
+    distances = torch.full((4, 1), 10.0, dtype=torch.float64)
+    residual = z - distances
+    score, weights = GaussianRange(0.5).robust_weights(z, distances)
+    torch.testing.assert_close(score, residual / 0.25)
+    torch.testing.assert_close(weights, torch.full_like(weights, 4.0))
+    nu, sigma = 3.0, 0.7
+    score, weights = StudentTRange(sigma, nu).robust_weights(z, distances)
+    torch.testing.assert_close(weights, (nu + 1) / (nu * sigma**2 +
+                                                    residual.square()))
+    torch.testing.assert_close(score, weights * residual)
+
+
+def test_nlos_robust_weights_fall_back_to_the_curvature():
+    # the mixture's mode is not at a zero residual: where its score points
+    # away from zero (and at zero), the weight is the observed information
+    # (clamped at 0); elsewhere score / residual
+    # (and a user's two-mode likelihood, a peak at a zero residual and one
+    # at +4 m: beyond the dip between them the score points away from zero
+    # and the log-likelihood is convex there, a negative curvature that is
+    # dropped)
+    from tg_nebp.models import RangeModel
+
+    class TwoModes(RangeModel, name='test-two-modes'):
+        def params(self):
+            return dict(max_range=self.max_range)
+
+        def log_likelihood_of_distance(self, z, distances):
+            residual = z[:, :1] - distances
+            return torch.logaddexp(-0.5 * (residual / 0.5)**2,
+                                   -0.5 * ((residual - 4.0) / 0.5)**2)
+
+    for model in (NLOSRange(1.0, 0.4, 1.0), TwoModes()):
+        z = torch.linspace(6.0, 16.0, 201, dtype=torch.float64).view(-1, 1)
+        distances = torch.full_like(z, 10.0)
+        score, weights = model.robust_weights(z, distances)
+        residual = z - distances
+        step = 1e-4
+        log_lik = [model.log_likelihood_of_distance(z, distances + h)
+                   for h in (-step, 0.0, step)]
+        curvature = -(log_lik[0] - 2 * log_lik[1] + log_lik[2]) / step**2
+        toward = score * residual > 0
+        assert bool(toward.any()) and bool((~toward).any())
+        torch.testing.assert_close(weights[toward],
+                                   (score / residual)[toward])
+        torch.testing.assert_close(weights[~toward],
+                                   curvature[~toward].clamp_min(0),
+                                   rtol=1e-5, atol=1e-6)
+    assert bool((curvature[~toward] < 0).any())  # the dip's
+
+
+def test_range_linearization_is_the_likelihood_gradient():
+    g = torch.Generator().manual_seed(3)
+    sender = 5 * torch.randn(6, 4, generator=g, dtype=torch.float64)
+    receiver = 5 * torch.randn(6, 4, generator=g, dtype=torch.float64)
+    z = (sender[:, :2] - receiver[:, :2]).norm(dim=-1, keepdim=True) + 0.4
+    model = StudentTRange(0.8, 4.0)
+    grad, curvature = model.linearize(z, sender, receiver)
+    ends = [x.clone().requires_grad_() for x in (sender, receiver)]
+    model.log_likelihood(z, ends[0].unsqueeze(1),
+                         ends[1].unsqueeze(1)).sum().backward()
+    torch.testing.assert_close(grad, torch.cat([e.grad for e in ends], -1))
+    # rank one along the gradient of the distance, scaled by the weight
+    _, weights = model.robust_weights(z, (sender[:, :2] - receiver[:, :2])
+                                      .norm(dim=-1, keepdim=True))
+    unit = torch.cat([sender[:, :2] - receiver[:, :2], torch.zeros(6, 2),
+                      receiver[:, :2] - sender[:, :2], torch.zeros(6, 2)],
+                     -1).double()
+    unit = unit / unit.norm(dim=-1, keepdim=True) * 2**0.5
+    expected = weights.view(-1, 1, 1) * unit.unsqueeze(-1) * unit.unsqueeze(
+        -2)
+    torch.testing.assert_close(curvature, expected)
+
+
+def test_generic_fisher_information_matches_the_range_blocks():
+    # a measurement model that is no RangeModel (GaussianRange's formula
+    # behind the generic interface) gets the Monte Carlo of its squared
+    # score over the full states: the range model's closed-form blocks
+    from tg_nebp.models import MeasurementModel
+
+    class Wrapped(MeasurementModel, name='test-wrapped-gaussian'):
+        fisher_samples = 20_000
+        inner = GaussianRange(0.5)
+
+        def params(self):
+            return {}
+
+        def log_likelihood(self, z, sender, receiver):
+            return self.inner.log_likelihood(z, sender, receiver)
+
+        def sample_features(self, states_j, states_i, link_state,
+                            edge_index, generator=None):
+            return self.inner.sample_features(states_j, states_i, None,
+                                              None, generator)
+
+    g = torch.Generator().manual_seed(1)
+    receiver = 8 * torch.rand(3, 4, generator=g, dtype=torch.float64)
+    # at least 8 sigma apart: sampling never redraws a negative range
+    sender = receiver + torch.tensor([[4.0, 3.0, 0.0, 0.0], [-5.0, 1.0, 0.0,
+                                                              0.0],
+                                      [0.5, -6.0, 0.0, 0.0]],
+                                     dtype=torch.float64)
+    z = torch.zeros(3, 1, dtype=torch.float64)
+    sampled = Wrapped().fisher_information(z, sender, receiver, g)
+    exact = GaussianRange(0.5).fisher_information(z, sender, receiver)
+    # 4 / sigma^2 scale; 20,000 draws: about 1 % of it
+    torch.testing.assert_close(sampled, exact, rtol=0, atol=0.1)
+    grad, curvature = Wrapped().linearize(z, sender, receiver, g)
+    assert grad.shape == (3, 8)
+    torch.testing.assert_close(curvature, exact, rtol=0, atol=0.1)

@@ -103,3 +103,50 @@ def test_zero_noise_is_deterministic():
 def test_bad_parameters_raise(name, kwargs):
     with pytest.raises(ValueError, match=f"'{name}'"):
         ConstantVelocityDrag(**kwargs)
+
+
+@pytest.mark.parametrize('drag,dt', [(0.06, 1.0), (0.3, 0.5), (0.0, 2.0)])
+def test_gaussian_form_matches_paper_matrices(drag, dt):
+    # mean = F x - c W (v |v|); Jacobian F - c W diag(2 |v|) on the
+    # velocities; noise covariance sigma_a^2 W W^T (explicit matrices)
+    sigma_a = 0.07
+    model = ConstantVelocityDrag(sigma_a=sigma_a, drag=drag, dt=dt)
+    states = torch.randn(6, 4, generator=torch.Generator().manual_seed(2),
+                         dtype=torch.float64)
+    eye, zero = np.eye(2), np.zeros((2, 2))
+    F = np.block([[eye, dt * eye], [zero, eye]])
+    W = np.vstack([0.5 * dt**2 * eye, dt * eye])
+    for x, mean, jac, cov in zip(states.numpy(), model.mean(states),
+                                 model.jacobian(states),
+                                 model.noise_covariance(states)):
+        np.testing.assert_allclose(mean.numpy(), paper_transition(
+            x, np.zeros(2), drag, dt), rtol=1e-12, atol=1e-12)
+        expected = F + W @ np.hstack([zero, -2 * drag * np.diag(
+            np.abs(x[2:]))])
+        np.testing.assert_allclose(jac.numpy(), expected, rtol=1e-12,
+                                   atol=1e-12)
+        np.testing.assert_allclose(cov.numpy(), sigma_a**2 * W @ W.T,
+                                   rtol=1e-12, atol=1e-15)
+
+
+def test_jacobian_keeps_leading_shape():
+    model = ConstantVelocityDrag()
+    states = torch.randn(2, 3, 4, dtype=torch.float64)
+    assert model.jacobian(states).shape == (2, 3, 4, 4)
+    assert model.noise_covariance(states).shape == (2, 3, 4, 4)
+
+
+def test_a_model_without_a_gaussian_form_says_so():
+    from tg_nebp.models import MotionModel
+
+    class Teleport(MotionModel, name='test-teleport'):
+        def params(self):
+            return {}
+
+        def sample(self, states, generator=None):
+            return torch.rand(states.shape, generator=generator)
+
+    for method in ('mean', 'noise_covariance', 'jacobian'):
+        with pytest.raises(NotImplementedError, match='Teleport.*no '
+                           'additive-Gaussian-noise form'):
+            getattr(Teleport(), method)(torch.zeros(1, 4))

@@ -1,13 +1,17 @@
 from .resampling import (RESAMPLERS, effective_sample_size, multinomial_resample,
                          residual_resample, silverman_bandwidth,
                          stratified_resample, systematic_resample)
-from .particle_bp import ParticleBP, StepOutput, TrackOutput
+from .tracker import StepOutput, Tracker, TrackOutput
+from .particle_bp import ParticleBP
 from .nebp import NEBP
+from .centralized_iekf import CentralizedIEKF
 from tg_nebp.utils import weighted_moments
 
 __all__ = [
+    'Tracker',
     'ParticleBP',
     'NEBP',
+    'CentralizedIEKF',
     'StepOutput',
     'TrackOutput',
     'weighted_moments',

@@ -1,6 +1,5 @@
 import math
-from typing import (Callable, Iterator, List, NamedTuple, Optional, Sequence,
-                    Union)
+from typing import Callable, Iterator, List, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -9,17 +8,16 @@ from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_layer_inputs, check_number,
-                                     check_positive_int, check_realization,
-                                     magnitude_limit)
+                                     check_positive_int, magnitude_limit)
 from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
                                         silverman_bandwidth)
-from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
-                            MeasurementModel, MotionModel)
+from tg_nebp.filters.tracker import StepOutput, Tracker
+from tg_nebp.models import MeasurementModel, MotionModel
 from tg_nebp.nn.conv import ParticleBPConv
 from tg_nebp.utils import (compute_dtype, log_normalize, sort_by_receiver,
                             weighted_moments)
 
-__all__ = ['ParticleBP', 'StepOutput', 'TrackOutput', 'weighted_moments',
+__all__ = ['ParticleBP', 'weighted_moments',
            'RECOMMENDED']
 
 Generators = Union[torch.Generator, Sequence[torch.Generator], None]
@@ -93,26 +91,7 @@ def _check_belief(log_weights: Tensor, data: Realization, t: int) -> None:
                      f"irreconcilably far apart for the measurement model")
 
 
-class StepOutput(NamedTuple):
-    r"""What the tracker yields at time index :obj:`t`: the MMSE estimate
-    :obj:`mean` :math:`(N, 4)`, its covariance :obj:`cov` :math:`(N, 4, 4)`
-    and the particle belief (:obj:`particles` :math:`(N, K, 4)`,
-    normalized :obj:`log_weights` :math:`(N, K)`) before resampling."""
-    t: int
-    mean: Tensor
-    cov: Tensor
-    particles: Tensor
-    log_weights: Tensor
-
-
-class TrackOutput(NamedTuple):
-    r"""Estimates :obj:`mean` :math:`(N, T, 4)` and covariances :obj:`cov`
-    :math:`(N, T, 4, 4)` of a whole sequence."""
-    mean: Tensor
-    cov: Tensor
-
-
-class ParticleBP(torch.nn.Module):
+class ParticleBP(Tracker):
     r"""The particle-based BP tracker for cooperative localization, from the
     `"Neural Enhanced Belief Propagation for Cooperative Localization"
     <https://arxiv.org/abs/2105.12903>`_ paper. For a single or batched
@@ -183,7 +162,7 @@ class ParticleBP(torch.nn.Module):
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization` with :math:`N`
           nodes and :math:`T` steps
-        - **output:** :class:`TrackOutput` with mean :math:`(N, T, 4)` and
+        - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean :math:`(N, T, 4)` and
           covariance :math:`(N, T, 4, 4)`
     """
     def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
@@ -194,7 +173,7 @@ class ParticleBP(torch.nn.Module):
                  num_samples: Union[int, str] = 1,
                  regularize: Union[float, str, None] = None,
                  ess_threshold: Optional[float] = None):
-        super().__init__()
+        super().__init__(motion, measurement)
         if regularize is not None and regularize != 'silverman':
             regularize = check_number(regularize, 'regularize')
         if ess_threshold is not None:
@@ -217,13 +196,6 @@ class ParticleBP(torch.nn.Module):
             resampler = RESAMPLERS[resampler]
         self.num_particles = num_particles
         self.num_iterations = num_iterations
-        self.motion = motion or ConstantVelocityDrag()
-        self.measurement = measurement or GaussianRange()
-        for name, role in (('motion', MotionModel),
-                           ('measurement', MeasurementModel)):
-            if not isinstance(getattr(self, name), role):
-                raise TypeError(f"'{name}' must be a {role.__name__}, got "
-                                f"{getattr(self, name)!r}")
         self.resampler = resampler
         self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size,
                                    compile=compile, num_samples=num_samples)
@@ -339,7 +311,7 @@ class ParticleBP(torch.nn.Module):
 
     def steps(self, data: Realization,
               generator: Generators = None) -> Iterator[StepOutput]:
-        r"""Runs the time loop lazily, yielding a :class:`StepOutput` per
+        r"""Runs the time loop lazily, yielding a :class:`~tg_nebp.filters.StepOutput` per
         time step (training takes an optimizer step between them).
 
         Args:
@@ -353,12 +325,7 @@ class ParticleBP(torch.nn.Module):
                 gets the same result alone as in any batch.
                 (default: :obj:`None`)
         """
-        check_realization(data, self.measurement.features)
-        if data.prior_mean.size(1) != self.motion.state_dim:
-            raise ValueError(f"'prior_mean' holds states of size "
-                             f"{data.prior_mean.size(1)} but the motion model "
-                             f"{self.motion} has state dimension "
-                             f"{self.motion.state_dim}")
+        self.check(data)
         counts = _nodes_per_graph(data, generator)
         anchor = data.anchor
         # one dtype for the whole loop: half precision is promoted
@@ -452,15 +419,12 @@ class ParticleBP(torch.nn.Module):
             jitter = jitter * resampled.view(-1, 1, 1)
         return jitter
 
-    def forward(self, data: Realization,
-                generator: Generators = None) -> TrackOutput:
-        r"""Tracks a whole (batched) sequence; :obj:`generator` as in
-        :meth:`steps`."""
-        means, covs = [], []
-        for step in self.steps(data, generator):
-            means.append(step.mean)
-            covs.append(step.cov)
-        return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
+    def settings(self) -> dict:
+        return dict(particles=self.num_particles,
+                    iterations=self.num_iterations,
+                    measurement=self.measurement.config(),
+                    samples=self.num_samples, regularize=self.regularize,
+                    ess_threshold=self.ess_threshold)
 
     def __repr__(self) -> str:
         options = ''.join(

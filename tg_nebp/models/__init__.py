@@ -1,5 +1,6 @@
 from .base import (MODELS, MeasurementModel, Model, MotionModel, RangeModel,
-                   model_from_config, model_like, redraw_negative)
+                   model_from_config, model_like, redraw_negative,
+                   resolve_models)
 from .motion import ConstantVelocity, ConstantVelocityDrag
 from .measurement import GaussianRange, NLOSRange, StudentTRange
 
@@ -11,6 +12,7 @@ __all__ = [
     'MODELS',
     'model_from_config',
     'model_like',
+    'resolve_models',
     'redraw_negative',
     'ConstantVelocityDrag',
     'ConstantVelocity',

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
+from tg_nebp.gaussian import range_blocks, unit_vectors
 
 __all__ = [
     'Model',
@@ -45,6 +46,7 @@ __all__ = [
     'MODELS',
     'model_from_config',
     'model_like',
+    'resolve_models',
     'redraw_negative',
 ]
 
@@ -124,6 +126,23 @@ class Model:
         return f'{type(self).__name__}({args})'
 
 
+def resolve_models(motion: Optional['MotionModel'] = None,
+                   measurement: Optional['MeasurementModel'] = None):
+    r"""The motion and measurement models of a tracker or bound: the given
+    ones, checked to be of their roles, or the paper's
+    (:class:`~tg_nebp.models.ConstantVelocityDrag`,
+    :class:`~tg_nebp.models.GaussianRange`)."""
+    from tg_nebp.models import ConstantVelocityDrag, GaussianRange
+    models = (motion or ConstantVelocityDrag(),
+              measurement or GaussianRange())
+    for name, model, role in zip(('motion', 'measurement'), models,
+                                 (MotionModel, MeasurementModel)):
+        if not isinstance(model, role):
+            raise TypeError(f"'{name}' must be a {role.__name__}, got "
+                            f"{model!r}")
+    return models
+
+
 def model_like(name: str, role: str, like: Optional[Model] = None
                ) -> 'Model':
     r"""The registered model :obj:`name` of :obj:`role`, with the
@@ -178,11 +197,49 @@ class MotionModel(Model):
     #: The state dimension :math:`D`.
     state_dim: ClassVar[int] = 4
 
+    @property
+    def position_dim(self) -> int:
+        r"""How many of the state's entries (the first ones) are the
+        position, half the state dimension (a state is
+        :math:`[\mathbf{p}, \mathbf{v}]`)."""
+        return self.state_dim // 2
+
     def sample(self, states: Tensor,
                generator: Optional[torch.Generator] = None) -> Tensor:
         r"""Draws the next states :math:`(*, D)` given the states
         :obj:`states` :math:`(*, D)` one time step earlier."""
         raise NotImplementedError
+
+    def mean(self, states: Tensor) -> Tensor:
+        r"""The transition function :math:`f(\mathbf{x})` :math:`(*, D)` of
+        a model with additive Gaussian driving noise, :math:`\mathbf{x}_n =
+        f(\mathbf{x}_{n-1}) + \mathbf{w}_n`, :math:`\mathbf{w}_n \sim
+        \mathcal{N}(\mathbf{0}, \mathbf{Q}(\mathbf{x}_{n-1}))`: what the
+        Gaussian trackers predict with and the bound is computed from. A
+        model that has no such form does not define it, and those methods
+        refuse it with this error."""
+        raise NotImplementedError(
+            f"the motion model {self} has no additive-Gaussian-noise form "
+            f"(mean() and noise_covariance()): the posterior CRB and the "
+            f"Gaussian trackers need one")
+
+    def jacobian(self, states: Tensor) -> Tensor:
+        r"""The Jacobian :math:`\partial f / \partial \mathbf{x}`
+        :math:`(*, D, D)` of :meth:`mean` at :obj:`states` :math:`(*, D)`,
+        by automatic differentiation of the model's own :meth:`mean` (a
+        model may give a closed form)."""
+        flat = states.reshape(-1, states.size(-1))
+        jac = torch.func.vmap(torch.func.jacfwd(self.mean))(flat)
+        return jac.reshape(states.shape + states.shape[-1:])
+
+    def noise_covariance(self, states: Tensor) -> Tensor:
+        r"""The covariance :math:`\mathbf{Q}` :math:`(*, D, D)` of the
+        additive driving noise at :obj:`states` :math:`(*, D)` (see
+        :meth:`mean`)."""
+        raise NotImplementedError(
+            f"the motion model {self} has no additive-Gaussian-noise form "
+            f"(mean() and noise_covariance()): the posterior CRB and the "
+            f"Gaussian trackers need one")
 
 
 class MeasurementModel(Model):
@@ -248,6 +305,68 @@ class MeasurementModel(Model):
         :obj:`states_i` :math:`(E, D)`."""
         raise NotImplementedError
 
+    def fisher_information(self, z: Tensor, sender: Tensor, receiver: Tensor,
+                           generator: Optional[torch.Generator] = None
+                           ) -> Tensor:
+        r"""The Fisher information :math:`(E, 2D, 2D)` that one measurement
+        of every link carries about the stacked states :math:`[\mathbf{x}_j;
+        \mathbf{x}_i]` of its two ends, at the states :obj:`sender` and
+        :obj:`receiver` :math:`(E, D)`, for links with the features
+        :obj:`z` :math:`(E, F)`: the measured values are integrated out
+        (a model may read a link's other features, such as a known NLOS
+        flag). What the posterior CRB adds for every measurement.
+
+        This generic version is a Monte Carlo of the squared score,
+        :math:`\frac{1}{S} \sum_s \mathbf{g}_s \mathbf{g}_s^\top` with
+        :math:`\mathbf{g}_s = \nabla \log p(\mathbf{z}_s | \mathbf{x}_j,
+        \mathbf{x}_i)` by automatic differentiation of
+        :meth:`log_likelihood` and :math:`\mathbf{z}_s` drawn by
+        :meth:`sample_features` without a per-link state,
+        :attr:`fisher_samples` draws per link; a model whose generation
+        needs a per-link state, or that knows a closed form, overrides
+        it (:class:`RangeModel` does)."""
+        draws = self.fisher_samples
+        with torch.enable_grad():
+            ends = [x.detach().repeat_interleave(draws, 0).requires_grad_()
+                    for x in (sender, receiver)]
+            drawn = self.sample_features(*[x.detach() for x in ends], None,
+                                         None, generator)
+            log_lik = self.log_likelihood(drawn, ends[0].unsqueeze(1),
+                                          ends[1].unsqueeze(1))
+            scores = torch.autograd.grad(log_lik.sum(), ends)
+        score = torch.cat(scores, -1).view(sender.size(0), draws, -1)
+        return score.transpose(1, 2) @ score / draws
+
+    #: Draws per link of the Monte Carlo Fisher information
+    #: (:meth:`fisher_information`, :meth:`RangeModel.range_information`).
+    fisher_samples: ClassVar[int] = 256
+
+    def linearize(self, z: Tensor, sender: Tensor, receiver: Tensor,
+                  generator: Optional[torch.Generator] = None
+                  ) -> Tuple[Tensor, Tensor]:
+        r"""What a Gaussian method (the centralized filter, Gaussian BP)
+        uses of one measurement of every link at the states :obj:`sender`
+        and :obj:`receiver` :math:`(E, D)`: the gradient :math:`(E, 2D)`
+        of :math:`\log p(\mathbf{z} | \mathbf{x}_j, \mathbf{x}_i)` with
+        respect to :math:`[\mathbf{x}_j; \mathbf{x}_i]` and a positive
+        semi-definite curvature :math:`(E, 2D, 2D)` that stands for its
+        negative Hessian: a Gauss-Newton step treats the link as a
+        Gaussian pseudo-measurement with that precision.
+
+        This generic version takes the gradient by automatic
+        differentiation of :meth:`log_likelihood` and the Fisher
+        information (:meth:`fisher_information`) as the curvature: Fisher
+        scoring, exact for a measurement that is linear in the states with
+        Gaussian noise. :class:`RangeModel` gives robust weights
+        instead."""
+        with torch.enable_grad():
+            ends = [x.detach().requires_grad_() for x in (sender, receiver)]
+            log_lik = self.log_likelihood(z, ends[0].unsqueeze(1),
+                                          ends[1].unsqueeze(1))
+            grads = torch.autograd.grad(log_lik.sum(), ends)
+        return (torch.cat(grads, -1),
+                self.fisher_information(z, sender, receiver, generator))
+
 
 class RangeModel(MeasurementModel):
     r"""A measurement model whose likelihood depends on the states through
@@ -281,6 +400,115 @@ class RangeModel(MeasurementModel):
         return self.log_likelihood_of_distance(
             z, torch.linalg.vector_norm(sender[..., :2] - receiver[..., :2],
                                         dim=-1))
+
+    def distance_score(self, z: Tensor, distances: Tensor) -> Tensor:
+        r"""The score :math:`\partial \log p(\mathbf{z} | d) / \partial d`
+        :math:`(E, K)` at :obj:`distances` :math:`(E, K)`: the model's
+        closed-form :obj:`distance_gradient` where it provides one, else
+        automatic differentiation of :meth:`log_likelihood_of_distance`
+        (differentiable itself either way)."""
+        if self.provides('distance_gradient'):
+            return self.distance_gradient(z, distances)[0]
+        with torch.enable_grad():
+            leaf = distances if distances.requires_grad else \
+                distances.detach().requires_grad_()
+            log_lik = self.log_likelihood_of_distance(z, leaf)
+            score, = torch.autograd.grad(log_lik.sum(), leaf,
+                                         create_graph=distances.requires_grad)
+        return score
+
+    def linearize(self, z: Tensor, sender: Tensor, receiver: Tensor,
+                  generator: Optional[torch.Generator] = None
+                  ) -> Tuple[Tensor, Tensor]:
+        r"""The gradient of :math:`\log p(\mathbf{z} | d)` with respect
+        to :math:`[\mathbf{x}_j; \mathbf{x}_i]`, :math:`s [\mathbf{u};
+        -\mathbf{u}]` on the positions (:math:`s` the score, :math:`\mathbf{u}`
+        the unit vector from :math:`\mathbf{p}_i` to :math:`\mathbf{p}_j`),
+        and the curvature :math:`w \nabla d \, \nabla d^\top` with the
+        robust weight :math:`w` (:meth:`robust_weights`; see
+        :meth:`MeasurementModel.linearize`)."""
+        dim = sender.size(-1)
+        distances, unit = unit_vectors(sender[:, :dim // 2] -
+                                       receiver[:, :dim // 2])
+        score, weights = self.robust_weights(z, distances.view(-1, 1))
+        pull = score.view(-1, 1) * unit
+        grad = unit.new_zeros(unit.size(0), 2, dim)
+        grad[:, 0, :dim // 2] = pull  # d grows with p_j along u
+        grad[:, 1, :dim // 2] = -pull
+        return grad.view(-1, 2 * dim), range_blocks(unit, weights.view(-1),
+                                                    dim)
+
+    def robust_weights(self, z: Tensor, distances: Tensor
+                       ) -> Tuple[Tensor, Tensor]:
+        r"""The scores :math:`s = \partial \log p / \partial d` and the
+        weights :math:`w \geq 0` :math:`(E, K)` with which a Gaussian
+        method (the centralized filter, Gaussian BP) linearizes this
+        likelihood at :obj:`distances`: one Gauss-Newton or iteratively
+        reweighted least squares step treats the range as a Gaussian
+        pseudo-measurement of precision :math:`w` whose gradient is
+        :math:`s`.
+
+        :math:`w = s / r` with the residual :math:`r = z - d` where the
+        score points to a zero residual (:math:`s r > 0`): the classical
+        IRLS weight, :math:`1 / \sigma^2` for the Gaussian and
+        :math:`(\nu + 1) / (\nu \sigma^2 + r^2)` for the Student-t, so an
+        outlying range counts little. Elsewhere (a likelihood whose mode is
+        not at a zero residual, as the NLOS mixture's, and :math:`r = 0`)
+        the observed information :math:`-\partial^2 \log p / \partial
+        d^2`, raised to zero where it is negative, as Gauss-Newton drops
+        negative curvature. Both come from the model's own formula
+        (:meth:`distance_score` and its derivative)."""
+        with torch.enable_grad():
+            leaf = distances.detach().requires_grad_()
+            score = self.distance_score(z, leaf)
+            curvature, = torch.autograd.grad(-score.sum(), leaf,
+                                             allow_unused=True)
+        score = score.detach()
+        if curvature is None:  # a score that does not depend on d
+            curvature = torch.zeros_like(score)
+        residual = (z[:, :1] - distances).expand_as(score)
+        toward_zero = score * residual > 0
+        irls = score / torch.where(toward_zero, residual,
+                                   torch.ones_like(residual))
+        weights = torch.where(toward_zero, irls, curvature).clamp_min(0.0)
+        return score, weights
+
+    def range_information(self, z: Tensor, distances: Tensor,
+                          generator: Optional[torch.Generator] = None
+                          ) -> Tensor:
+        r"""The Fisher information :math:`I(d) = \mathbb{E}_z[(\partial
+        \log p(z | d) / \partial d)^2]` :math:`(E)` of one range about the
+        distance, at the true :obj:`distances` :math:`(E)` of links with
+        features :obj:`z` :math:`(E, F)` (the range is integrated out).
+        The model's closed-form :obj:`distance_information` where it
+        provides one (:class:`~tg_nebp.models.GaussianRange`:
+        :math:`1 / \sigma^2`), else a Monte Carlo of the squared
+        :meth:`distance_score` over ranges drawn by :meth:`sample_ranges`
+        without a per-link state
+        (:attr:`~tg_nebp.models.MeasurementModel.fisher_samples` per link; a
+        model
+        whose generation needs one provides the closed form)."""
+        if self.provides('distance_information'):
+            return self.distance_information(z, distances)
+        draws = self.fisher_samples
+        at = distances.detach().repeat_interleave(draws)
+        drawn = self.sample_ranges(at, None, None, generator)
+        score = self.distance_score(drawn, at.view(-1, 1))
+        return score.view(-1, draws).square().mean(-1)
+
+    def fisher_information(self, z: Tensor, sender: Tensor, receiver: Tensor,
+                           generator: Optional[torch.Generator] = None
+                           ) -> Tensor:
+        r"""The Fisher information :math:`(E, 2D, 2D)` of the range about
+        :math:`[\mathbf{x}_j; \mathbf{x}_i]`: :math:`I(d) \mathbf{u}
+        \mathbf{u}^\top` on the two position blocks, negated off the
+        diagonal, with :math:`\mathbf{u}` the unit vector between the
+        positions and :math:`I` from :meth:`range_information`."""
+        dim = sender.size(-1)
+        distances, unit = unit_vectors(sender[:, :dim // 2] -
+                                       receiver[:, :dim // 2])
+        return range_blocks(unit, self.range_information(z, distances,
+                                                         generator), dim)
 
     def sample_features(self, states_j: Tensor, states_i: Tensor,
                         link_state, edge_index: Tensor,

@@ -91,6 +91,12 @@ class GaussianRange(RangeModel, name='gaussian'):
         per_distance = (z[:, :1] - distances) / self.sigma**2
         return per_distance, -per_distance
 
+    def distance_information(self, z: Tensor, distances: Tensor) -> Tensor:
+        r"""The closed-form Fisher information :math:`1 / \sigma^2` of a
+        range about the distance (see
+        :meth:`~tg_nebp.models.RangeModel.range_information`)."""
+        return distances.new_full(distances.shape, self.sigma**-2)
+
     @staticmethod
     def fused_log_pdf(range_, distance, inv_two_var, log_norm):
         # arithmetic only: compiled into the fused Triton kernel, which
@@ -150,6 +156,13 @@ class StudentTRange(RangeModel, name='student-t'):
                     0.5 * math.log(nu * math.pi) - math.log(self.sigma))
         scaled = (z[:, :1] - distances) / self.sigma
         return log_norm - 0.5 * (nu + 1) * torch.log1p(scaled * scaled / nu)
+
+    def distance_information(self, z: Tensor, distances: Tensor) -> Tensor:
+        r"""The closed-form Fisher information :math:`(\nu + 1) / ((\nu +
+        3) \sigma^2)` of a range about the distance (see
+        :meth:`~tg_nebp.models.RangeModel.range_information`)."""
+        return distances.new_full(distances.shape, (self.nu + 1) / (
+            (self.nu + 3) * self.sigma**2))
 
     def sample_ranges(self, distances: Tensor, link_state=None,
                       edge_index: Optional[Tensor] = None,
@@ -260,6 +273,49 @@ class NLOSRange(RangeModel, name='nlos'):
             return log_nlos
         return torch.logaddexp(log_los + math.log1p(-p), log_nlos +
                                math.log(p))
+
+    def distance_information(self, z: Tensor, distances: Tensor) -> Tensor:
+        r"""The Fisher information of a range about the distance, by
+        numerical integration of the squared score of this model's own
+        likelihood over the residual (:meth:`information_of_component`);
+        with :obj:`oracle`, that of the component each link's flag names
+        (see :meth:`~tg_nebp.models.RangeModel.range_information`)."""
+        if self.oracle:
+            nlos = z[:, 1] > 0.5
+            return torch.where(nlos, self.information_of_component(True),
+                               self.information_of_component(False)).to(
+                                   distances)
+        return distances.new_full(distances.shape,
+                                  self.information_of_component(None))
+
+    def information_of_component(self, nlos: Optional[bool] = None) -> float:
+        r""":math:`\int (\partial \log p(z | d) / \partial d)^2 p(z | d)
+        \, dz` of the mixture (:obj:`None`), or, for the oracle, of the
+        NLOS (:obj:`True`) or LOS (:obj:`False`) component: the
+        likelihood depends on :math:`z - d` alone, so the integral runs over
+        the residual, on a grid of steps :math:`\sigma / 100` within
+        :math:`12 \sigma` of zero and :math:`\mu / 100` over the bias's
+        tail up to :math:`12 \sigma + 60 \mu` (trapezoid rule, float64;
+        computed once per model)."""
+        cache = self.__dict__.setdefault('_information', {})
+        if nlos not in cache:
+            sigma, mean = self.sigma, self.bias_mean
+            residual = torch.cat([
+                torch.linspace(-12 * sigma, 12 * sigma, 2401,
+                               dtype=torch.float64),
+                torch.linspace(12 * sigma, 12 * sigma + 60 * mean, 6001,
+                               dtype=torch.float64)[1:]])
+            features = residual.view(-1, 1)
+            if self.oracle:
+                flag = torch.full_like(features, float(bool(nlos)))
+                features = torch.cat([features, flag], 1)
+            distance = torch.zeros_like(features[:, :1])
+            score = self.distance_score(features, distance).view(-1)
+            density = self.log_likelihood_of_distance(features,
+                                                      distance).view(-1).exp()
+            cache[nlos] = float(torch.trapezoid(score.square() * density,
+                                                residual))
+        return cache[nlos]
 
     def sample_links(self, num_nodes: int,
                      generator: Optional[torch.Generator] = None) -> Tensor:

@@ -65,6 +65,25 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
                             device=states.device, generator=generator)
         return self.propagate(states, self.sigma_a * accel)
 
+    def mean(self, states: Tensor) -> Tensor:
+        r"""The noise-free transition :math:`\mathbf{F} \mathbf{x} -
+        c \mathbf{W} (\mathbf{v} \odot |\mathbf{v}|)`: the driving noise
+        :math:`\mathbf{W} \mathbf{a}` is additive."""
+        return self.propagate(states, states.new_zeros(
+            states.shape[:-1] + (self.position_dim, )))
+
+    def noise_covariance(self, states: Tensor) -> Tensor:
+        r""":math:`\sigma_a^2 \mathbf{W} \mathbf{W}^\top` (the same at
+        every state), :math:`(*, 4, 4)`."""
+        # W as the transition's own response to a unit acceleration: the
+        # model's formula, not a second copy of its matrices
+        dim = self.position_dim
+        eye = torch.eye(dim, dtype=states.dtype, device=states.device)
+        response = (self.propagate(states.new_zeros(dim, 2 * dim), eye) -
+                    self.mean(states.new_zeros(1, 2 * dim)))  # rows W^T
+        cov = self.sigma_a**2 * response.transpose(0, 1) @ response
+        return cov.expand(states.shape[:-1] + cov.shape)
+
     def params(self) -> dict:
         return dict(sigma_a=self.sigma_a, drag=self.drag, dt=self.dt)
 

@@ -1,0 +1,90 @@
+import numpy as np
+import pytest
+import torch
+
+from tg_nebp.gaussian import (add_link_information, block_diagonal,
+                              check_dense_joint, marginal_blocks,
+                              predict_joint, range_blocks, symmetric_inverse,
+                              unit_vectors)
+
+from helpers import gen
+
+
+def test_block_diagonal_and_marginals_round_trip():
+    blocks = torch.randn(3, 4, 4, generator=gen(0), dtype=torch.float64)
+    joint = block_diagonal(blocks)
+    expected = np.zeros((12, 12))
+    for a in range(3):
+        expected[4 * a:4 * a + 4, 4 * a:4 * a + 4] = blocks[a].numpy()
+    np.testing.assert_array_equal(joint.numpy(), expected)
+    torch.testing.assert_close(marginal_blocks(joint, 4), blocks)
+
+
+def test_predict_joint_is_the_dense_product():
+    g = gen(1)
+    root = torch.randn(8, 8, generator=g, dtype=torch.float64)
+    cov = root @ root.t()
+    jac = torch.randn(2, 4, 4, generator=g, dtype=torch.float64)
+    noise = torch.randn(2, 4, 4, generator=g, dtype=torch.float64)
+    noise = noise @ noise.transpose(1, 2)
+    F = block_diagonal(jac)
+    expected = F @ cov @ F.t() + block_diagonal(noise)
+    torch.testing.assert_close(predict_joint(cov, jac, noise), expected)
+
+
+def test_link_information_against_a_loop():
+    # three agents and an anchor (-1); every link's 8 x 8 block on
+    # [x_j; x_i] added entry by entry in plain loops
+    g = gen(2)
+    blocks = torch.randn(5, 8, 8, generator=g, dtype=torch.float64)
+    sender = torch.tensor([0, -1, 2, 1, -1])
+    receiver = torch.tensor([1, 0, 0, 2, 2])
+    info = add_link_information(torch.zeros(12, 12, dtype=torch.float64),
+                                blocks, sender, receiver)
+    expected = np.zeros((12, 12))
+    for e in range(5):
+        ends = (int(sender[e]), int(receiver[e]))
+        for a in range(2):
+            for b in range(2):
+                if ends[a] < 0 or ends[b] < 0:
+                    continue
+                for r in range(4):
+                    for c in range(4):
+                        expected[4 * ends[a] + r, 4 * ends[b] + c] += float(
+                            blocks[e, 4 * a + r, 4 * b + c])
+    np.testing.assert_allclose(info.numpy(), expected, rtol=1e-12,
+                               atol=1e-12)
+
+
+def test_range_blocks_are_the_gradient_outer_product():
+    # d = |p_j - p_i| has gradient [u, 0, -u, 0] in [x_j; x_i]
+    diff = torch.tensor([[3.0, 4.0], [0.0, 0.0]], dtype=torch.float64)
+    lengths, unit = unit_vectors(diff)
+    torch.testing.assert_close(lengths, torch.tensor([5.0, 0.0],
+                                                     dtype=torch.float64))
+    assert unit[1].abs().max() == 0  # no direction, no information
+    blocks = range_blocks(unit, torch.tensor([2.0, 1.0],
+                                             dtype=torch.float64), 4)
+    grad = torch.tensor([0.6, 0.8, 0, 0, -0.6, -0.8, 0, 0],
+                        dtype=torch.float64)
+    torch.testing.assert_close(blocks[0], 2.0 * torch.outer(grad, grad))
+    assert blocks[1].abs().max() == 0
+
+
+def test_symmetric_inverse_refuses_an_indefinite_matrix():
+    spd = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=torch.float64)
+    inverse = symmetric_inverse(spd)
+    torch.testing.assert_close(inverse @ spd, torch.eye(2,
+                                                        dtype=torch.float64))
+    with pytest.raises(ValueError, match='not positive definite'):
+        symmetric_inverse(torch.tensor([[1.0, 2.0], [2.0, 1.0]],
+                                       dtype=torch.float64))
+
+
+def test_dense_joint_check_names_the_sizes():
+    check_dense_joint(100, 4, 'the test', free=10**9)
+    with pytest.raises(ValueError, match=r'the test of a graph of 10000 '
+                       r'agents needs dense 40000 x 40000 float64 matrices, '
+                       r'about 71.5 GiB .* 1 GiB are free on cpu: it runs up '
+                       r'to about 1182 agents'):
+        check_dense_joint(10_000, 4, 'the test', free=2**30)

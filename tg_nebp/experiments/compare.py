@@ -1,0 +1,275 @@
+r"""One table of every method against the bound: the posterior Cramér-Rao
+bound, the centralized iterated EKF (Gaussian and Student-t likelihoods;
+joint and marginals-only), particle BP (the paper's configuration and the
+recommended one) and NEBP from checkpoints, on the same realizations with
+the same prior particle draws, with the same metrics, per-realization
+spreads and seconds per realization.
+
+Behind :obj:`tg-nebp compare`, which writes :obj:`compare.json` after every
+method (an interrupted run resumes where it stopped, and a run with more
+checkpoints adds their rows), :obj:`compare.md` and :obj:`compare.png`."""
+import hashlib
+import os
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.datasets import Scenario, load_datasets
+from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
+                                track_dataset)
+from tg_nebp.filters import CentralizedIEKF, ParticleBP, Tracker
+from tg_nebp.io import read_resumable, write_json
+from tg_nebp.models import model_like
+
+__all__ = ['compare_methods', 'run_compare', 'compare_table',
+           'compare_points', 'floor_ratios', 'COMPARE_VERSION',
+           'COMPARE_SCENARIOS', 'BOUND']
+
+#: The format version of :obj:`compare.json`.
+COMPARE_VERSION = 1
+#: The scenarios of the default table, the paper's test network and the
+#: same with NLOS links.
+COMPARE_SCENARIOS = ('paper_test', 'paper_test_nlos')
+#: The key of the bound's row.
+BOUND = 'pcrb'
+
+Method = Union[Tracker, PosteriorCRB]
+
+
+def _file_hash(path: Union[str, Path]) -> str:
+    digest = hashlib.sha256()
+    with open(path, 'rb') as f:
+        for block in iter(lambda: f.read(1 << 20), b''):
+            digest.update(block)
+    return digest.hexdigest()[:10]
+
+
+def compare_methods(scenario: Scenario,
+                    checkpoints: Sequence[Union[str, Path]] = ()
+                    ) -> Dict[str, Tuple[str, Callable[[], Method]]]:
+    r"""The rows of the table on :obj:`scenario`, in order, each a
+    description and a function that builds the method: the bound
+    (:obj:`"pcrb"`), the centralized IEKF with the Gaussian, the Student-t
+    and (where it is another) the scenario's own likelihood, joint
+    (:obj:`"iekf ..."`) and marginals-only (:obj:`"iekf-marginal ..."`),
+    BP in the paper's configuration at :math:`K = 1000`
+    (:obj:`"bp-paper ..."`) and the recommended one
+    (:obj:`"bp-recommended ..."`, :meth:`ParticleBP.recommended
+    <tg_nebp.filters.ParticleBP.recommended>`), both with the scenario's
+    likelihood, and NEBP from every checkpoint
+    (:obj:`"nebp <file> <hash>"`: the file's hash is part of the key, so
+    a changed checkpoint is a new row)."""
+    from tg_nebp.training import nebp_from_checkpoint
+
+    motion, own = scenario.motion_model, scenario.measurement_model
+    methods = {BOUND: ('the posterior CRB: the floor, and an efficient '
+                       "estimator's outage",
+                       lambda: PosteriorCRB(motion, own))}
+    likelihoods = ['gaussian', 'student-t']
+    if own.name not in likelihoods:
+        likelihoods.append(own.name)
+    for marginal in (False, True):
+        name = 'iekf-marginal' if marginal else 'iekf'
+        what = ('centralized IEKF, marginals only (the distributed ideal)'
+                if marginal else 'centralized IEKF')
+        for likelihood in likelihoods:
+            measurement = model_like(likelihood, 'measurement', own)
+            methods[f'{name} {likelihood}'] = (
+                f'{what}, {likelihood} likelihood',
+                lambda m=measurement, marginal=marginal: CentralizedIEKF(
+                    motion=motion, measurement=m, marginal=marginal))
+    methods[f'bp-paper {own.name}'] = (
+        "particle BP, the paper's configuration (K = 1,000, M = 1)",
+        lambda: ParticleBP(1000, motion=motion, measurement=own))
+    methods[f'bp-recommended {own.name}'] = (
+        'particle BP, recommended (K = 500, M = 32, regularized)',
+        lambda: ParticleBP.recommended(motion=motion, measurement=own))
+    for path in checkpoints:
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"the NEBP checkpoint '{path}' does not exist")
+        methods[f'nebp {path.name} {_file_hash(path)}'] = (
+            f'NEBP from {path}',
+            lambda path=path: nebp_from_checkpoint(path))
+    return methods
+
+
+def _settings(datasets, seed: int, device: str) -> dict:
+    # what every row of one file shares; a scenario is its fingerprint (every
+    # generation parameter), not its name
+    return dict(version=COMPARE_VERSION, realizations=len(datasets[0]),
+                seed=seed, device=device,
+                scenarios={d.scenario.name: d.scenario.fingerprint()
+                           for d in datasets})
+
+
+def _run_one(method: Method, dataset, seed: int, device: str,
+             batch_size: int, progress: Optional[Callable]) -> dict:
+    load = os.getloadavg()[0]
+    method = method.to(device).eval()
+    start = time.perf_counter()
+    if isinstance(method, PosteriorCRB):
+        result = bound_dataset(method, dataset, batch_size, device, seed,
+                               progress)
+    else:
+        result = track_dataset(method, dataset, batch_size, device, seed,
+                               progress)
+    seconds = time.perf_counter() - start
+    entry = summarize_result(result)
+    entry.update(spread=spread(result), seconds=round(seconds, 3),
+                 seconds_per_realization=round(seconds / len(dataset), 4),
+                 load_average=round(load, 2))
+    return entry
+
+
+def run_compare(root: str = 'datasets',
+                scenarios: Sequence[Union[str, Scenario]] = COMPARE_SCENARIOS,
+                realizations: int = 20, seed: int = 0,
+                out: Union[str, Path] = 'results/compare',
+                checkpoints: Sequence[Union[str, Path]] = (),
+                device: str = 'cpu', batch_size: int = 1,
+                methods: Optional[Sequence[str]] = None,
+                progress: Optional[Callable] = None,
+                log: Callable = print) -> dict:
+    r"""Runs every method of :func:`compare_methods` on
+    :obj:`realizations` realizations of every scenario (seed
+    :obj:`seed`) and returns the content of :obj:`out/compare.json`,
+    written after every method.
+
+    Every method sees the same realizations and, through
+    :func:`~tg_nebp.evaluation.track_dataset` with :obj:`seed`, the same
+    prior particle draws. Rows already in the file are skipped (resuming,
+    or adding checkpoints), as long as it was made with the same
+    realizations, seed, device and scenarios (compared by their
+    :meth:`~tg_nebp.datasets.Scenario.fingerprint`, so a scenario file
+    changed under the same name is not mixed in); another file is an
+    error. Each row holds the accuracy
+    (:func:`~tg_nebp.evaluation.summarize_result`), its spread over the
+    realizations (:func:`~tg_nebp.evaluation.spread`), the seconds per
+    realization and the load average when it started.
+
+    Args:
+        root (str, optional): Dataset root. (default: :obj:`"datasets"`)
+        scenarios (sequence, optional): Scenario names, files or
+            :class:`~tg_nebp.datasets.Scenario` objects.
+            (default: :obj:`COMPARE_SCENARIOS`)
+        realizations (int, optional): Realizations per scenario.
+            (default: :obj:`20`)
+        seed (int, optional): Seed of the data and the particle draws.
+            (default: :obj:`0`)
+        out (str or Path, optional): Folder of :obj:`compare.json`.
+            (default: :obj:`"results/compare"`)
+        checkpoints (sequence, optional): NEBP checkpoints, one row each.
+            (default: :obj:`()`)
+        device (str, optional): Device. (default: :obj:`"cpu"`)
+        batch_size (int, optional): Realizations tracked together.
+            (default: :obj:`1`)
+        methods (sequence of str, optional): Run only the rows whose key
+            starts with one of these (for example :obj:`["pcrb", "iekf"]`);
+            all if :obj:`None`. (default: :obj:`None`)
+        progress (callable, optional): Called with the number of
+            realization-steps done. (default: :obj:`None`)
+        log (callable, optional): Receives one line per row.
+            (default: :obj:`print`)
+    """
+    datasets = load_datasets(root, *((s, realizations, seed)
+                                     for s in scenarios))
+    path = Path(out) / 'compare.json'
+    settings = _settings(datasets, seed, device)
+    result = read_resumable(path, settings, 'results', 'a comparison')
+    # every row is built (its options and checkpoints checked) before the
+    # first one runs
+    plan = []
+    for dataset in datasets:
+        rows = compare_methods(dataset.scenario, checkpoints)
+        for key, (what, build) in rows.items():
+            if methods is None or any(key.startswith(m) for m in methods):
+                plan.append((dataset, key, what, build()))
+    for dataset, key, what, method in plan:
+        name = dataset.scenario.name
+        steps = len(dataset) * dataset.scenario.num_steps
+        table = result['results'].setdefault(name, {})
+        if key in table:
+            if progress is not None:
+                progress(steps)
+            continue
+        entry = _run_one(method, dataset, seed, device, batch_size, progress)
+        entry['method'] = what
+        table[key] = entry
+        write_json(path, result)
+        log(f"{name}: {key}: P_out(1 m) {entry['outage']['1.0']:.4f}, "
+            f"P(accept 0.95) {entry['accept']['0.95']:.3f}, RMSE "
+            f"{entry['rmse']:.3f} m, {entry['seconds_per_realization']:.2f} "
+            f"s per realization")
+    return result
+
+
+def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:
+    r"""Each row's RMSE as a multiple of the bound's floor on the same
+    realizations: the mean and sample standard deviation over the
+    realizations of RMSE / floor (the rows of one scenario of
+    :obj:`compare.json`; empty without the bound's row)."""
+    if BOUND not in rows:
+        return {}
+    floors = [r[2] for r in rows[BOUND]['spread']['realizations']]
+    ratios = {}
+    for key, entry in rows.items():
+        per = [r[2] / f for r, f in zip(entry['spread']['realizations'],
+                                        floors)]
+        mean = sum(per) / len(per)
+        var = (sum((p - mean)**2 for p in per) / (len(per) - 1)
+               if len(per) > 1 else 0.0)
+        ratios[key] = (mean, var**0.5)
+    return ratios
+
+
+def compare_table(compare: dict) -> str:
+    r"""The rows of :obj:`compare.json` as one Markdown table per
+    scenario, in the order of :func:`compare_methods`."""
+    settings = compare['settings']
+    lines = [f"{settings['realizations']} realizations per scenario, seed "
+             f"{settings['seed']}, {settings['device']}. P_out and "
+             f"P(accept) pool every agent and time step; 'per real.' is the "
+             f"mean ± standard deviation over the realizations; RMSE / "
+             f"floor divides each realization's RMSE by the bound's floor "
+             f"on the same realization. The bound's P(accept) is that of an "
+             f"efficient estimator: the confidence level.", '']
+    for name, rows in compare['results'].items():
+        ratios = floor_ratios(rows)
+        lines += [f'### `{name}`', '',
+                  '| method | P_out 0.5 / 1 / 2 m | P(accept 0.95) | '
+                  'RMSE [m] | RMSE / floor | P_out(1 m) per real. | '
+                  'P(accept) per real. | s per real. |',
+                  '| --- ' * 8 + '|']
+        for key, e in rows.items():
+            o, s = e['outage'], e['spread']
+            ratio = ratios.get(key)
+            lines.append(
+                f"| `{key}` | {o['0.5']:.3f} / {o['1.0']:.4f} / "
+                f"{o['2.0']:.4f} | {e['accept']['0.95']:.3f} | "
+                f"{e['rmse']:.3f} | "
+                + (f'{ratio[0]:.2f} ± {ratio[1]:.2f}' if ratio else '')
+                + f" | {s['outage_1m']['mean']:.4f} ± "
+                f"{s['outage_1m']['std']:.4f} | "
+                f"{s['accept_0.95']['mean']:.3f} ± "
+                f"{s['accept_0.95']['std']:.3f} | "
+                f"{e['seconds_per_realization']:.2f} |")
+        lines.append('')
+    return '\n'.join(lines)
+
+
+def compare_points(compare: dict) -> Dict[str, List[dict]]:
+    r"""Per scenario, what :func:`~tg_nebp.plot.plot_compare` draws of
+    every row: its key, seconds per realization, P_out(1 m),
+    P(accept 0.95) and RMSE / floor, each with its spread over the
+    realizations."""
+    points = {}
+    for name, rows in compare['results'].items():
+        ratios = floor_ratios(rows)
+        points[name] = [dict(
+            key=key, seconds=e['seconds_per_realization'],
+            outage=(e['outage']['1.0'], e['spread']['outage_1m']['std']),
+            accept=(e['accept']['0.95'], e['spread']['accept_0.95']['std']),
+            floor_ratio=ratios.get(key)) for key, e in rows.items()]
+    return points

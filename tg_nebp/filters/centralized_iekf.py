@@ -1,0 +1,221 @@
+from typing import Iterator, Optional
+
+import torch
+from torch import Tensor
+
+from tg_nebp.bounds.posterior_crb import GraphLayout
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_number, check_positive_int
+from tg_nebp.filters.tracker import StepOutput, Tracker
+from tg_nebp.gaussian import (add_link_information, block_diagonal,
+                              check_dense_joint, marginal_blocks,
+                              predict_joint, symmetric_inverse)
+from tg_nebp.models import MeasurementModel, MotionModel
+
+__all__ = ['CentralizedIEKF']
+
+
+class CentralizedIEKF(Tracker):
+    r"""The centralized iterated extended Kalman filter: one joint Gaussian
+    over all agents of a graph, the reference that message passing is
+    measured against (it sits on the posterior Cramér-Rao bound of the
+    paper's test network). At every time step it
+
+    1. predicts with the motion model's mean and Jacobian
+       (:meth:`~tg_nebp.models.MotionModel.mean`,
+       :meth:`~tg_nebp.models.MotionModel.jacobian`,
+       :meth:`~tg_nebp.models.MotionModel.noise_covariance`):
+       :math:`\boldsymbol{\mu}^- = f(\boldsymbol{\mu})`,
+       :math:`\mathbf{P}^- = \mathbf{F} \mathbf{P} \mathbf{F}^\top +
+       \mathbf{Q}`;
+    2. finds the maximum a posteriori state of the step,
+
+       .. math::
+           \hat{\mathbf{x}} = \arg\min_{\mathbf{x}} \tfrac{1}{2}
+           (\mathbf{x} - \boldsymbol{\mu}^-)^\top (\mathbf{P}^-)^{-1}
+           (\mathbf{x} - \boldsymbol{\mu}^-) - \sum_{j \to i} \log
+           p\big(z_{j \to i} \,\big|\, d_{ji}(\mathbf{x})\big),
+
+       by :obj:`num_iterations` Gauss-Newton steps, each
+       :math:`\mathbf{x} \leftarrow \mathbf{x} + \alpha
+       \mathbf{H}^{-1} \mathbf{g}` with :math:`\mathbf{g}` the gradient of
+       the log-posterior and :math:`\mathbf{H} = (\mathbf{P}^-)^{-1} +
+       \sum \mathbf{W}_{ji}`, both from the measurement model's own
+       likelihood (:meth:`~tg_nebp.models.MeasurementModel.linearize`: for a
+       range model the scores and robust weights of
+       :meth:`~tg_nebp.models.RangeModel.robust_weights`, :math:`1 /
+       \sigma^2` for the Gaussian, iteratively reweighted least squares for
+       the Student-t; Fisher scoring for other models), and the step
+       :math:`\alpha` halved until the cost decreases;
+    3. takes :math:`\mathbf{P} = \mathbf{H}^{-1}` at the solution as the
+       covariance.
+
+    Every measured range is its own term (both directions of a link, and
+    anchors' ranges, which inform their agent only). With
+    :obj:`marginal=True` only every agent's marginal is kept after the
+    update (the cross-agent covariances are dropped before the next
+    prediction): the best that a distributed filter, which keeps marginals
+    only, can reach.
+
+    Float64 inside, one dense :math:`(AS)^2` joint per graph of a batch
+    (:math:`A` agents, states of size :math:`S`): a graph too large for the
+    free memory is refused before any work starts; time grows as
+    :math:`A^3`. No random draws: :obj:`generator` is accepted and unused.
+
+    Args:
+        num_iterations (int, optional): Gauss-Newton iterations per time
+            step. (default: :obj:`5`)
+        motion (MotionModel, optional): Motion model with an
+            additive-Gaussian-noise form.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (MeasurementModel, optional): Measurement model whose
+            likelihood the update maximizes. (default: :obj:`GaussianRange()`)
+        marginal (bool, optional): Keep only the agents' marginals between
+            steps. (default: :obj:`False`)
+        max_halvings (int, optional): Halvings of a Gauss-Newton step before
+            the iterations stop at the current point. (default: :obj:`10`)
+        tolerance (float, optional): The iterations stop after a step
+            whose largest entry is at most this (metres, metres per
+            second). (default: :obj:`1e-6`)
+
+    Shapes:
+        - **input:** a :class:`~tg_nebp.data.Realization`
+        - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean
+          :math:`(N, T, S)` and covariance :math:`(N, T, S, S)` (anchors:
+          their known state, zero covariance)
+    """
+    def __init__(self, num_iterations: int = 5,
+                 motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None,
+                 marginal: bool = False, max_halvings: int = 10,
+                 tolerance: float = 1e-6):
+        super().__init__(motion, measurement)
+        if not isinstance(marginal, bool):
+            raise TypeError(f"'marginal' must be a bool, got {marginal!r}")
+        self.num_iterations = check_positive_int(num_iterations,
+                                                 'num_iterations')
+        self.max_halvings = check_positive_int(max_halvings, 'max_halvings')
+        self.marginal = marginal
+        self.tolerance = check_number(tolerance, 'tolerance', inclusive=True)
+
+    def steps(self, data: Realization,
+              generator=None) -> Iterator[StepOutput]:
+        r"""Runs the time loop lazily, yielding a
+        :class:`~tg_nebp.filters.StepOutput` per time step (without
+        particles).
+
+        Args:
+            data (Realization): A single or batched realization.
+            generator: Unused (the filter draws nothing).
+                (default: :obj:`None`)
+        """
+        self.check(data)
+        layout = GraphLayout.of(data)
+        size = self.motion.state_dim
+        check_dense_joint(max(a.numel() for a in layout.agents), size,
+                          'the centralized IEKF', data.prior_mean.device)
+        prior_mean = data.prior_mean.double()
+        means = [prior_mean[nodes] for nodes in layout.agents]
+        covs = [block_diagonal(data.prior_cov.double()[nodes])
+                for nodes in layout.agents]
+        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+            src, dst = edge_index
+            edge_graph = layout.graph_of[dst]
+            mean = prior_mean.clone()  # anchors keep their known state
+            cov = mean.new_zeros(data.num_nodes, size, size)
+            for g, nodes in enumerate(layout.agents):
+                mine = edge_graph == g
+                # the senders' known positions where they are anchors
+                known = prior_mean[src[mine]]
+                means[g], covs[g] = self.update(
+                    *self.predict(means[g], covs[g]), edge_attr[mine].double(),
+                    layout.agent_index[src[mine]],
+                    layout.agent_index[dst[mine]], known)
+                mean[nodes] = means[g]
+                cov[nodes] = marginal_blocks(covs[g], size)
+                if self.marginal:
+                    covs[g] = block_diagonal(cov[nodes])
+            yield StepOutput(t, mean, cov)
+
+    def predict(self, mean: Tensor, cov: Tensor):
+        r"""The prediction of the agents' means :math:`(A, S)` and joint
+        covariance :math:`(AS, AS)`."""
+        return (self.motion.mean(mean),
+                predict_joint(cov, self.motion.jacobian(mean),
+                              self.motion.noise_covariance(mean)))
+
+    @staticmethod
+    def _ends(state: Tensor, sender: Tensor, receiver: Tensor,
+              known: Tensor):
+        # the states [E, S] of the links' two ends: the agents' from
+        # 'state' [A, S], an anchor sender's from 'known'
+        at_sender = torch.where((sender >= 0).view(-1, 1),
+                                state[sender.clamp_min(0)], known)
+        return at_sender, state[receiver]
+
+    def _cost(self, state: Tensor, prior: Tensor, info: Tensor, z: Tensor,
+              *links) -> Tensor:
+        # the negative log-posterior of the step (up to a constant): the
+        # measurement model's own likelihood
+        offset = (state - prior).view(-1)
+        sender, receiver = self._ends(state, *links)
+        log_lik = self.measurement.log_likelihood(z, sender.unsqueeze(1),
+                                                  receiver.unsqueeze(1))
+        return 0.5 * offset @ (info @ offset) - log_lik.sum()
+
+    def _normal_equations(self, state: Tensor, prior: Tensor, info: Tensor,
+                          z: Tensor, sender: Tensor, receiver: Tensor,
+                          known: Tensor):
+        # the Gauss-Newton matrix H and the gradient g of the log-posterior
+        count, size = state.shape
+        grads, blocks = self.measurement.linearize(
+            z, *self._ends(state, sender, receiver, known))
+        hessian = add_link_information(info.clone(), blocks, sender,
+                                       receiver)
+        grad = -(info @ (state - prior).view(-1)).view(count, size)
+        grads = grads.view(-1, 2, size)
+        grad.index_add_(0, receiver, grads[:, 1])
+        agent = sender >= 0
+        grad.index_add_(0, sender[agent], grads[agent, 0])
+        return hessian, grad
+
+    def update(self, mean: Tensor, cov: Tensor, z: Tensor, sender: Tensor,
+               receiver: Tensor, known: Tensor):
+        r"""The update of the predicted agents' means :math:`(A, S)` and
+        joint covariance :math:`(AS, AS)` with the ranges :obj:`z`
+        :math:`(E, F)` of the links from :obj:`sender` to :obj:`receiver`
+        :math:`(E)` (agent indices, :math:`-1` for an anchor, whose state
+        :obj:`known` :math:`(E, S)` gives): Gauss-Newton with step halving
+        on the step's MAP cost; returns the estimate and its covariance."""
+        info = symmetric_inverse(cov)
+        links = (z, sender, receiver, known)
+        state = mean
+        cost = self._cost(state, mean, info, *links)
+        for _ in range(self.num_iterations):
+            hessian, grad = self._normal_equations(state, mean, info, *links)
+            step = torch.cholesky_solve(grad.view(-1, 1),
+                                        torch.linalg.cholesky(hessian))
+            step = step.view_as(state)
+            for _ in range(self.max_halvings + 1):
+                trial = state + step
+                trial_cost = self._cost(trial, mean, info, *links)
+                if bool(trial_cost <= cost):
+                    break
+                step = 0.5 * step
+            else:  # no decrease along the Gauss-Newton direction: converged
+                break
+            state, cost = trial, trial_cost
+            if bool(step.abs().amax() <= self.tolerance):
+                break
+        hessian, _ = self._normal_equations(state, mean, info, *links)
+        return state, symmetric_inverse(hessian)
+
+    def settings(self) -> dict:
+        return dict(iterations=self.num_iterations,
+                    measurement=self.measurement.config(),
+                    marginal=self.marginal)
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(num_iterations='
+                f'{self.num_iterations}, motion={self.motion}, '
+                f'measurement={self.measurement}, marginal={self.marginal})')

@@ -1,0 +1,89 @@
+r"""What every tracker shares: the estimates it yields per time step and
+for a whole sequence, the checks of a realization against its models, and
+the fields it reports in :obj:`metrics.json`. A new inference method is a
+:class:`Tracker` whose :meth:`~Tracker.steps` yields :class:`StepOutput`:
+every metric, figure, :func:`~tg_nebp.evaluation.track_dataset`, the
+compare table and the CLI then work with it unchanged."""
+from typing import Any, Dict, Iterator, NamedTuple, Optional
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_realization
+from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
+
+__all__ = ['Tracker', 'StepOutput', 'TrackOutput']
+
+
+class StepOutput(NamedTuple):
+    r"""What a tracker yields at time index :obj:`t`: the estimate
+    :obj:`mean` :math:`(N, S)`, its covariance :obj:`cov` :math:`(N, S,
+    S)` and, for the particle trackers, the particle belief
+    (:obj:`particles` :math:`(N, K, S)`, normalized :obj:`log_weights`
+    :math:`(N, K)`) before resampling (:obj:`None` for the Gaussian
+    trackers)."""
+    t: int
+    mean: Tensor
+    cov: Tensor
+    particles: Optional[Tensor] = None
+    log_weights: Optional[Tensor] = None
+
+
+class TrackOutput(NamedTuple):
+    r"""Estimates :obj:`mean` :math:`(N, T, S)` and covariances :obj:`cov`
+    :math:`(N, T, S, S)` of a whole sequence."""
+    mean: Tensor
+    cov: Tensor
+
+
+class Tracker(torch.nn.Module):
+    r"""The base of the trackers, which holds a motion and a measurement
+    model (the paper's by default) and runs the time loop. Subclasses
+    implement :meth:`~tg_nebp.filters.Tracker.steps` (the time loop,
+    lazily, one :class:`~tg_nebp.filters.StepOutput` per time step) and
+    :meth:`~tg_nebp.filters.Tracker.settings`;
+    :meth:`~tg_nebp.filters.Tracker.forward` tracks the whole sequence.
+
+    Args:
+        motion (MotionModel, optional): Motion model.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (MeasurementModel, optional): Measurement model.
+            (default: :obj:`GaussianRange()`)
+    """
+    def __init__(self, motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None):
+        super().__init__()
+        self.motion, self.measurement = resolve_models(motion, measurement)
+
+    def check(self, data: Realization) -> None:
+        r"""Checks a realization (:func:`~tg_nebp.data.check_realization`
+        with the link features the measurement model reads) and that its
+        states have the motion model's dimension."""
+        check_realization(data, self.measurement.features)
+        if data.prior_mean.size(1) != self.motion.state_dim:
+            raise ValueError(f"'prior_mean' holds states of size "
+                             f"{data.prior_mean.size(1)} but the motion model "
+                             f"{self.motion} has state dimension "
+                             f"{self.motion.state_dim}")
+
+    def steps(self, data: Realization,
+              generator=None) -> Iterator[StepOutput]:
+        r"""Runs the time loop over a single or batched realization
+        lazily, yielding a :class:`StepOutput` per time step; the trackers
+        that draw random numbers draw them from :obj:`generator`."""
+        raise NotImplementedError
+
+    def forward(self, data: Realization, generator=None) -> TrackOutput:
+        r"""Tracks a whole (batched) sequence; :obj:`generator` as in
+        :meth:`steps`."""
+        means, covs = [], []
+        for step in self.steps(data, generator):
+            means.append(step.mean)
+            covs.append(step.cov)
+        return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
+
+    def settings(self) -> Dict[str, Any]:
+        r"""The settings that an evaluation reports next to the accuracy
+        (the fields of its :obj:`metrics.json` entry), JSON values."""
+        return dict(measurement=self.measurement.config())

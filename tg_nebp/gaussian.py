@@ -1,0 +1,145 @@
+r"""Dense joint Gaussians over the agents of one graph, shared by the
+centralized filter (:class:`~tg_nebp.filters.CentralizedIEKF`) and the
+posterior Cramér-Rao bound (:class:`~tg_nebp.bounds.PosteriorCRB`): the
+prediction of a joint covariance through a per-agent motion model, the
+information of measured links added into a joint information matrix, the
+agents' marginals, and the memory check that refuses a joint too large for
+the machine before any work starts.
+
+A joint over :math:`A` agents with states of size :math:`S` is an
+:math:`(AS, AS)` matrix whose block :math:`(a, b)` belongs to agents
+:math:`a` and :math:`b`; anchors are known and hold no block."""
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from tg_nebp.utils import free_memory_bytes
+
+__all__ = ['check_dense_joint', 'predict_joint', 'range_blocks',
+           'add_link_information', 'marginal_blocks', 'block_diagonal',
+           'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
+
+#: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
+#: recursion (covariance, information, factor, temporaries), for the
+#: memory estimate of :func:`check_dense_joint`.
+JOINT_COPIES = 6
+
+
+def check_dense_joint(num_agents: int, state_dim: int, what: str,
+                      device='cpu', free: Optional[int] = None) -> None:
+    r"""Refuses, with a :class:`ValueError` naming the sizes, a joint over
+    :obj:`num_agents` agents whose :obj:`JOINT_COPIES` dense float64
+    matrices do not fit in the free memory of :obj:`device` (or
+    :obj:`free` bytes), before any work starts."""
+    size = num_agents * state_dim
+    needed = JOINT_COPIES * size * size * 8
+    free = free_memory_bytes(str(device)) if free is None else free
+    if needed > free:
+        fits = int((free / (JOINT_COPIES * 8))**0.5) // state_dim
+        raise ValueError(
+            f"{what} of a graph of {num_agents} agents needs dense {size} x "
+            f"{size} float64 matrices, about {needed / 2**30:.3g} GiB in "
+            f"all, but {free / 2**30:.3g} GiB are free on {device}: it runs "
+            f"up to about {fits} agents per graph here")
+
+
+def block_diagonal(blocks: Tensor) -> Tensor:
+    r"""The :math:`(AS, AS)` matrix with the blocks :math:`(A, S, S)` on
+    its diagonal."""
+    count, size = blocks.size(0), blocks.size(-1)
+    out = blocks.new_zeros(count, size, count, size)
+    index = torch.arange(count, device=blocks.device)
+    out[index, :, index, :] = blocks
+    return out.view(count * size, count * size)
+
+
+def marginal_blocks(joint: Tensor, state_dim: int) -> Tensor:
+    r"""The diagonal blocks :math:`(A, S, S)` of a joint :math:`(AS, AS)`:
+    every agent's marginal covariance (or information)."""
+    count = joint.size(0) // state_dim
+    index = torch.arange(count, device=joint.device)
+    return joint.view(count, state_dim, count,
+                      state_dim)[index, :, index, :]
+
+
+def predict_joint(cov: Tensor, jacobian: Tensor, noise: Tensor) -> Tensor:
+    r""":math:`\mathbf{F} \mathbf{P} \mathbf{F}^\top + \mathbf{Q}` for a
+    joint covariance :math:`\mathbf{P}` :math:`(AS, AS)` and per-agent
+    Jacobians :math:`\mathbf{F}` and noise covariances :math:`\mathbf{Q}`
+    :math:`(A, S, S)` (block-diagonal: agents move independently),
+    symmetrized."""
+    count, size = jacobian.shape[:2]
+    blocks = cov.view(count, size, count, size)
+    moved = torch.einsum('aij,ajbk,blk->aibl', jacobian, blocks, jacobian)
+    index = torch.arange(count, device=cov.device)
+    moved[index, :, index, :] += noise
+    moved = moved.reshape(count * size, count * size)
+    return 0.5 * (moved + moved.transpose(0, 1))
+
+
+def unit_vectors(diff: Tensor) -> Tuple[Tensor, Tensor]:
+    r"""The lengths :math:`(E)` of the vectors :obj:`diff` :math:`(E, P)`
+    and their directions :math:`(E, P)` (zero for a zero vector, where a
+    distance has no gradient)."""
+    lengths = torch.linalg.vector_norm(diff, dim=-1)
+    safe = torch.where(lengths > 0, lengths, torch.ones_like(lengths))
+    return lengths, diff / safe.unsqueeze(-1)
+
+
+def range_blocks(unit: Tensor, weights: Tensor, state_dim: int) -> Tensor:
+    r"""The information :math:`(E, 2S, 2S)` on :math:`[\mathbf{x}_j;
+    \mathbf{x}_i]` of ranges :math:`d = \|\mathbf{p}_j - \mathbf{p}_i\|`
+    with precision (or Fisher information) :obj:`weights` :math:`(E)`:
+    :math:`w \mathbf{u} \mathbf{u}^\top` on both position blocks and
+    :math:`-w \mathbf{u} \mathbf{u}^\top` off the diagonal, for the unit
+    vectors :obj:`unit` :math:`(E, P)` between the positions (the gradient
+    of :math:`d` is :math:`\mathbf{u}` in :math:`\mathbf{p}_j` and
+    :math:`-\mathbf{u}` in :math:`\mathbf{p}_i`)."""
+    count, dim = unit.shape
+    block = weights.view(-1, 1, 1) * unit.unsqueeze(-1) * unit.unsqueeze(-2)
+    out = unit.new_zeros(count, 2, state_dim, 2, state_dim)
+    for a in range(2):
+        for b in range(2):
+            out[:, a, :dim, b, :dim] = block if a == b else -block
+    return out.view(count, 2 * state_dim, 2 * state_dim)
+
+
+def add_link_information(info: Tensor, blocks: Tensor, sender: Tensor,
+                         receiver: Tensor) -> Tensor:
+    r"""Adds, in place, the information :math:`(E, 2S, 2S)` of measured
+    links on the stacked states :math:`[\mathbf{x}_j; \mathbf{x}_i]` of
+    their two ends to the joint information :obj:`info` :math:`(AS, AS)`.
+    :obj:`sender` and :obj:`receiver` :math:`(E)` are the ends' agent
+    indices in the joint, :math:`-1` for an anchor (known: only the other
+    end's block is added)."""
+    size = blocks.size(-1) // 2
+    count = info.size(0) // size
+    ends = torch.stack([sender, receiver], 1)  # [E, 2]
+    # the four S x S blocks of every link, addressed by their two agents
+    parts = blocks.view(-1, 2, size, 2, size).transpose(2, 3)
+    rows = ends.view(-1, 2, 1).expand(-1, 2, 2)
+    cols = ends.view(-1, 1, 2).expand(-1, 2, 2)
+    keep = (rows >= 0) & (cols >= 0)
+    # accumulated per block pair (an agent is the end of many links), then
+    # laid out as the joint's rows and columns
+    pairs = info.new_zeros(count, count, size, size)
+    pairs.index_put_((rows[keep], cols[keep]), parts[keep], accumulate=True)
+    info += pairs.transpose(1, 2).reshape(count * size, count * size)
+    return info
+
+
+def symmetric_inverse(matrix: Tensor) -> Tensor:
+    r"""The inverse of a symmetric positive definite matrix by its
+    Cholesky factor, symmetrized; a matrix that is not positive definite
+    is a :class:`ValueError` (a covariance or information that lost its
+    definiteness is a bug or a degenerate problem, never silently
+    inverted)."""
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    if bool(info.any()):
+        raise ValueError(f"a joint covariance or information matrix of size "
+                         f"{matrix.size(-1)} is not positive definite "
+                         f"(leading minor {int(info.max())}): the problem is "
+                         f"degenerate")
+    inverse = torch.cholesky_inverse(factor)
+    return 0.5 * (inverse + inverse.transpose(-1, -2))
