@@ -159,12 +159,13 @@ def linear_offset_model():
     return LinearOffset
 
 
-def linear_kalman_filter(data, motion, measurement):
+def linear_kalman_filter(data, motion, measurement, inflation=1.0):
     r"""The Kalman filter of a realization with a linear motion model and
     :func:`linear_offset_model`'s measurements, written independently of
     the library: one joint state over the agents, float64 numpy, one
-    vector measurement at a time in a plain loop, Joseph-form updates.
-    Returns the agents' means :math:`(A, T, S)`, their marginal
+    vector measurement at a time in a plain loop, Joseph-form updates; the
+    covariance multiplied by :obj:`inflation` before every prediction but
+    the first. Returns the agents' means :math:`(A, T, S)`, their marginal
     covariances :math:`(A, T, S, S)` and the agents' node indices."""
     import numpy as np
     anchor = data.anchor.numpy()
@@ -185,6 +186,8 @@ def linear_kalman_filter(data, motion, measurement):
     means, covs = [], []
     sigma2 = measurement.sigma**2
     for t in range(int(data.num_steps)):
+        if t > 0:
+            P = inflation * P
         Fj = np.kron(np.eye(count), F)
         x = Fj @ x
         P = Fj @ P @ Fj.T + np.kron(np.eye(count), Q)

@@ -126,3 +126,26 @@ def test_equivariant_variant_trains_once_and_runs_at_any_k(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(train + common + ['--variant', 'other'])
     assert info.value.code == 2
+
+
+def test_evaluate_gaussian_bp_and_particle_bp_with_both_ends(tmp_path,
+                                                              capsys):
+    import dataclasses
+    from tg_nebp.io import read_json, write_json
+    from helpers import tiny_scenario
+    write_json(tmp_path / 'tiny.json',
+               dataclasses.asdict(tiny_scenario(steps=3)))
+    common = ['--realizations', '2', '--root', str(tmp_path / 'data'),
+              '--out', str(tmp_path), '--quiet', '--scenario',
+              str(tmp_path / 'tiny.json')]
+    assert main(['evaluate', '--method', 'gbp', '--inflation', '1',
+                 '--tolerance', '0', '--iterations', '3', *common]) == 0
+    assert main(['evaluate', '--method', 'bp', '--ends', 'both',
+                 '--iterations', '2', '--particles', '32', *common]) == 0
+    written = read_json(tmp_path / 'metrics.json')
+    gbp = written['gbp']
+    assert (gbp['inflation'], gbp['tolerance'], gbp['iterations'],
+            gbp['ends']) == (1.0, None, 3, 'both')
+    assert (written['bp']['ends'], written['bp']['iterations']) == ('both',
+                                                                    2)
+    assert 'gbp: RMSE' in capsys.readouterr().out

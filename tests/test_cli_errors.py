@@ -163,6 +163,21 @@ CASES: Dict[str, Prepare] = {
     'device-tpu': argv_only(['evaluate', '--device', 'tpu'], ['--device']),
     'no-subcommand': argv_only([], []),
     'bench-agents-zero': argv_only(['bench', '--agents', '0'], ['--agents']),
+    'bp-iterations-receiver': argv_only(
+        ['evaluate', '--iterations', '2'], ['--iterations 2',
+                                            '--ends both']),
+    'pcrb-with-particles': argv_only(
+        ['evaluate', '--method', 'pcrb', '--particles', '8'],
+        ['--particles', 'pcrb']),
+    'iekf-with-inflation': argv_only(
+        ['evaluate', '--method', 'iekf', '--inflation', '2'],
+        ['--inflation', 'gbp']),
+    'gbp-inflation-below-one': argv_only(
+        ['evaluate', '--method', 'gbp', '--inflation', '0.5'],
+        ['--inflation']),
+    'compare-missing-checkpoint': argv_only(
+        ['compare', '--checkpoint', 'absent.pt', '--realizations', '1',
+         '--quiet'], ['absent.pt']),
 }
 
 

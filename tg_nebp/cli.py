@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from tg_nebp.datasets import load_datasets
 from tg_nebp.bounds import PosteriorCRB
-from tg_nebp.filters import NEBP, CentralizedIEKF, ParticleBP
+from tg_nebp.filters import NEBP, CentralizedIEKF, GaussianBP, ParticleBP
 from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line, write_text
@@ -30,18 +30,31 @@ from tg_nebp.utils import process_group
 __all__ = ['main']
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f'must be a finite number, got '
+                                         f'{text}')
     return value
 
 
-def _non_negative(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'must be at least 0, got {value}')
-    return value
+def _at_least(minimum, kind: Callable = int) -> Callable:
+    # the argparse type of a number (kind: int, or _number) of at least
+    # 'minimum'
+    def parse(text: str):
+        value = kind(text)
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f'must be at least {minimum}, '
+                                             f'got {text}')
+        return value
+
+    return parse
+
+
+_positive, _non_negative = _at_least(1), _at_least(0)
 
 
 def _samples(text: str):
@@ -185,9 +198,12 @@ _METHOD_OPTIONS = (
     ('--samples', 'samples', None, ('bp', 'nebp')),
     ('--regularize', 'regularize', None, ('bp', )),
     ('--ess-threshold', 'ess_threshold', None, ('bp', )),
-    ('--measurement', 'measurement', None, ('bp', 'iekf')),
-    ('--iterations', 'iterations', None, ('bp', 'iekf')),
+    ('--measurement', 'measurement', None, ('bp', 'iekf', 'gbp')),
+    ('--iterations', 'iterations', None, ('bp', 'iekf', 'gbp')),
     ('--marginal', 'marginal', False, ('iekf', )),
+    ('--inflation', 'inflation', None, ('gbp', )),
+    ('--tolerance', 'tolerance', None, ('gbp', )),
+    ('--ends', 'ends', None, ('bp', 'gbp')),
 )
 
 
@@ -209,17 +225,34 @@ def _evaluated(args, scenario):
         tracker = CentralizedIEKF(args.iterations or 5,
                                   marginal=args.marginal, **models)
         return tracker, 'iekf-marginal' if args.marginal else 'iekf'
+    if args.method == 'gbp':
+        # the recommended configuration, with what the flags change
+        given = dict(num_iterations=args.iterations,
+                     inflation=args.inflation, ends=args.ends,
+                     tolerance=args.tolerance)
+        options = {k: v for k, v in given.items() if v is not None}
+        if options.get('tolerance') == 0:  # every iteration
+            options['tolerance'] = None
+        return GaussianBP.recommended(**options, **models), 'gbp'
     if args.method == 'nebp':
         if args.checkpoint is None:
             raise ValueError("--method nebp needs --checkpoint PATH")
         return nebp_from_checkpoint(args.checkpoint, args.particles,
                                     compile=args.compile,
                                     num_samples=args.samples), 'nebp'
-    return ParticleBP(args.particles or 1000, args.iterations or 1,
+    iterations, ends = args.iterations or 1, args.ends or 'receiver'
+    if iterations > 1 and ends == 'receiver':
+        raise ValueError(
+            f"--iterations {iterations} with --ends receiver counts the "
+            f"receivers' own information again at every iteration (the "
+            f"senders' beliefs already hold it); use --ends both, whose "
+            f"iterations send extrinsic messages")
+    return ParticleBP(args.particles or 1000, iterations,
                       resampler=args.resampler, compile=args.compile,
                       num_samples=args.samples or 1,
                       regularize=args.regularize,
-                      ess_threshold=args.ess_threshold, **models), 'bp'
+                      ess_threshold=args.ess_threshold, ends=ends,
+                      **models), 'bp'
 
 
 def _evaluate_on(args, device: str) -> int:
@@ -396,11 +429,27 @@ def build_parser() -> argparse.ArgumentParser:
         'CPU; NCCL with --device cuda, one GPU per process): rank r tracks '
         'realizations r, r + N, ..., rank 0 gathers the errors, prints and '
         'writes; the metrics equal one process\'s.')
-    ev.add_argument('--method', choices=['bp', 'nebp', 'iekf', 'pcrb'],
-                    default='bp', help="bp (default), nebp, iekf or pcrb")
+    ev.add_argument('--method', choices=['bp', 'nebp', 'iekf', 'gbp',
+                                         'pcrb'],
+                    default='bp', help="bp (default), nebp, iekf, gbp or "
+                    "pcrb")
     ev.add_argument('--marginal', action='store_true',
                     help='iekf: keep only every agent\'s marginal between '
                     'steps (the ideal of a distributed filter)')
+    ev.add_argument('--inflation', type=_at_least(1, _number), default=None,
+                    metavar='K', help='gbp: multiply every belief '
+                    'covariance by K before the next prediction (default: '
+                    '1.5; 1 is plain Gaussian BP)')
+    ev.add_argument('--tolerance', type=_at_least(0, _number), default=None,
+                    metavar='T', help='gbp: stop a step\'s iterations once '
+                    'no belief mean moves by more than T (default: 0.01; 0 '
+                    'runs every iteration)')
+    ev.add_argument('--ends', choices=['both', 'receiver'], default=None,
+                    help="bp, gbp: which ends of a link its range informs: "
+                    "'both' (a pair of nodes' two ranges one factor that "
+                    "informs both, extrinsic messages) or 'receiver' (the "
+                    "paper's convention) (default: receiver for bp, both "
+                    "for gbp)")
     ev.add_argument('--checkpoint', default=None,
                     help='NEBP checkpoint (with --method nebp)')
     ev.add_argument('--particles', type=_positive, default=None,
@@ -410,8 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_test_data(ev, realizations=10)
     ev.add_argument('--iterations', type=_positive, default=None,
                     help='message passing iterations per step (bp, default: '
-                    '1) or Gauss-Newton iterations per step (iekf, default: '
-                    '5)')
+                    '1; gbp, at most, default: 20) or Gauss-Newton '
+                    'iterations per step (iekf, default: 5)')
     ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
                     default='multinomial')
     _add_measurement(ev, 'BP\'s or the IEKF')
@@ -522,8 +571,10 @@ def build_parser() -> argparse.ArgumentParser:
         'writes DIR/compare.json, DIR/compare.md and DIR/compare.png',
         description='Runs the posterior Cramer-Rao bound, the centralized '
         'IEKF (Gaussian, Student-t and the scenario\'s likelihood; joint '
-        'and marginals-only), particle BP (the paper\'s configuration and '
-        'the recommended one) and NEBP from every --checkpoint on the same '
+        'and marginals-only), Gaussian BP (recommended and without '
+        'inflation, with the same likelihoods), particle BP (the paper\'s '
+        'configuration and the recommended one) and NEBP from every '
+        '--checkpoint on the same '
         'realizations and prior particle draws of every scenario, and '
         'writes DIR/compare.json after every method, then the table '
         'DIR/compare.md and DIR/compare.png. Run again to resume or to add '
@@ -544,8 +595,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help='NEBP checkpoints, one row each')
     cp.add_argument('--methods', nargs='+', default=None, metavar='PREFIX',
                     help='run only the rows whose key starts with one of '
-                    'these (pcrb, iekf, iekf-marginal, bp-paper, '
-                    'bp-recommended, nebp; default: all)')
+                    'these (pcrb, iekf, iekf-marginal, gbp, gbp-plain, '
+                    'bp-paper, bp-recommended, nebp; default: all)')
     cp.add_argument('--out', default='results/compare',
                     help='output folder (default: results/compare)')
     cp.add_argument('--quiet', action='store_true', help='no progress bar')

@@ -9,7 +9,7 @@ the machine before any work starts.
 A joint over :math:`A` agents with states of size :math:`S` is an
 :math:`(AS, AS)` matrix whose block :math:`(a, b)` belongs to agents
 :math:`a` and :math:`b`; anchors are known and hold no block."""
-from typing import Optional, Tuple
+from typing import Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -17,7 +17,7 @@ from torch import Tensor
 from tg_nebp.utils import free_memory_bytes
 
 __all__ = ['check_dense_joint', 'predict_joint', 'range_blocks',
-           'add_link_information', 'marginal_blocks', 'block_diagonal',
+           'embed_scope', 'add_link_information', 'marginal_blocks', 'block_diagonal',
            'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
@@ -103,6 +103,23 @@ def range_blocks(unit: Tensor, weights: Tensor, state_dim: int) -> Tensor:
         for b in range(2):
             out[:, a, :dim, b, :dim] = block if a == b else -block
     return out.view(count, 2 * state_dim, 2 * state_dim)
+
+
+def embed_scope(grad: Tensor, curvature: Tensor, scope: Sequence[int],
+                state_dim: int) -> Tuple[Tensor, Tensor]:
+    r"""A linearization on the entries :obj:`scope` of both ends of a link
+    (:meth:`~tg_nebp.models.MeasurementModel.linearize`: gradient
+    :math:`(E, 2R)`, curvature :math:`(E, 2R, 2R)`) as one on the whole
+    stacked states :math:`[\mathbf{x}_j; \mathbf{x}_i]` (:math:`(E, 2S)`,
+    :math:`(E, 2S, 2S)`), zero on the entries it does not read."""
+    read = torch.tensor(scope, dtype=torch.long, device=grad.device)
+    both = torch.cat([read, state_dim + read])
+    full_grad = grad.new_zeros(grad.size(0), 2 * state_dim)
+    full_grad[:, both] = grad
+    full = curvature.new_zeros(curvature.size(0), 2 * state_dim,
+                               2 * state_dim)
+    full[:, both.view(-1, 1), both] = curvature
+    return full_grad, full
 
 
 def add_link_information(info: Tensor, blocks: Tensor, sender: Tensor,

@@ -1,5 +1,5 @@
 r"""Small tensor helpers shared by the layers and the trackers."""
-from typing import Tuple
+from typing import NamedTuple, Tuple
 
 import torch
 import torch.distributed as dist
@@ -20,6 +20,8 @@ __all__ = [
     'derive_seed',
     'process_group',
     'free_memory_bytes',
+    'LinkFactors',
+    'link_factors',
 ]
 
 
@@ -237,3 +239,68 @@ def free_memory_bytes(device: str = 'cpu') -> int:
     except OSError:  # pragma: no cover - not Linux
         pass
     return 2**62  # pragma: no cover - not Linux
+
+
+class LinkFactors(NamedTuple):
+    r"""The factors of one time step's measured links and the message
+    edges that carry their messages (:func:`link_factors`): every factor's
+    end nodes :obj:`ends` :math:`(P, 2)`; the factor of every link
+    :obj:`factor` :math:`(E)` and whether the link runs from the factor's
+    second end to its first (:obj:`swapped`); the message edges
+    :obj:`index` :math:`(2, M)` (source, target), the factor of each
+    (:obj:`link`), the end it informs (:obj:`end`, 0 or 1), and the message
+    edge of the same factor to the other end (:obj:`reverse`, :math:`-1`
+    if none)."""
+    ends: Tensor
+    factor: Tensor
+    swapped: Tensor
+    index: Tensor
+    link: Tensor
+    end: Tensor
+    reverse: Tensor
+
+
+def link_factors(edge_index: Tensor, anchor: Tensor,
+                 ends: str = 'both') -> LinkFactors:
+    r"""The factor graph of the measured links :obj:`edge_index` :math:`(2,
+    E)` (:math:`j \to i`: agent :math:`i` measured node :math:`j`), shared
+    by the message passing methods that send factor messages.
+
+    With :obj:`ends="both"` the two measurements of a pair of nodes
+    (:math:`z_{j \to i}` and :math:`z_{i \to j}`) form one factor on the
+    pair :math:`(a, b)`, :math:`a < b`: two factors between the same two
+    nodes would close a loop in which each counts the other's information
+    again. A factor sends its message to every end that is an agent (the
+    message to :math:`j` runs on the flipped edge :math:`i \to j`). With
+    :obj:`ends="receiver"` (the paper's convention) every measurement is its
+    own factor, whose one message goes to the agent that measured it.
+    The message edges are sorted by target."""
+    src, dst = edge_index
+    num_nodes = anchor.numel()
+    if ends == 'receiver':
+        pairs = edge_index.t().contiguous()
+        factor = torch.arange(src.numel(), device=src.device)
+        swapped = torch.zeros_like(src, dtype=torch.bool)
+    else:
+        low, high = torch.minimum(src, dst), torch.maximum(src, dst)
+        # one key per unordered pair (a 1-D unique is much faster than a
+        # unique over rows)
+        keys, factor = torch.unique(low * num_nodes + high,
+                                    return_inverse=True)
+        pairs = torch.stack([keys // num_nodes, keys % num_nodes], 1)
+        swapped = src > dst
+    count = pairs.size(0)
+    numbers = torch.arange(count, device=src.device)
+    to_first = (~anchor[pairs[:, 0]] if ends == 'both' else
+                torch.zeros_like(numbers, dtype=torch.bool))
+    second, first = numbers[~anchor[pairs[:, 1]]], numbers[to_first]
+    link = torch.cat([second, first])
+    end = torch.cat([torch.ones_like(second), torch.zeros_like(first)])
+    # sorted by target: segment sums, deterministic on every device
+    order = torch.argsort(pairs[link, end], stable=True)
+    link, end = link[order], end[order]
+    index = torch.stack([pairs[link, 1 - end], pairs[link, end]])
+    slot = torch.full((count, 2), -1, dtype=torch.long, device=src.device)
+    slot[link, end] = torch.arange(link.numel(), device=src.device)
+    return LinkFactors(pairs, factor, swapped, index, link, end,
+                       slot[link, 1 - end])

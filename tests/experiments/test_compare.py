@@ -33,8 +33,9 @@ def test_rows_in_order_with_the_scenario_likelihood():
         measurement=NLOSRange())))
     assert rows == ['pcrb', 'iekf gaussian', 'iekf student-t', 'iekf nlos',
                     'iekf-marginal gaussian', 'iekf-marginal student-t',
-                    'iekf-marginal nlos', 'bp-paper nlos',
-                    'bp-recommended nlos']
+                    'iekf-marginal nlos', 'gbp gaussian', 'gbp-plain gaussian',
+                    'gbp student-t', 'gbp-plain student-t', 'gbp nlos',
+                    'gbp-plain nlos', 'bp-paper nlos', 'bp-recommended nlos']
     built = compare_methods(tiny_scenario())['iekf-marginal student-t'][1]()
     assert isinstance(built, CentralizedIEKF) and built.marginal
     assert built.measurement == StudentTRange()

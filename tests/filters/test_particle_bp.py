@@ -700,3 +700,93 @@ def test_recommended_configuration_and_overrides():
     paper = ParticleBP()
     assert (paper.num_particles, paper.num_samples, paper.regularize) == (
         1000, 1, None)
+
+
+# -- both ends, extrinsic messages ------------------------------------------
+
+def two_agents_step(seed=0, count=60):
+    r"""Two agents that measure each other (one factor of two ranges) and
+    each one anchor: particles spread around their truth, uniform weights,
+    exact messages possible at this K."""
+    g = gen(seed)
+    truth = torch.tensor([[2.0, 3.0], [9.0, 4.0], [0.0, 0.0], [12.0, 0.0]],
+                         dtype=torch.float64)
+    particles = torch.zeros(4, count, 4, dtype=torch.float64)
+    particles[:, :, :2] = truth.unsqueeze(1)
+    particles[:2, :, :2] += 2 * torch.randn(2, count, 2, generator=g,
+                                            dtype=torch.float64)
+    edge_index = torch.tensor([[1, 0, 2, 3], [0, 1, 0, 1]])
+    ranges = ((truth[edge_index[0]] - truth[edge_index[1]]).norm(dim=-1) +
+              0.5 * torch.randn(4, generator=g, dtype=torch.float64))
+    log_weights = torch.full((4, count), -math.log(count),
+                             dtype=torch.float64)
+    anchor = torch.tensor([False, False, True, True])
+    return particles, log_weights, edge_index, ranges.view(-1, 1), anchor
+
+
+def test_both_ends_count_each_range_once_and_iterations_do_not_overcount():
+    # the exact posterior marginal of agent i at its particles, by a plain
+    # loop: its anchor's range, and the sum over j's particles of j's
+    # anchor range times BOTH ranges of the link, each once
+    particles, lw, edge_index, ranges, anchor = two_agents_step()
+    sigma = 1.0
+    tracker = ParticleBP(60, 1, num_samples='all', ends='both')
+    one = tracker.update(particles, lw, edge_index, ranges, anchor)
+    x = particles[:, :, :2].numpy()
+    z = ranges.view(-1).numpy()
+
+    def lik(value, a, b):
+        return norm.logpdf(value, loc=np.linalg.norm(a - b, axis=-1),
+                           scale=sigma)
+
+    for i, j in ((0, 1), (1, 0)):
+        expected = np.empty(60)
+        for k in range(60):
+            # over j's particles: its anchor's range and the link's two
+            terms = (lik(z[2 + j], x[j], x[2 + j, 0]) +
+                     lik(z[0], x[j], x[i, k]) + lik(z[1], x[j], x[i, k]))
+            top = terms.max()
+            expected[k] = (lik(z[2 + i], x[i, k], x[2 + i, 0]) + top +
+                           np.log(np.exp(terms - top).sum()))
+        expected -= expected.max() + np.log(np.exp(
+            expected - expected.max()).sum())
+        # one iteration: j's extrinsic belief is its prior, and i's message
+        # holds j's anchor only after two; so compare the converged ones
+        converged = ParticleBP(60, 2, num_samples='all', ends='both').update(
+            particles, lw, edge_index, ranges, anchor)
+        np.testing.assert_allclose(converged[i].numpy(), expected,
+                                   rtol=1e-9, atol=1e-9)
+        ten = ParticleBP(60, 10, num_samples='all', ends='both').update(
+            particles, lw, edge_index, ranges, anchor)
+        np.testing.assert_allclose(ten[i].numpy(), converged[i].numpy(),
+                                   rtol=1e-9, atol=1e-9)
+    assert not torch.allclose(one, converged)
+
+
+def test_receiver_iterations_warn_and_both_ends_needs_a_range_model():
+    with pytest.warns(UserWarning, match="counts it again"):
+        ParticleBP(10, 2)
+    from tg_nebp.models import MeasurementModel
+
+    class Bearing(MeasurementModel, name='test-bearing-ends'):
+        def params(self):
+            return {}
+
+    with pytest.raises(TypeError, match='symmetric in the two ends'):
+        ParticleBP(10, 1, measurement=Bearing(), ends='both')
+    with pytest.raises(ValueError, match="'ends'"):
+        ParticleBP(10, ends='sender')
+
+
+def test_both_ends_batch_equals_each_graph_alone():
+    scenario = tiny_scenario(steps=3)
+    small = scenario.generate(gen(1))
+    large = scenario.replace(num_agents=5).generate(gen(2))
+    tracker = ParticleBP(32, 3, num_samples=4, ends='both')
+    alone = [tracker(d, [gen(10 + g)]) for g, d in enumerate((small,
+                                                              large))]
+    batched = tracker(Batch.from_data_list([small, large]),
+                      [gen(10), gen(11)])
+    torch.testing.assert_close(batched.mean, torch.cat([a.mean
+                                                        for a in alone]),
+                               rtol=1e-4, atol=1e-4)

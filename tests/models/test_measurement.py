@@ -434,17 +434,20 @@ def test_range_linearization_is_the_likelihood_gradient():
     receiver = 5 * torch.randn(6, 4, generator=g, dtype=torch.float64)
     z = (sender[:, :2] - receiver[:, :2]).norm(dim=-1, keepdim=True) + 0.4
     model = StudentTRange(0.8, 4.0)
+    assert model.scope(4) == (0, 1) and model.scope(6) == (0, 1, 2)
     grad, curvature = model.linearize(z, sender, receiver)
     ends = [x.clone().requires_grad_() for x in (sender, receiver)]
     model.log_likelihood(z, ends[0].unsqueeze(1),
                          ends[1].unsqueeze(1)).sum().backward()
-    torch.testing.assert_close(grad, torch.cat([e.grad for e in ends], -1))
+    # on the positions of both ends (the velocities' gradient is zero)
+    full = torch.cat([e.grad for e in ends], -1)
+    torch.testing.assert_close(grad, full[:, [0, 1, 4, 5]])
+    assert full[:, [2, 3, 6, 7]].abs().max() == 0
     # rank one along the gradient of the distance, scaled by the weight
     _, weights = model.robust_weights(z, (sender[:, :2] - receiver[:, :2])
                                       .norm(dim=-1, keepdim=True))
-    unit = torch.cat([sender[:, :2] - receiver[:, :2], torch.zeros(6, 2),
-                      receiver[:, :2] - sender[:, :2], torch.zeros(6, 2)],
-                     -1).double()
+    unit = torch.cat([sender[:, :2] - receiver[:, :2],
+                      receiver[:, :2] - sender[:, :2]], -1).double()
     unit = unit / unit.norm(dim=-1, keepdim=True) * 2**0.5
     expected = weights.view(-1, 1, 1) * unit.unsqueeze(-1) * unit.unsqueeze(
         -2)
@@ -487,3 +490,26 @@ def test_generic_fisher_information_matches_the_range_blocks():
     grad, curvature = Wrapped().linearize(z, sender, receiver, g)
     assert grad.shape == (3, 8)
     torch.testing.assert_close(curvature, exact, rtol=0, atol=0.1)
+
+
+def test_closed_form_weights_equal_the_generic_ones():
+    # a subclass that restates the likelihood loses the closed forms
+    # (Model.provides): its weights come from automatic differentiation
+    class PlainGaussian(GaussianRange, name='test-plain-gaussian-weights'):
+        def log_likelihood_of_distance(self, z, distances):
+            return super().log_likelihood_of_distance(z, distances)
+
+    class PlainStudentT(StudentTRange, name='test-plain-student-weights'):
+        def log_likelihood_of_distance(self, z, distances):
+            return super().log_likelihood_of_distance(z, distances)
+
+    z = torch.linspace(4.0, 16.0, 97, dtype=torch.float64).view(-1, 1)
+    distances = torch.full_like(z, 10.0)
+    for closed, generic in ((GaussianRange(0.6), PlainGaussian(0.6)),
+                            (StudentTRange(0.7, 2.5),
+                             PlainStudentT(0.7, 2.5))):
+        assert closed.provides('distance_weights')
+        assert not generic.provides('distance_weights')
+        for a, b in zip(closed.robust_weights(z, distances),
+                        generic.robust_weights(z, distances)):
+            torch.testing.assert_close(a, b)

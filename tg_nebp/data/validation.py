@@ -26,6 +26,7 @@ __all__ = [
     'check_positive_int',
     'check_number',
     'check_layer_inputs',
+    'check_edge_log_weights',
     'is_integer',
 ]
 
@@ -359,3 +360,19 @@ def check_layer_inputs(particles: Tensor, log_weights: Tensor,
     check_link_features(edge_attr, edge_index.size(1), features)
     if anchor is not None:
         check_anchor(anchor, num_nodes)
+
+
+def check_edge_log_weights(weights: Tensor, num_edges: int,
+                           num_particles: int,
+                           name: str = 'edge_sender_log_weights') -> None:
+    r"""Checks per-edge log-weights :obj:`[E, K]` (the senders' extrinsic
+    beliefs of :class:`~tg_nebp.nn.conv.ParticleBPConv`): their shape, and
+    no NaN or :math:`+\infty`."""
+    if not isinstance(weights, Tensor) or weights.shape != (num_edges,
+                                                           num_particles):
+        raise ValueError(f"'{name}' must have shape [{num_edges}, "
+                         f"{num_particles}], got "
+                         f"{list(getattr(weights, 'shape', []))}")
+    bad = (torch.isnan(weights) | (weights == float('inf'))).any(-1)
+    if bool(bad.any()):
+        raise ValueError(f"'{name}[{_first(bad)}]' holds NaN or +inf")

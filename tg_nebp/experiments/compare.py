@@ -1,7 +1,7 @@
 r"""One table of every method against the bound: the posterior Cramér-Rao
 bound, the centralized iterated EKF (Gaussian and Student-t likelihoods;
-joint and marginals-only), particle BP (the paper's configuration and the
-recommended one) and NEBP from checkpoints, on the same realizations with
+joint and marginals-only), Gaussian BP, particle BP (the paper's
+configuration and the recommended one) and NEBP from checkpoints, on the same realizations with
 the same prior particle draws, with the same metrics, per-realization
 spreads and seconds per realization.
 
@@ -18,7 +18,7 @@ from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
-from tg_nebp.filters import CentralizedIEKF, ParticleBP, Tracker
+from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
 from tg_nebp.io import read_resumable, write_json
 from tg_nebp.models import model_like
 
@@ -53,7 +53,10 @@ def compare_methods(scenario: Scenario,
     (:obj:`"pcrb"`), the centralized IEKF with the Gaussian, the Student-t
     and (where it is another) the scenario's own likelihood, joint
     (:obj:`"iekf ..."`) and marginals-only (:obj:`"iekf-marginal ..."`),
-    BP in the paper's configuration at :math:`K = 1000`
+    Gaussian BP with the same likelihoods, recommended (:obj:`"gbp ..."`,
+    :meth:`GaussianBP.recommended <tg_nebp.filters.GaussianBP.recommended>`)
+    and without inflation (:obj:`"gbp-plain ..."`), particle BP in the
+    paper's configuration at :math:`K = 1000`
     (:obj:`"bp-paper ..."`) and the recommended one
     (:obj:`"bp-recommended ..."`, :meth:`ParticleBP.recommended
     <tg_nebp.filters.ParticleBP.recommended>`), both with the scenario's
@@ -79,6 +82,16 @@ def compare_methods(scenario: Scenario,
                 f'{what}, {likelihood} likelihood',
                 lambda m=measurement, marginal=marginal: CentralizedIEKF(
                     motion=motion, measurement=m, marginal=marginal))
+    for likelihood in likelihoods:
+        measurement = model_like(likelihood, 'measurement', own)
+        methods[f'gbp {likelihood}'] = (
+            f'Gaussian BP, recommended (inflation 1.5), {likelihood} '
+            f'likelihood', lambda m=measurement: GaussianBP.recommended(
+                motion=motion, measurement=m))
+        methods[f'gbp-plain {likelihood}'] = (
+            f'Gaussian BP without inflation, {likelihood} likelihood',
+            lambda m=measurement: GaussianBP.recommended(
+                inflation=1.0, motion=motion, measurement=m))
     methods[f'bp-paper {own.name}'] = (
         "particle BP, the paper's configuration (K = 1,000, M = 1)",
         lambda: ParticleBP(1000, motion=motion, measurement=own))
@@ -186,6 +199,7 @@ def run_compare(root: str = 'datasets',
         for key, (what, build) in rows.items():
             if methods is None or any(key.startswith(m) for m in methods):
                 plan.append((dataset, key, what, build()))
+    order = [(d.scenario.name, key) for d, key, _, _ in plan]
     for dataset, key, what, method in plan:
         name = dataset.scenario.name
         steps = len(dataset) * dataset.scenario.num_steps
@@ -197,12 +211,25 @@ def run_compare(root: str = 'datasets',
         entry = _run_one(method, dataset, seed, device, batch_size, progress)
         entry['method'] = what
         table[key] = entry
+        _in_plan_order(result['results'], order)
         write_json(path, result)
         log(f"{name}: {key}: P_out(1 m) {entry['outage']['1.0']:.4f}, "
             f"P(accept 0.95) {entry['accept']['0.95']:.3f}, RMSE "
             f"{entry['rmse']:.3f} m, {entry['seconds_per_realization']:.2f} "
             f"s per realization")
     return result
+
+
+def _in_plan_order(results: Dict[str, dict],
+                   order: List[Tuple[str, str]]) -> None:
+    # the rows of every scenario in the order of compare_methods (a resumed
+    # file gets its new rows where they belong, not at its end); rows the
+    # plan does not name stay, after them
+    for name, rows in results.items():
+        planned = [key for scenario, key in order
+                   if scenario == name and key in rows]
+        rest = [key for key in rows if key not in planned]
+        results[name] = {key: rows[key] for key in planned + rest}
 
 
 def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:

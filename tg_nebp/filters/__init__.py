@@ -5,6 +5,7 @@ from .tracker import StepOutput, Tracker, TrackOutput
 from .particle_bp import ParticleBP
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF
+from .gaussian_bp import GBP_RECOMMENDED, GaussianBP
 from tg_nebp.utils import weighted_moments
 
 __all__ = [
@@ -12,6 +13,8 @@ __all__ = [
     'ParticleBP',
     'NEBP',
     'CentralizedIEKF',
+    'GaussianBP',
+    'GBP_RECOMMENDED',
     'StepOutput',
     'TrackOutput',
     'weighted_moments',

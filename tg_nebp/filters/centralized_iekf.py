@@ -8,8 +8,9 @@ from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import (add_link_information, block_diagonal,
-                              check_dense_joint, marginal_blocks,
-                              predict_joint, symmetric_inverse)
+                              check_dense_joint, embed_scope,
+                              marginal_blocks, predict_joint,
+                              symmetric_inverse)
 from tg_nebp.models import MeasurementModel, MotionModel
 
 __all__ = ['CentralizedIEKF']
@@ -168,8 +169,9 @@ class CentralizedIEKF(Tracker):
                           known: Tensor):
         # the Gauss-Newton matrix H and the gradient g of the log-posterior
         count, size = state.shape
-        grads, blocks = self.measurement.linearize(
-            z, *self._ends(state, sender, receiver, known))
+        grads, blocks = embed_scope(*self.measurement.linearize(
+            z, *self._ends(state, sender, receiver, known)),
+            self.measurement.scope(size), size)
         hessian = add_link_information(info.clone(), blocks, sender,
                                        receiver)
         grad = -(info @ (state - prior).view(-1)).view(count, size)

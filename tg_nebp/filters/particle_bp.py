@@ -1,4 +1,5 @@
 import math
+import warnings
 from typing import Callable, Iterator, List, Optional, Sequence, Union
 
 import torch
@@ -12,9 +13,12 @@ from tg_nebp.data.validation import (check_layer_inputs, check_number,
 from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
                                         silverman_bandwidth)
 from tg_nebp.filters.tracker import StepOutput, Tracker
-from tg_nebp.models import MeasurementModel, MotionModel
+from tg_nebp.models import (LinkPairRange, MeasurementModel, MotionModel,
+                            RangeModel)
 from tg_nebp.nn.conv import ParticleBPConv
-from tg_nebp.utils import (compute_dtype, log_normalize, sort_by_receiver,
+from tg_nebp.nn.conv.gaussian_bp_conv import ENDS
+from tg_nebp.utils import (compute_dtype, link_factors, log_normalize,
+                            long_edge_index, plain_tensor, sort_by_receiver,
                             weighted_moments)
 
 __all__ = ['ParticleBP', 'weighted_moments',
@@ -172,8 +176,26 @@ class ParticleBP(Tracker):
                  chunk_size: Optional[int] = None, compile: bool = False,
                  num_samples: Union[int, str] = 1,
                  regularize: Union[float, str, None] = None,
-                 ess_threshold: Optional[float] = None):
+                 ess_threshold: Optional[float] = None,
+                 ends: str = 'receiver'):
         super().__init__(motion, measurement)
+        if ends not in ENDS:
+            raise ValueError(f"'ends' must be one of {list(ENDS)}, got "
+                             f"{ends!r}")
+        if ends == 'both' and not isinstance(self.measurement, RangeModel):
+            raise TypeError(f"ends='both' shares a range with the node it "
+                            f"measured, which needs a likelihood symmetric in "
+                            f"the two ends: a RangeModel, not "
+                            f"{self.measurement!r}")
+        if ends == 'receiver' and num_iterations != 1:
+            warnings.warn(
+                f"num_iterations={num_iterations} with ends='receiver': "
+                f"every iteration sends the senders' beliefs, which already "
+                f"hold the receiver's information through the links' "
+                f"reverse measurements, so each iteration counts it again "
+                f"(overconfident, worse beliefs); ends='both' iterates "
+                f"extrinsic messages without the overcount", stacklevel=2)
+        self.ends = ends
         if regularize is not None and regularize != 'silverman':
             regularize = check_number(regularize, 'regularize')
         if ess_threshold is not None:
@@ -200,6 +222,11 @@ class ParticleBP(Tracker):
         self.conv = ParticleBPConv(self.measurement, chunk_size=chunk_size,
                                    compile=compile, num_samples=num_samples)
         self.num_samples = num_samples
+        # ends='both': one factor per pair of nodes, its two ranges'
+        # likelihoods summed
+        self.pair_conv = (ParticleBPConv(
+            LinkPairRange(self.measurement), chunk_size=chunk_size,
+            num_samples=num_samples) if ends == 'both' else None)
 
     @property
     def bp_conv(self) -> ParticleBPConv:
@@ -280,6 +307,9 @@ class ParticleBP(Tracker):
         if validate:
             check_layer_inputs(particles, log_weights, edge_index, edge_attr,
                                self.measurement.features, anchor)
+        if self.ends == 'both':
+            return self._update_both(particles, log_weights, edge_index,
+                                     edge_attr, anchor, sample_offsets)
         # receiver-sorted edges: the convs sum each receiver's segment
         # (deterministic, unlike CUDA's scatter-add) and BP never
         # materializes its [E, K] messages
@@ -294,6 +324,42 @@ class ParticleBP(Tracker):
             # beliefs are unchanged and the log-weights stay bounded
             sender = log_normalize(belief)
         return sender
+
+    def _update_both(self, particles: Tensor, log_weights: Tensor,
+                     edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                     sample_offsets: Optional[Tensor]) -> Tensor:
+        # every pair of nodes one factor (both of its ranges) that informs
+        # both ends; each message from the sender's extrinsic belief, its
+        # belief without the factor's previous message to it (per particle:
+        # within a step the particles stay, only their weights change)
+        num_nodes = particles.size(0)
+        edge_index = plain_tensor(long_edge_index(edge_index, num_nodes))
+        graph = link_factors(edge_index, anchor, 'both')
+        features = LinkPairRange.features_of(edge_index, edge_attr,
+                                             graph.factor,
+                                             graph.ends.size(0))[graph.link]
+        index = EdgeIndex(graph.index, sparse_size=(num_nodes, num_nodes),
+                          sort_order='col')
+        source = graph.index[0]
+        has_back = (graph.reverse >= 0).view(-1, 1)
+        back = graph.reverse.clamp_min(0)
+        belief, messages = log_weights, None
+        for _ in range(self.num_iterations):
+            weights = belief.index_select(0, source)
+            if messages is not None:
+                extrinsic = weights - torch.where(has_back, messages[back],
+                                                  0.0)
+                # a particle that the factor's message ruled out has no
+                # weight without it either (-inf - -inf)
+                weights = extrinsic.masked_fill(torch.isneginf(weights),
+                                                float('-inf'))
+            belief, messages = self.pair_conv(
+                particles, log_weights, index, features, anchor=anchor,
+                validate=False, return_messages=True,
+                sample_offsets=sample_offsets,
+                edge_sender_log_weights=weights)
+            belief = log_normalize(belief)
+        return belief
 
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
@@ -424,7 +490,7 @@ class ParticleBP(Tracker):
                     iterations=self.num_iterations,
                     measurement=self.measurement.config(),
                     samples=self.num_samples, regularize=self.regularize,
-                    ess_threshold=self.ess_threshold)
+                    ess_threshold=self.ess_threshold, ends=self.ends)
 
     def __repr__(self) -> str:
         options = ''.join(

@@ -1,6 +1,6 @@
-from .base import (MODELS, MeasurementModel, Model, MotionModel, RangeModel,
-                   model_from_config, model_like, redraw_negative,
-                   resolve_models)
+from .base import (MODELS, LinkPairRange, MeasurementModel, Model,
+                   MotionModel, RangeModel, model_from_config, model_like,
+                   redraw_negative, resolve_models)
 from .motion import ConstantVelocity, ConstantVelocityDrag
 from .measurement import GaussianRange, NLOSRange, StudentTRange
 
@@ -9,6 +9,7 @@ __all__ = [
     'MotionModel',
     'MeasurementModel',
     'RangeModel',
+    'LinkPairRange',
     'MODELS',
     'model_from_config',
     'model_like',

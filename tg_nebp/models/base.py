@@ -43,6 +43,7 @@ __all__ = [
     'MotionModel',
     'MeasurementModel',
     'RangeModel',
+    'LinkPairRange',
     'MODELS',
     'model_from_config',
     'model_like',
@@ -226,11 +227,21 @@ class MotionModel(Model):
     def jacobian(self, states: Tensor) -> Tensor:
         r"""The Jacobian :math:`\partial f / \partial \mathbf{x}`
         :math:`(*, D, D)` of :meth:`mean` at :obj:`states` :math:`(*, D)`,
-        by automatic differentiation of the model's own :meth:`mean` (a
-        model may give a closed form)."""
-        flat = states.reshape(-1, states.size(-1))
-        jac = torch.func.vmap(torch.func.jacfwd(self.mean))(flat)
-        return jac.reshape(states.shape + states.shape[-1:])
+        by forward-mode automatic differentiation of the model's own
+        :meth:`mean` (one pass over :math:`D` copies of the states, each
+        with one unit tangent: every state moves on its own)."""
+        import torch.autograd.forward_ad as forward_ad
+        size = states.size(-1)
+        flat = states.reshape(-1, size)
+        tangents = torch.eye(size, dtype=flat.dtype,
+                             device=flat.device).repeat(flat.size(0), 1)
+        with forward_ad.dual_level():
+            moved = self.mean(forward_ad.make_dual(
+                flat.repeat_interleave(size, 0), tangents))
+            columns = forward_ad.unpack_dual(moved).tangent
+        # row (state b, tangent k) holds column k of state b's Jacobian
+        jac = columns.view(flat.size(0), size, size).transpose(1, 2)
+        return jac.reshape(states.shape + (size, ))
 
     def noise_covariance(self, states: Tensor) -> Tensor:
         r"""The covariance :math:`\mathbf{Q}` :math:`(*, D, D)` of the
@@ -341,16 +352,24 @@ class MeasurementModel(Model):
     #: (:meth:`fisher_information`, :meth:`RangeModel.range_information`).
     fisher_samples: ClassVar[int] = 256
 
+    def scope(self, state_dim: int) -> Tuple[int, ...]:
+        r"""The entries of a state of size :obj:`state_dim` that the
+        likelihood reads (:attr:`state_entries` below :obj:`state_dim`):
+        what :meth:`linearize` describes, and the scope on each end of
+        a Gaussian method's factor."""
+        return tuple(e for e in self.state_entries if e < state_dim)
+
     def linearize(self, z: Tensor, sender: Tensor, receiver: Tensor,
                   generator: Optional[torch.Generator] = None
                   ) -> Tuple[Tensor, Tensor]:
         r"""What a Gaussian method (the centralized filter, Gaussian BP)
         uses of one measurement of every link at the states :obj:`sender`
-        and :obj:`receiver` :math:`(E, D)`: the gradient :math:`(E, 2D)`
+        and :obj:`receiver` :math:`(E, D)`: the gradient :math:`(E, 2R)`
         of :math:`\log p(\mathbf{z} | \mathbf{x}_j, \mathbf{x}_i)` with
-        respect to :math:`[\mathbf{x}_j; \mathbf{x}_i]` and a positive
-        semi-definite curvature :math:`(E, 2D, 2D)` that stands for its
-        negative Hessian: a Gauss-Newton step treats the link as a
+        respect to the entries :meth:`scope` of both ends,
+        :math:`[\mathbf{x}_{j,r}; \mathbf{x}_{i,r}]`, and a positive
+        semi-definite curvature :math:`(E, 2R, 2R)` that stands for its
+        negative Hessian there: a Gauss-Newton step treats the link as a
         Gaussian pseudo-measurement with that precision.
 
         This generic version takes the gradient by automatic
@@ -364,8 +383,13 @@ class MeasurementModel(Model):
             log_lik = self.log_likelihood(z, ends[0].unsqueeze(1),
                                           ends[1].unsqueeze(1))
             grads = torch.autograd.grad(log_lik.sum(), ends)
-        return (torch.cat(grads, -1),
-                self.fisher_information(z, sender, receiver, generator))
+        size = sender.size(-1)
+        read = torch.tensor(self.scope(size), dtype=torch.long,
+                            device=sender.device)
+        both = torch.cat([read, size + read])
+        info = self.fisher_information(z, sender, receiver, generator)
+        return (torch.cat(grads, -1)[:, both],
+                info[:, both.view(-1, 1), both])
 
 
 class RangeModel(MeasurementModel):
@@ -417,26 +441,29 @@ class RangeModel(MeasurementModel):
                                          create_graph=distances.requires_grad)
         return score
 
+    def scope(self, state_dim: int) -> Tuple[int, ...]:
+        r"""The positions, the first half of a state: all that a range
+        reads."""
+        return tuple(range(state_dim // 2))
+
     def linearize(self, z: Tensor, sender: Tensor, receiver: Tensor,
                   generator: Optional[torch.Generator] = None
                   ) -> Tuple[Tensor, Tensor]:
         r"""The gradient of :math:`\log p(\mathbf{z} | d)` with respect
-        to :math:`[\mathbf{x}_j; \mathbf{x}_i]`, :math:`s [\mathbf{u};
-        -\mathbf{u}]` on the positions (:math:`s` the score, :math:`\mathbf{u}`
-        the unit vector from :math:`\mathbf{p}_i` to :math:`\mathbf{p}_j`),
-        and the curvature :math:`w \nabla d \, \nabla d^\top` with the
-        robust weight :math:`w` (:meth:`robust_weights`; see
-        :meth:`MeasurementModel.linearize`)."""
-        dim = sender.size(-1)
-        distances, unit = unit_vectors(sender[:, :dim // 2] -
-                                       receiver[:, :dim // 2])
+        to the positions :math:`[\mathbf{p}_j; \mathbf{p}_i]`,
+        :math:`s [\mathbf{u}; -\mathbf{u}]` (:math:`s` the score,
+        :math:`\mathbf{u}` the unit vector from :math:`\mathbf{p}_i` to
+        :math:`\mathbf{p}_j`), and the curvature :math:`w \nabla d \,
+        \nabla d^\top` with the robust weight :math:`w`
+        (:meth:`robust_weights`; see :meth:`MeasurementModel.linearize`)."""
+        dim = sender.size(-1) // 2
+        distances, unit = unit_vectors(sender[:, :dim] - receiver[:, :dim])
         score, weights = self.robust_weights(z, distances.view(-1, 1))
-        pull = score.view(-1, 1) * unit
-        grad = unit.new_zeros(unit.size(0), 2, dim)
-        grad[:, 0, :dim // 2] = pull  # d grows with p_j along u
-        grad[:, 1, :dim // 2] = -pull
-        return grad.view(-1, 2 * dim), range_blocks(unit, weights.view(-1),
-                                                    dim)
+        # d grows with p_j along u and with p_i against it
+        direction = torch.cat([unit, -unit], -1)
+        return (score.view(-1, 1) * direction,
+                weights.view(-1, 1, 1) * direction.unsqueeze(-1) *
+                direction.unsqueeze(-2))
 
     def robust_weights(self, z: Tensor, distances: Tensor
                        ) -> Tuple[Tensor, Tensor]:
@@ -457,7 +484,12 @@ class RangeModel(MeasurementModel):
         the observed information :math:`-\partial^2 \log p / \partial
         d^2`, raised to zero where it is negative, as Gauss-Newton drops
         negative curvature. Both come from the model's own formula
-        (:meth:`distance_score` and its derivative)."""
+        (:meth:`distance_score` and its derivative), or from its closed
+        form :obj:`distance_weights` where it provides one
+        (:class:`~tg_nebp.models.GaussianRange`,
+        :class:`~tg_nebp.models.StudentTRange`)."""
+        if self.provides('distance_weights'):
+            return self.distance_weights(z, distances)
         with torch.enable_grad():
             leaf = distances.detach().requires_grad_()
             score = self.distance_score(z, leaf)
@@ -555,6 +587,54 @@ class RangeModel(MeasurementModel):
         if not blocks:
             return torch.empty(2, 0, dtype=torch.long, device=pos.device)
         return torch.cat(blocks, dim=1)
+
+
+class LinkPairRange(RangeModel):
+    r"""The likelihood of a pair of nodes' two ranges (:math:`z_{j \to i}`
+    and :math:`z_{i \to j}`, independent noise) as one factor of the
+    distance, :math:`\log p(z_{j \to i} | d) + \log p(z_{i \to j} | d)`
+    with :obj:`model`'s own likelihood, for message passing that lets every
+    range inform both ends. Its link features are the first range's
+    features, the second's, and a flag that the second was measured (an
+    anchor's range has none) (:meth:`features_of`). It is composed by the
+    trackers, not registered or stored."""
+    def __init__(self, model: RangeModel):
+        super().__init__(model.max_range)
+        self.model = model
+        self.width = len(model.generated_features)
+        self.features = ('range', ) + ('feature', ) * (2 * self.width)
+
+    def params(self) -> dict:
+        return dict(model=self.model.config())
+
+    def log_likelihood_of_distance(self, z: Tensor,
+                                   distances: Tensor) -> Tensor:
+        width = self.width
+        first = self.model.log_likelihood_of_distance(z[:, :width],
+                                                      distances)
+        second = self.model.log_likelihood_of_distance(
+            z[:, width:2 * width], distances)
+        measured = z[:, 2 * width:2 * width + 1] > 0.5
+        return first + torch.where(measured, second,
+                                   torch.zeros_like(second))
+
+    @staticmethod
+    def features_of(edge_index: Tensor, edge_attr: Tensor, factor: Tensor,
+                    count: int) -> Tensor:
+        r"""The link features :math:`(P, 2F + 1)` of :obj:`count` pair
+        factors from the links :obj:`edge_index` with features
+        :obj:`edge_attr` :math:`(E, F)` and their factor :obj:`factor`
+        :math:`(E)`: the first link's features, the second's (the first's
+        again where there is none) and the flag."""
+        links = torch.arange(factor.numel(), device=factor.device)
+        first = torch.full((count, ), factor.numel(), dtype=torch.long,
+                           device=factor.device).scatter_reduce_(
+                               0, factor, links, 'amin')
+        last = torch.full((count, ), -1, dtype=torch.long,
+                          device=factor.device).scatter_reduce_(
+                              0, factor, links, 'amax')
+        measured = (first != last).to(edge_attr.dtype).view(-1, 1)
+        return torch.cat([edge_attr[first], edge_attr[last], measured], 1)
 
 
 def redraw_negative(draw, distances: Tensor) -> Tensor:

@@ -97,6 +97,14 @@ class GaussianRange(RangeModel, name='gaussian'):
         :meth:`~tg_nebp.models.RangeModel.range_information`)."""
         return distances.new_full(distances.shape, self.sigma**-2)
 
+    def distance_weights(self, z: Tensor,
+                         distances: Tensor) -> Tuple[Tensor, Tensor]:
+        r"""The closed-form scores :math:`(z - d) / \sigma^2` and robust
+        weights :math:`1 / \sigma^2` (see
+        :meth:`~tg_nebp.models.RangeModel.robust_weights`)."""
+        score = (z[:, :1] - distances) / self.sigma**2
+        return score, torch.full_like(score, self.sigma**-2)
+
     @staticmethod
     def fused_log_pdf(range_, distance, inv_two_var, log_norm):
         # arithmetic only: compiled into the fused Triton kernel, which
@@ -163,6 +171,17 @@ class StudentTRange(RangeModel, name='student-t'):
         :meth:`~tg_nebp.models.RangeModel.range_information`)."""
         return distances.new_full(distances.shape, (self.nu + 1) / (
             (self.nu + 3) * self.sigma**2))
+
+    def distance_weights(self, z: Tensor,
+                         distances: Tensor) -> Tuple[Tensor, Tensor]:
+        r"""The closed-form scores :math:`w r` and iteratively reweighted
+        least squares weights :math:`w = (\nu + 1) / (\nu \sigma^2 +
+        r^2)`, :math:`r = z - d` (see
+        :meth:`~tg_nebp.models.RangeModel.robust_weights`)."""
+        residual = z[:, :1] - distances
+        weights = (self.nu + 1) / (self.nu * self.sigma**2 +
+                                   residual * residual)
+        return weights * residual, weights
 
     def sample_ranges(self, distances: Tensor, link_state=None,
                       edge_index: Optional[Tensor] = None,

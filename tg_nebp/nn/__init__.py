@@ -1,3 +1,5 @@
-from .conv import EquivariantNEBPConv, NEBPConv, ParticleBPConv
+from .conv import (EquivariantNEBPConv, GaussianBPConv, NEBPConv,
+                   ParticleBPConv)
 
-__all__ = ['ParticleBPConv', 'NEBPConv', 'EquivariantNEBPConv']
+__all__ = ['ParticleBPConv', 'NEBPConv', 'EquivariantNEBPConv',
+           'GaussianBPConv']

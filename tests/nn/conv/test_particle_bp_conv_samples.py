@@ -131,3 +131,37 @@ def test_draw_offsets_and_their_validation():
         conv(particles[:, :3], lw[:, :3], ei, ea, anchor=anchor)
     with pytest.raises(TypeError, match="'num_samples' must be an integer"):
         ParticleBPConv(num_samples=2.5)
+
+
+@pytest.mark.parametrize('samples,chunk', [('all', None), ('all', 2),
+                                           (1, None)])
+def test_per_edge_sender_weights(samples, chunk):
+    # extrinsic beliefs: every edge's own sender log-weights, against the
+    # float64 loop with that edge's weights (all samples), and for M = 1
+    # against the paired message of a sender that has those weights
+    particles, lw, ei, ea, anchor = random_graph(gen(45), 4, 2, 5)
+    per_edge = torch.randn(ei.size(1), 5, generator=gen(46),
+                           dtype=torch.float64)
+    conv = ParticleBPConv(GaussianRange(0.8), chunk_size=chunk,
+                          num_samples=samples)
+    out, messages = conv(particles, lw, ei, ea, anchor=anchor,
+                         edge_sender_log_weights=per_edge)
+    assert messages.shape == (ei.size(1), 5)
+    for e in range(ei.size(1)):
+        j, i = int(ei[0, e]), int(ei[1, e])
+        sender = lw.clone()
+        sender[j] = per_edge[e]
+        one = ei[:, e:e + 1]
+        if samples == 'all':
+            expected = exact_reference(particles, lw, sender, one,
+                                       ea[e:e + 1], anchor, 0.8)[i] - lw[i]
+        else:
+            _, expected = ParticleBPConv(GaussianRange(0.8))(
+                particles, lw, one, ea[e:e + 1], sender, anchor)
+            expected = expected[0]
+        torch.testing.assert_close(messages[e], expected, atol=1e-9,
+                                   rtol=1e-9)
+    with pytest.raises(ValueError, match="'edge_sender_log_weights' must "
+                       "have shape"):
+        conv(particles, lw, ei, ea, anchor=anchor,
+             edge_sender_log_weights=per_edge[:-1])

@@ -7,7 +7,8 @@ from torch_geometric import EdgeIndex
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import segment
 
-from tg_nebp.data.validation import check_layer_inputs, check_positive_int
+from tg_nebp.data.validation import (check_edge_log_weights,
+                                     check_layer_inputs, check_positive_int)
 from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
 from tg_nebp.utils import (compute_dtype, logsumexp, long_edge_index,
@@ -149,6 +150,7 @@ class ParticleBPConv(MessagePassing):
         return_messages: bool = True,
         sample_offsets: Optional[Tensor] = None,
         generator: Optional[torch.Generator] = None,
+        edge_sender_log_weights: Optional[Tensor] = None,
     ) -> Tuple[Tensor, Optional[Tensor]]:
         r"""Runs the forward pass.
 
@@ -184,6 +186,13 @@ class ParticleBPConv(MessagePassing):
                 :obj:`None`. (default: :obj:`None`)
             generator (torch.Generator, optional): Source of the offsets.
                 (default: :obj:`None`)
+            edge_sender_log_weights (torch.Tensor, optional): The senders'
+                log-weights per edge :math:`(|\mathcal{E}|, K)`, in place of
+                :obj:`sender_log_weights`: extrinsic beliefs, each sender's
+                belief without the message it had from the edge's factor
+                (see :class:`~tg_nebp.filters.ParticleBP` with
+                :obj:`ends="both"`). The messages are then materialized
+                (memory :math:`O(|\mathcal{E}| K)`). (default: :obj:`None`)
         """
         if sender_log_weights is None:
             sender_log_weights = log_weights
@@ -211,12 +220,18 @@ class ParticleBPConv(MessagePassing):
                          sender_log_weights=sender_log_weights.to(dtype),
                          link_features=edge_attr.to(dtype),
                          offsets=sample_offsets)
-        path = self._path(return_messages, planes[0], (
+        path = self._path(return_messages or
+                          edge_sender_log_weights is not None, planes[0], (
             *planes, node_args['sender_log_weights'],
             node_args['link_features']), sample_offsets is not None)
         if path == 'messages':
-            log_messages = self.edge_updater(edge_index, size=size,
-                                             **node_args)
+            if validate and edge_sender_log_weights is not None:
+                check_edge_log_weights(edge_sender_log_weights,
+                                       edge_index.size(1), particles.size(1))
+            log_messages = self.edge_updater(
+                edge_index, size=size, edge_weights=(
+                    None if edge_sender_log_weights is None else
+                    edge_sender_log_weights.to(dtype)), **node_args)
         else:
             # receiver-sorted edges let message_and_aggregate sum block by
             # block: no [E, K] tensor is ever allocated
@@ -297,7 +312,8 @@ class ParticleBPConv(MessagePassing):
     def edge_update(self, planes: Tuple[Tensor, ...],
                     sender_log_weights: Tensor, link_features: Tensor,
                     offsets: Optional[Tensor], edge_index_i: Tensor,
-                    edge_index_j: Tensor) -> Tensor:
+                    edge_index_j: Tensor,
+                    edge_weights: Optional[Tensor] = None) -> Tensor:
         # plain tensors (not PyG's Index) into the compiled region
         src, dst = plain_tensor(edge_index_j), plain_tensor(edge_index_i)
         num_edges = dst.numel()
@@ -305,22 +321,28 @@ class ParticleBPConv(MessagePassing):
         if chunk >= num_edges or torch.compiler.is_compiling():
             # a compiled graph fuses the chain without temporaries
             return self._messages(planes, sender_log_weights, link_features,
-                                  src, dst, offsets)
+                                  src, dst, offsets, edge_weights)
         out = planes[0].new_empty((num_edges, planes[0].size(1)))
         for start in range(0, num_edges, chunk):
             part = slice(start, start + chunk)
-            out[part] = self._messages(planes, sender_log_weights,
-                                       link_features[part], src[part],
-                                       dst[part], offsets)
+            out[part] = self._messages(
+                planes, sender_log_weights, link_features[part], src[part],
+                dst[part], offsets,
+                None if edge_weights is None else edge_weights[part])
         return out
 
     def _log_messages(self, planes: Tuple[Tensor, ...],
                       sender_log_weights: Tensor, link_features: Tensor,
                       src: Tensor, dst: Tensor,
-                      offsets: Optional[Tensor] = None) -> Tensor:
+                      offsets: Optional[Tensor] = None,
+                      edge_weights: Optional[Tensor] = None) -> Tensor:
+        # the senders' log-weights: per node, or per edge (extrinsic)
+        weights = (sender_log_weights.index_select(0, src)
+                   if edge_weights is None else edge_weights)
         if offsets is None:
             return self._paired_log_messages(planes, link_features, src,
-                                             dst, planes, sender_log_weights)
+                                             dst, planes, weights,
+                                             weights_gathered=True)
         # M-sample messages: sample m reads the sender's particles from
         # offset o_j + floor(m K / M) on, a window of the sender's row
         # rolled by o_j and written twice; groups of samples are reduced by
@@ -329,7 +351,7 @@ class ParticleBPConv(MessagePassing):
         index = _rolled_twice_index(offsets.index_select(0, src),
                                     num_particles)
         senders = [p.index_select(0, src).gather(1, index)
-                   for p in (*planes, sender_log_weights)]
+                   for p in planes] + [weights.gather(1, index)]
         receivers = tuple(p.index_select(0, dst) for p in planes)
         num_samples = self.samples_for(num_particles)
 
@@ -350,11 +372,13 @@ class ParticleBPConv(MessagePassing):
     def _paired_log_messages(self, planes: Tuple[Tensor, ...],
                              link_features: Tensor, src: Tensor, dst: Tensor,
                              sender_planes: Tuple[Tensor, ...],
-                             sender_weights: Tensor) -> Tensor:
+                             sender_weights: Tensor,
+                             weights_gathered: bool = False) -> Tensor:
         # the paired messages log p(z | x_j^(k), x_i^(k)) + log w_j^(k):
         # receivers from 'planes' at dst, senders from 'sender_planes' and
         # 'sender_weights' at src; a None index means that the tensors are
-        # edge rows already (fresh sender rows, which may be overwritten)
+        # edge rows already (fresh sender rows, which may be overwritten),
+        # as the weights are when 'weights_gathered' 
         def at(tensor, index):
             return tensor if index is None else tensor.index_select(0, index)
 
@@ -389,7 +413,8 @@ class ParticleBPConv(MessagePassing):
                        model.log_likelihood_of_distance(link_features,
                                                         distances))
         # in-place add stays differentiable in the sender log-weights
-        return log_lik.add_(at(sender_weights, src))
+        return log_lik.add_(sender_weights if weights_gathered else
+                            at(sender_weights, src))
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages

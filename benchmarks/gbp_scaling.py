@@ -1,0 +1,77 @@
+r"""Seconds per time step and peak memory of Gaussian BP and particle BP on
+the paper's test network grown to many agents (Scenario.grown, the same
+density), each measurement in a fresh process: the figures of the docs'
+page on Gaussian BP.
+
+    python benchmarks/gbp_scaling.py --agents 10000 --methods gbp bp
+"""
+import argparse
+import json
+import multiprocessing
+import resource
+import time
+
+
+def measure(method: str, agents: int, steps: int, queue) -> None:
+    import torch
+
+    from tg_nebp.datasets import Scenario
+    from tg_nebp.filters import GaussianBP, ParticleBP
+
+    scenario = Scenario.load('paper_test').grown(agents).replace(
+        num_steps=steps)
+    start = time.perf_counter()
+    data = scenario.generate(torch.Generator().manual_seed(0))
+    generation = time.perf_counter() - start
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    tracker = {
+        'gbp': lambda: GaussianBP.recommended(**models),
+        'gbp-plain': lambda: GaussianBP.recommended(inflation=1.0,
+                                                    **models),
+        'bp': lambda: ParticleBP(1000, **models),
+        'bp-recommended': lambda: ParticleBP.recommended(**models),
+    }[method]()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    times, start = [], time.perf_counter()
+    with torch.no_grad():
+        for _ in tracker.steps(data, torch.Generator().manual_seed(1)):
+            now = time.perf_counter()
+            times.append(now - start)
+            start = now
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    later = sorted(times[1:]) or times
+    queue.put(dict(method=method, agents=agents, nodes=data.num_nodes,
+                   edges_per_step=data.edge_index.size(1) // steps,
+                   first_step_s=round(times[0], 3),
+                   step_s=round(later[len(later) // 2], 3),
+                   generation_s=round(generation, 1),
+                   peak_gib=round(peak / 2**20, 2),
+                   tracker_gib=round((peak - before) / 2**20, 2)))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--agents', type=int, nargs='+', default=[10_000])
+    parser.add_argument('--methods', nargs='+', default=['gbp', 'bp'])
+    parser.add_argument('--steps', type=int, default=3,
+                        help='time steps; the median of those after the '
+                        'first is reported')
+    args = parser.parse_args()
+    context = multiprocessing.get_context('spawn')
+    for agents in args.agents:
+        for method in args.methods:
+            queue = context.Queue()
+            child = context.Process(target=measure, args=(
+                method, agents, args.steps, queue))
+            child.start()
+            child.join()
+            if child.exitcode != 0:
+                print(json.dumps(dict(method=method, agents=agents,
+                                      failed=child.exitcode)))
+                continue
+            print(json.dumps(queue.get()), flush=True)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,226 @@
+import numpy as np
+import pytest
+import torch
+from torch_geometric.data import Batch
+
+from tg_nebp.data import Realization
+from tg_nebp.filters import GaussianBP
+from tg_nebp.models import ConstantVelocity
+from tg_nebp.nn.conv import GaussianBPConv
+
+from helpers import (gen, linear_kalman_filter, linear_offset_model,
+                     linear_scenario, tiny_scenario)
+
+
+def one_step(pairs, anchors, seed=0, sigma=0.5, count=None):
+    r"""One time step of linear-offset measurements: 'count' agents 0..A-1
+    (by default all but the anchors of the nodes that 'pairs' names), then
+    the anchors at the given positions; every (j, i) of 'pairs' is a
+    measurement of j by agent i."""
+    g = gen(seed)
+    if count is None:
+        count = 1 + max(max(p) for p in pairs) - len(anchors)
+    positions = torch.cat([10 * torch.rand(count, 2, generator=g,
+                                           dtype=torch.float64),
+                           torch.tensor(anchors, dtype=torch.float64)])
+    states = torch.cat([positions, torch.zeros_like(positions)], 1)
+    model = linear_offset_model()(sigma)
+    motion = ConstantVelocity(0.2)
+    moved = states.clone()
+    moved[:count] = motion.mean(states[:count])
+    edge_index = torch.tensor(pairs).t()
+    noise = sigma * torch.randn(len(pairs), 2, generator=g,
+                                dtype=torch.float64)
+    edge_attr = (moved[edge_index[0], :2] - moved[edge_index[1], :2] +
+                 model.OFFSET + noise)
+    anchor = torch.arange(len(states)) >= count
+    prior_cov = torch.diag_embed(torch.tensor(
+        [4.0, 4.0, 0.1, 0.1], dtype=torch.float64).expand(len(states), -1))
+    prior_cov = prior_cov * (~anchor).view(-1, 1, 1)
+    prior_mean = states + torch.cat([
+        2 * torch.randn(count, 4, generator=g, dtype=torch.float64) *
+        torch.tensor([1.0, 1.0, 0.1, 0.1], dtype=torch.float64),
+        torch.zeros(len(anchors), 4, dtype=torch.float64)])
+    data = Realization(states=moved.unsqueeze(1), edge_index=edge_index,
+                       edge_attr=edge_attr,
+                       edge_time=torch.zeros(len(pairs), dtype=torch.long),
+                       anchor=anchor, prior_mean=prior_mean,
+                       prior_cov=prior_cov, num_steps=1,
+                       num_nodes=len(states))
+    return data, motion, model
+
+
+def exact_and_gbp(data, motion, model, iterations, ends='both'):
+    means, covs, agents = linear_kalman_filter(data, motion, model)
+    out = GaussianBP(iterations, motion=motion, measurement=model,
+                     ends=ends, tolerance=None)(data)
+    return (means[:, 0], covs[:, 0], out.mean[agents, 0].numpy(),
+            out.cov[agents, 0].numpy())
+
+
+def test_tree_beliefs_are_the_exact_marginals():
+    # a chain anchor - 0 - 1 - 2 with both directions of every agent link
+    # measured: a tree of factors (a link's two ranges are one factor);
+    # after as many iterations as its diameter, the exact marginals
+    pairs = [(3, 0), (1, 0), (0, 1), (2, 1), (1, 2)]
+    data, motion, model = one_step(pairs, anchors=[(0.0, 0.0)])
+    means, covs, mean, cov = exact_and_gbp(data, motion, model, 4)
+    np.testing.assert_allclose(mean, means, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(cov, covs, rtol=1e-10, atol=1e-12)
+
+
+def test_loopy_means_converge_to_the_exact_means():
+    # a ring of five agents and two anchors (walk-summable: converges);
+    # the means are exact, the variances only approximately so
+    pairs = [(i, (i + 1) % 5) for i in range(5)] + [((i + 1) % 5, i)
+                                                    for i in range(5)]
+    pairs += [(5, 0), (6, 2), (5, 3)]
+    data, motion, model = one_step(pairs, anchors=[(0.0, 0.0),
+                                                   (10.0, 5.0)])
+    means, covs, mean, cov = exact_and_gbp(data, motion, model, 200)
+    np.testing.assert_allclose(mean, means, rtol=1e-8, atol=1e-8)
+    # loopy BP's variances: close, and not larger than the exact ones
+    variances = np.diagonal(cov, axis1=-2, axis2=-1)
+    exact = np.diagonal(covs, axis1=-2, axis2=-1)
+    assert np.all(variances <= exact * (1 + 1e-9))
+    np.testing.assert_allclose(variances, exact, rtol=0.5)
+
+
+def test_iterations_do_not_count_a_measurement_twice():
+    # two agents that measure each other: after one iteration their exact
+    # posterior, and the same after ten, since every message marginalizes
+    # the other end's extrinsic belief (without its own message back)
+    for pairs, exact_after in (([(1, 0), (0, 1)], 1),
+                               ([(1, 0), (0, 1), (2, 0), (3, 1)], 2)):
+        # (an anchor that nobody measures where the pair has none)
+        anchors = [(0.0, 0.0), (10.0, 0.0)] if len(pairs) > 2 else [
+            (50.0, 50.0)]
+        data, motion, model = one_step(pairs, anchors=anchors, count=2)
+        means, covs, mean, cov = exact_and_gbp(data, motion, model,
+                                               exact_after)
+        np.testing.assert_allclose(mean, means, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(cov, covs, rtol=1e-10, atol=1e-12)
+        _, _, mean10, cov10 = exact_and_gbp(data, motion, model, 10)
+        np.testing.assert_allclose(mean10, mean, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(cov10, cov, rtol=1e-12, atol=1e-14)
+
+
+def test_both_measurements_of_a_link_count_once_each():
+    # two agents, no anchors in reach of agent 1: its position is known
+    # only through the two ranges of the link; the exact posterior uses
+    # both, once each; the receiver convention gives each agent one
+    pairs = [(1, 0), (0, 1), (2, 0)]
+    data, motion, model = one_step(pairs, anchors=[(0.0, 0.0)])
+    means, covs, mean, cov = exact_and_gbp(data, motion, model, 5)
+    np.testing.assert_allclose(mean, means, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(cov, covs, rtol=1e-10, atol=1e-12)
+    _, _, _, receiver = exact_and_gbp(data, motion, model, 5,
+                                      ends='receiver')
+    assert receiver[1, 0, 0] > cov[1, 0, 0] * 1.1
+
+
+def test_factors_and_message_edges():
+    # links 2->0 (anchor 2), 1->0, 0->1: two factors {0, 1} (both ranges of
+    # the pair) and {0, 2}; messages to 0 and 1 from {0, 1}, to 0 from {0, 2}
+    conv = GaussianBPConv()
+    edge_index = torch.tensor([[2, 1, 0], [0, 0, 1]])
+    anchor = torch.tensor([False, False, True])
+    f = conv.factors(edge_index, anchor, 4)
+    assert f.ends.tolist() == [[0, 1], [0, 2]]
+    # every link's 4 x 4 linearization (positions of [x_j; x_i]) placed in
+    # its factor's [x_a; x_b], against a plain loop
+    values = torch.arange(3 * 16, dtype=torch.float64).view(3, 4, 4)
+    placed = torch.zeros(2 * 16, dtype=torch.float64).index_add_(
+        0, f.curvature_slots, values.reshape(-1)).view(2, 4, 4)
+    expected = torch.zeros(2, 4, 4, dtype=torch.float64)
+    for e, (j, i) in enumerate(edge_index.t().tolist()):
+        factor = f.ends.tolist().index(sorted([j, i]))
+        order = [0, 1, 2, 3] if j < i else [2, 3, 0, 1]
+        for r in range(4):
+            for c in range(4):
+                expected[factor, order[r], order[c]] += values[e, r, c]
+    torch.testing.assert_close(placed, expected)
+    # every message edge reads its factor with its target's half second,
+    # and its reverse is the message of the same factor to the other end
+    read = placed.view(-1)[f.message_slots].view(-1, 4, 4)
+    sources, targets = f.index.tolist()
+    assert sorted(zip(sources, targets)) == [(0, 1), (1, 0), (2, 0)]
+    for m, (s_, t) in enumerate(zip(sources, targets)):
+        factor = f.ends.tolist().index(sorted([s_, t]))
+        order = [0, 1, 2, 3] if s_ < t else [2, 3, 0, 1]
+        torch.testing.assert_close(read[m], placed[factor][order][:, order])
+        if f.reverse[m] >= 0:
+            r = int(f.reverse[m])
+            assert (sources[r], targets[r]) == (t, s_)
+        else:
+            assert anchor[s_]
+    receiver = GaussianBPConv(ends='receiver').factors(edge_index, anchor,
+                                                       4)
+    assert receiver.index.tolist() == edge_index.tolist()
+    assert (receiver.reverse == -1).all()
+
+
+def test_batch_equals_each_graph_alone():
+    scenario = tiny_scenario(steps=4)
+    small = scenario.generate(gen(1))
+    large = scenario.replace(num_agents=5).generate(gen(2))
+    gbp = GaussianBP(3)
+    alone = [gbp(d) for d in (small, large)]
+    batched = gbp(Batch.from_data_list([small, large]))
+    for field in ('mean', 'cov'):
+        torch.testing.assert_close(getattr(batched, field),
+                                   torch.cat([getattr(a, field)
+                                              for a in alone]),
+                                   rtol=1e-10, atol=1e-12)
+
+
+def test_linear_tracker_over_steps_keeps_marginals_only():
+    # on a tree (two agents, anchors), Gaussian BP at every step gives the
+    # exact marginals of the step, so over the steps it is the centralized
+    # filter that drops the cross-agent covariances between steps
+    from tg_nebp.filters import CentralizedIEKF
+    scenario = linear_scenario(steps=4, num_agents=2)
+    data = scenario.generate(gen(6))
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    gbp = GaussianBP(3, tolerance=None, **models)(data)
+    ideal = CentralizedIEKF(marginal=True, **models)(data)
+    torch.testing.assert_close(gbp.mean, ideal.mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(gbp.cov, ideal.cov, rtol=1e-9, atol=1e-12)
+
+
+def test_inflation_and_tolerance():
+    # one agent between two anchors: a tree, so Gaussian BP is the Kalman
+    # filter whose covariance is inflated before every later prediction
+    scenario = linear_scenario(steps=4, num_agents=1)
+    data = scenario.generate(gen(8))
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    means, covs, agents = linear_kalman_filter(data, inflation=1.7,
+                                               **models)
+    out = GaussianBP(2, tolerance=None, inflation=1.7, **models)(data)
+    np.testing.assert_allclose(out.mean[agents].numpy(), means, rtol=1e-10,
+                               atol=1e-10)
+    np.testing.assert_allclose(out.cov[agents].numpy(), covs, rtol=1e-10,
+                               atol=1e-12)
+    # a tolerance no iteration can miss stops after the first
+    data = tiny_scenario(steps=3).generate(gen(9))
+    one = GaussianBP(1, tolerance=None)(data)
+    stopped = GaussianBP(30, tolerance=1e9)(data)
+    torch.testing.assert_close(stopped.mean, one.mean, rtol=0, atol=0)
+    assert not torch.allclose(GaussianBP(30, tolerance=None)(data).mean,
+                              one.mean)
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="'ends'"):
+        GaussianBPConv(ends='sender')
+    with pytest.raises(ValueError, match="'damping'"):
+        GaussianBPConv(damping=1.0)
+    assert GaussianBP(2, damping=0.5).settings()['damping'] == 0.5
+    with pytest.raises(ValueError, match="'inflation'"):
+        GaussianBP(inflation=0.9)
+    recommended = GaussianBP.recommended(ends='receiver').settings()
+    assert (recommended['inflation'], recommended['iterations'],
+            recommended['tolerance'], recommended['ends']) == (
+                1.5, 20, 0.01, 'receiver')

@@ -1,0 +1,356 @@
+from typing import NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+from torch_geometric.nn.conv import MessagePassing
+
+from tg_nebp.data.validation import check_number
+from tg_nebp.models import GaussianRange, MeasurementModel
+from tg_nebp.utils import link_factors, long_edge_index
+
+__all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages', 'Factors',
+           'ENDS']
+
+#: Which ends of a link its range informs: :obj:`"both"` (every measured
+#: range is shared with the neighbour it measured) or :obj:`"receiver"`
+#: (the paper's convention: an agent uses its own measurements only).
+ENDS = ('both', 'receiver')
+
+
+class GaussianBelief(NamedTuple):
+    r"""Gaussian beliefs of the nodes: :obj:`mean` :math:`(N, S)` and
+    information (precision) :obj:`info` :math:`(N, S, S)`. An anchor's
+    mean is its known state; its information is not used."""
+    mean: Tensor
+    info: Tensor
+
+
+class FactorMessages(NamedTuple):
+    r"""The factor-to-variable messages of one iteration in information
+    form, one per message edge, over the state entries that the
+    measurement model reads (:obj:`info` :math:`(M, R, R)`, :obj:`eta`
+    :math:`(M, R)`; :math:`R = 2` for a range model's positions), kept for
+    the next iteration's extrinsic beliefs."""
+    info: Tensor
+    eta: Tensor
+
+
+class Factors(NamedTuple):
+    r"""The factors of one time step's links and their message edges
+    (:meth:`GaussianBPConv.factors`), fixed for the step's iterations:
+    every factor's two end nodes :obj:`ends` :math:`(P, 2)`; where every
+    element of every link's linearization goes in its factor's
+    :math:`[\mathbf{x}_a; \mathbf{x}_b]` (:obj:`curvature_slots`
+    :math:`(E (2R)^2)`, :obj:`gradient_slots` :math:`(E \cdot 2R)`, flat
+    positions: a link from :math:`b` to :math:`a` has its halves swapped);
+    the message edges :obj:`index` :math:`(2, M)` (source, target), where
+    each reads its factor with its target's half second
+    (:obj:`message_slots` :math:`(M (2R)^2)`, :obj:`message_eta_slots`
+    :math:`(M \cdot 2R)`) and the message edge of the same factor to the
+    other end :obj:`reverse` :math:`(M)` (:math:`-1` if none)."""
+    ends: Tensor
+    curvature_slots: Tensor
+    gradient_slots: Tensor
+    index: Tensor
+    message_slots: Tensor
+    message_eta_slots: Tensor
+    reverse: Tensor
+
+
+def _halves(width: int, swap: Tensor) -> Tensor:
+    # the entries of [x_a; x_b] (2R) in the order [x_b; x_a] where 'swap'
+    # (one row per item)
+    order = torch.arange(2 * width, device=swap.device)
+    return torch.where(swap.view(-1, 1), order.roll(width), order)
+
+
+def _slots(item: Tensor, swap: Tensor, width: int) -> Tuple[Tensor, Tensor]:
+    # flat positions of the (2R, 2R) matrix and 2R vector of 'item', halves
+    # swapped where 'swap': one row per link or message edge
+    order = _halves(width, swap)  # [n, 2R]
+    size = 2 * width
+    matrix = (item.view(-1, 1, 1) * size * size + order.view(-1, size, 1) *
+              size + order.view(-1, 1, size))
+    return matrix.reshape(-1), (item.view(-1, 1) * size + order).reshape(-1)
+
+
+def _inverse(matrices: Tensor) -> Tensor:
+    # the inverses of many small matrices (B, R, R): 2 x 2 in closed form
+    # (several times faster than a batched solve of that size), larger ones
+    # by torch.linalg.inv
+    if matrices.size(-1) != 2:
+        return torch.linalg.inv(matrices)
+    a, b = matrices[:, 0, 0], matrices[:, 0, 1]
+    c, d = matrices[:, 1, 0], matrices[:, 1, 1]
+    adjugate = torch.stack([d, -b, -c, a], -1).view(-1, 2, 2)
+    return adjugate / (a * d - b * c).view(-1, 1, 1)
+
+
+def _marginal_information(info: Tensor, mean: Tensor, width: int,
+                          anchor: Tensor) -> Tuple[Tensor, Tensor]:
+    # every agent's belief marginalized onto its first 'width' entries (the
+    # factors' scope), in information form (the Schur complement of the
+    # other entries): the information matrix (N, R, R) and vector (N, R);
+    # anchors (known, no belief to marginalize) get an identity and zeros,
+    # never used
+    eta = (info @ mean.unsqueeze(-1)).squeeze(-1)
+    info_rr, eta_r = info[:, :width, :width], eta[:, :width]
+    if width < mean.size(-1):
+        info_ro, info_oo = info[:, :width, width:], info[:, width:, width:]
+        eye = torch.eye(info_oo.size(-1), dtype=info.dtype,
+                        device=info.device)
+        gain = info_ro @ _inverse(torch.where(anchor.view(-1, 1, 1), eye,
+                                              info_oo))
+        info_rr = info_rr - gain @ info_ro.transpose(-1, -2)
+        eta_r = eta_r - (gain @ eta[:, width:].unsqueeze(-1)).squeeze(-1)
+    eye = torch.eye(width, dtype=info.dtype, device=info.device)
+    info_rr = torch.where(anchor.view(-1, 1, 1), eye,
+                          0.5 * (info_rr + info_rr.transpose(-1, -2)))
+    return info_rr, eta_r.masked_fill(anchor.view(-1, 1), 0.0)
+
+
+class GaussianBPConv(MessagePassing):
+    r"""One iteration of Gaussian belief propagation on the range factor
+    graph of cooperative localization: every measured link :math:`z_{j \to
+    i}` is a factor :math:`p(z_{j \to i} | \mathbf{x}_j, \mathbf{x}_i)`
+    between the states of its two ends, linearized at the current belief
+    means (as in the Robot Web of `"Distributed Simultaneous Localisation
+    and Mapping for Mobile Robots with Gaussian Belief Propagation"
+    <https://arxiv.org/abs/2202.03314>`_, Murai, Ortiz, Saeedi, Kelly and
+    Davison, IEEE T-RO 2024, and sigma-point / posterior-linearization BP
+    for localization), that sends a Gaussian message in information form to
+    **both** ends.
+
+    The measurement model linearizes the factor at the means
+    :math:`\bar{\mathbf{x}} = [\bar{\mathbf{x}}_j; \bar{\mathbf{x}}_i]`
+    (:meth:`~tg_nebp.models.MeasurementModel.linearize`: the gradient
+    :math:`\mathbf{g}` of its own log-likelihood and a positive
+    semi-definite curvature :math:`\mathbf{W}`, with robust weights for
+    non-Gaussian range likelihoods), which makes the factor
+    :math:`\boldsymbol{\Lambda}_f = \mathbf{W}`, :math:`\boldsymbol{\eta}_f
+    = \mathbf{W} \bar{\mathbf{x}} + \mathbf{g}` on the stacked states. The
+    message to end :math:`t` marginalizes the other end :math:`s` against
+    its **extrinsic** belief, its belief without this factor's previous
+    message to it, :math:`(\boldsymbol{\Lambda}_s -
+    \boldsymbol{\Lambda}_{f \to s}, \boldsymbol{\eta}_s -
+    \boldsymbol{\eta}_{f \to s})`:
+
+    .. math::
+        \boldsymbol{\Lambda}_{f \to t} &= \boldsymbol{\Lambda}_{f,tt} -
+        \boldsymbol{\Lambda}_{f,ts} \mathbf{A}^{-1}
+        \boldsymbol{\Lambda}_{f,st}, \quad \mathbf{A} =
+        \boldsymbol{\Lambda}_{f,ss} + \boldsymbol{\Lambda}_s -
+        \boldsymbol{\Lambda}_{f \to s}
+
+        \boldsymbol{\eta}_{f \to t} &= \boldsymbol{\eta}_{f,t} -
+        \boldsymbol{\Lambda}_{f,ts} \mathbf{A}^{-1} \big(
+        \boldsymbol{\eta}_{f,s} + \boldsymbol{\eta}_s -
+        \boldsymbol{\eta}_{f \to s}\big),
+
+    so a belief never receives its own information back and iterations do
+    not count a measurement twice. An anchor end is known: its factor
+    conditions on it (:math:`\boldsymbol{\Lambda}_{f \to t} =
+    \boldsymbol{\Lambda}_{f,tt}`). Every node adds its incoming messages to
+    its (predicted) prior,
+
+    .. math::
+        \boldsymbol{\Lambda}_i = \boldsymbol{\Lambda}_i^- + \sum_f
+        \boldsymbol{\Lambda}_{f \to i}, \quad \boldsymbol{\eta}_i =
+        \boldsymbol{\eta}_i^- + \sum_f \boldsymbol{\eta}_{f \to i}.
+
+    A factor and its messages live on the state entries that the
+    likelihood reads (:meth:`~tg_nebp.models.MeasurementModel.scope`: a
+    range model's positions), and a source's extrinsic belief enters
+    marginalized onto them. With :obj:`ends="both"` the two ranges of a
+    pair of nodes are one factor
+    (:meth:`~tg_nebp.nn.conv.GaussianBPConv.factors`). In PyG terms the
+    message to :math:`j` runs on the flipped edge :math:`i \to j` with the
+    same link features; the sum is :obj:`aggr="add"`. Memory is
+    :math:`O(|\mathcal{E}| S^2)`, and nothing depends on a particle
+    count.
+
+    Args:
+        measurement (MeasurementModel, optional): The measurement model.
+            (default: :obj:`GaussianRange()`)
+        ends (str, optional): :obj:`"both"`: every range informs both ends
+            of its link (links are measured in both directions with
+            independent noise, so each direction is its own factor);
+            :obj:`"receiver"`: only the agent that measured it, the paper's
+            convention. (default: :obj:`"both"`)
+        damping (float, optional): Weight :math:`\beta \in [0, 1)` of the
+            previous message in each new one, :math:`(1 - \beta)
+            \mathbf{m}_\mathrm{new} + \beta \mathbf{m}_\mathrm{old}` in
+            information form. (default: :obj:`0.0`)
+
+    Shapes:
+        - **input:**
+          prior and beliefs: means :math:`(|\mathcal{V}|, S)`, information
+          :math:`(|\mathcal{V}|, S, S)`,
+          edge indices :math:`(2, |\mathcal{E}|)`,
+          link features :math:`(|\mathcal{E}|, F)` (the range first),
+          anchor mask :math:`(|\mathcal{V}|)`,
+          previous messages :math:`(M, R, R)`, :math:`(M, R)` *(optional)*
+        - **output:** beliefs, means :math:`(|\mathcal{V}|, S)` and
+          information :math:`(|\mathcal{V}|, S, S)`, and the messages
+          :math:`(M, R, R)`, :math:`(M, R)`
+    """
+    def __init__(self, measurement: Optional[MeasurementModel] = None,
+                 ends: str = 'both', damping: float = 0.0):
+        super().__init__(aggr='add', node_dim=0)
+        self.measurement = measurement or GaussianRange()
+        if not isinstance(self.measurement, MeasurementModel):
+            raise TypeError(f"'measurement' must be a MeasurementModel, got "
+                            f"{self.measurement!r}")
+        if ends not in ENDS:
+            raise ValueError(f"'ends' must be one of {list(ENDS)}, got "
+                             f"{ends!r}")
+        damping = check_number(damping, 'damping', inclusive=True)
+        if damping >= 1:
+            raise ValueError(f"'damping' must lie in [0, 1), got {damping}")
+        self.ends = ends
+        self.damping = damping
+
+    def factors(self, edge_index: Tensor, anchor: Tensor,
+                state_dim: int) -> Factors:
+        r"""The factors of the links :obj:`edge_index` :math:`(2, E)` and
+        the message edges that carry their messages, for states of size
+        :obj:`state_dim` (:class:`~tg_nebp.nn.conv.Factors`): what the
+        iterations of a time step share. The factor graph is
+        :func:`~tg_nebp.utils.link_factors`'s: with :obj:`ends="both"` the
+        two measurements of a pair of nodes (independent noise) form one
+        factor on :math:`[\mathbf{x}_a; \mathbf{x}_b]`, :math:`a < b`,
+        that informs both; with :obj:`ends="receiver"` every measurement
+        is its own factor, whose one message goes to the agent that
+        measured it."""
+        graph = link_factors(edge_index, anchor, self.ends)
+        width = len(self.measurement.scope(state_dim))
+        curvature_slots, gradient_slots = _slots(graph.factor,
+                                                 graph.swapped, width)
+        message_slots, message_eta_slots = _slots(graph.link, graph.end == 0,
+                                                  width)
+        return Factors(graph.ends, curvature_slots, gradient_slots,
+                       graph.index, message_slots, message_eta_slots,
+                       graph.reverse)
+
+    def forward(self, prior: GaussianBelief, belief: GaussianBelief,
+                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                messages: Optional[FactorMessages] = None,
+                generator: Optional[torch.Generator] = None,
+                factors: Optional[Factors] = None
+                ) -> Tuple[GaussianBelief, FactorMessages]:
+        r"""Runs one iteration.
+
+        Args:
+            prior (GaussianBelief): The nodes' (predicted) prior.
+            belief (GaussianBelief): The current beliefs: their means are
+                the linearization points, and with :obj:`messages` they
+                give the extrinsic beliefs.
+            edge_index (torch.Tensor): Links :math:`j \to i` (agent
+                :math:`i` measured node :math:`j`).
+            edge_attr (torch.Tensor): Link features, the range first.
+            anchor (torch.Tensor): Bool mask of anchors (known states).
+            messages (FactorMessages, optional): The previous iteration's
+                messages on the message edges of :meth:`factors` (none at
+                the first). (default: :obj:`None`)
+            generator (torch.Generator, optional): For a measurement model
+                whose linearization draws (a Monte Carlo Fisher
+                information). (default: :obj:`None`)
+            factors (Factors, optional): :meth:`factors` of the links, which
+                the iterations of a time step share (computed if
+                :obj:`None`). (default: :obj:`None`)
+        """
+        num_nodes, size = belief.mean.shape
+        edge_index = long_edge_index(edge_index, num_nodes)
+        if factors is None:
+            factors = self.factors(edge_index, anchor, size)
+        scope = self.measurement.scope(size)
+        width = len(scope)
+        # the scope is a slice of every state: the leading entries (a range
+        # model's positions, or the whole state)
+        if tuple(scope) != tuple(range(width)):
+            raise ValueError(f"Gaussian BP needs a measurement model that "
+                             f"reads the leading state entries, but "
+                             f"{self.measurement} reads {tuple(scope)}")
+        src, dst = edge_index
+        grad, curvature = self.measurement.linearize(
+            edge_attr, belief.mean[src], belief.mean[dst], generator)
+        # the factors on [x_a; x_b]: every link's linearization added at
+        # its slots (the two ranges of a pair into one factor)
+        count = factors.ends.size(0)
+        factor_info = curvature.new_zeros(count * 4 * width * width)
+        factor_info.index_add_(0, factors.curvature_slots,
+                               curvature.reshape(-1))
+        factor_grad = grad.new_zeros(count * 2 * width)
+        factor_grad.index_add_(0, factors.gradient_slots, grad.reshape(-1))
+        point = belief.mean[:, :width][factors.ends].reshape(count,
+                                                             2 * width)
+        factor_eta = (factor_info.view(count, 2 * width, 2 * width) @
+                      point.unsqueeze(-1)).squeeze(-1) + factor_grad.view(
+                          count, 2 * width)
+        marginal_info, marginal_eta = _marginal_information(
+            belief.info, belief.mean, width, anchor)
+        new = self.edge_updater(
+            factors.index, info=marginal_info, eta=marginal_eta,
+            point=belief.mean[:, :width], known=anchor,
+            factor_info=factor_info[factors.message_slots].view(
+                -1, 2 * width, 2 * width),
+            factor_eta=factor_eta.view(-1)[factors.message_eta_slots].view(
+                -1, 2 * width),
+            reverse=factors.reverse, messages=messages)
+        if self.damping > 0 and messages is not None:
+            new = FactorMessages(*(
+                torch.lerp(n, o, self.damping) for n, o in zip(new,
+                                                               messages)))
+        sums = self.propagate(factors.index, info=new.info, eta=new.eta,
+                              size=(num_nodes, num_nodes))
+        info = prior.info.clone()
+        info[:, :width, :width] += sums[:, :width * width].view(
+            -1, width, width)
+        total = (prior.info @ prior.mean.unsqueeze(-1)).squeeze(-1)
+        total[:, :width] += sums[:, width * width:]
+        # anchors keep their known state (an identity keeps the solve
+        # finite)
+        eye = torch.eye(size, dtype=info.dtype, device=info.device)
+        solved = torch.linalg.solve(torch.where(anchor.view(-1, 1, 1), eye,
+                                                info), total.unsqueeze(-1))
+        mean = torch.where(anchor.view(-1, 1), belief.mean,
+                           solved.squeeze(-1))
+        return GaussianBelief(mean, info), new
+
+    def edge_update(self, info_j: Tensor, eta_j: Tensor, point_j: Tensor,
+                    known_j: Tensor, factor_info: Tensor,
+                    factor_eta: Tensor, reverse: Tensor,
+                    messages: Optional[FactorMessages]) -> FactorMessages:
+        # the message to the target t of every message edge s -> t (its
+        # factor's second half), on the factor's scope: the source's
+        # extrinsic belief there (its marginal information without this
+        # factor's previous message) and the Schur complement that
+        # marginalizes the source; an anchor source is conditioned on
+        width = point_j.size(-1)
+        tt = factor_info[:, width:, width:]
+        ts = factor_info[:, width:, :width]
+        ss = factor_info[:, :width, :width]
+        eta_t, eta_s = factor_eta[:, width:], factor_eta[:, :width]
+        ext_info, ext_eta = info_j, eta_j
+        if messages is not None:
+            has_old = (reverse >= 0).to(info_j.dtype)
+            back = reverse.clamp_min(0)
+            ext_info = info_j - messages.info[back] * has_old.view(-1, 1, 1)
+            ext_eta = eta_j - messages.eta[back] * has_old.view(-1, 1)
+        gain = ts @ _inverse(ss + ext_info)
+        agent = ~known_j
+        info = torch.where(agent.view(-1, 1, 1),
+                           tt - gain @ ts.transpose(-1, -2), tt)
+        info = 0.5 * (info + info.transpose(-1, -2))
+        source = torch.where(agent.view(-1, 1), eta_s + ext_eta, point_j)
+        eta = eta_t - ((torch.where(agent.view(-1, 1, 1), gain, ts) @
+                        source.unsqueeze(-1)).squeeze(-1))
+        return FactorMessages(info, eta)
+
+    def message(self, info: Tensor, eta: Tensor) -> Tensor:
+        # flattened, so one 'add' aggregation sums information and eta
+        return torch.cat([info.flatten(1), eta], -1)
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}({self.measurement}, '
+                f'ends={self.ends!r}, damping={self.damping})')
