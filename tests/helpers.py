@@ -222,3 +222,27 @@ def linear_scenario(steps=4, num_agents=4, sigma=0.5):
                     agent_start_low=2.0, agent_start_high=10.0,
                     num_steps=steps, motion=ConstantVelocity(0.1),
                     measurement=linear_offset_model()(sigma))
+
+
+def embed_in_3d(data, height_var=4.0):
+    r"""A 2-D realization as a 3-D one at height zero: states [x, y, 0, v_x,
+    v_y, 0], the prior's height (variance :obj:`height_var`) and vertical
+    velocity independent of the rest."""
+    from tg_nebp.data import Realization
+
+    def lift(x):  # [..., 4] -> [..., 6]
+        out = x.new_zeros(x.shape[:-1] + (6, ))
+        out[..., [0, 1, 3, 4]] = x
+        return out
+
+    cov = data.prior_cov.new_zeros(data.num_nodes, 6, 6)
+    keep = torch.tensor([0, 1, 3, 4])
+    cov[:, keep.view(-1, 1), keep] = data.prior_cov
+    agents = ~data.anchor
+    cov[agents, 2, 2] = height_var
+    cov[agents, 5, 5] = 0.01
+    return Realization(states=lift(data.states), edge_index=data.edge_index,
+                       edge_attr=data.edge_attr, edge_time=data.edge_time,
+                       anchor=data.anchor, prior_mean=lift(data.prior_mean),
+                       prior_cov=cov, num_steps=int(data.num_steps),
+                       num_nodes=data.num_nodes)

@@ -321,3 +321,25 @@ def test_gaussian_outage_refuses_what_it_cannot_do():
         metrics.gaussian_outage(torch.zeros(2, 2), [1.0])
     with pytest.raises(ValueError, match='non-negative'):
         metrics.gaussian_outage(torch.eye(2), [-1.0])
+
+
+def test_nees_of_three_dimensional_errors_has_three_degrees_of_freedom():
+    # an efficient 3-D Gaussian estimator with the right covariance passes
+    # the two-sided chi-square test with 3 degrees of freedom, not with 2
+    g = torch.Generator().manual_seed(7)
+    count = 20_000
+    root = torch.randn(count, 3, 3, generator=g, dtype=torch.float64)
+    cov = root @ root.transpose(1, 2) + 0.1 * torch.eye(3,
+                                                        dtype=torch.float64)
+    errors = (torch.linalg.cholesky(cov) @ torch.randn(
+        count, 3, 1, generator=g, dtype=torch.float64)).squeeze(-1)
+    truth = torch.zeros(count, 3, dtype=torch.float64)
+    values = metrics.nees(errors, cov, truth)
+    three = metrics.consistency_curve(values, [0.5, 0.95], dof=3)
+    two = metrics.consistency_curve(values, [0.5, 0.95], dof=2)
+    # binomial standard errors of fractions of 20,000: 0.0035 at the 0.5
+    # level, 0.0015 at 0.95; the 2-dof test is off by 7 and 9 of them
+    assert abs(float(three[0]) - 0.5) < 0.01
+    assert abs(float(three[1]) - 0.95) < 0.005
+    assert abs(float(two[0]) - 0.5) > 0.015
+    assert abs(float(two[1]) - 0.95) > 0.008

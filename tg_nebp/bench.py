@@ -135,8 +135,8 @@ def _naive(particles, log_weights, edge_index, ranges, measurement):
     # the plain eager baseline: gather [E, K, D], the model's likelihood,
     # scatter-add
     src, dst = edge_index
-    log_lik = measurement.log_likelihood(ranges, particles[src, :, :2],
-                                         particles[dst, :, :2])
+    log_lik = measurement.log_likelihood(ranges, particles[src],
+                                         particles[dst])
     out = torch.zeros_like(log_weights).index_add_(
         0, dst, log_lik + log_weights[src])
     return log_weights + out

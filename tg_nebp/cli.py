@@ -316,7 +316,8 @@ def _train_on(args, device: str) -> int:
                  measurement=_measurement(args, scenario),
                  compile=args.compile,
                  num_samples=args.samples, regularize=args.regularize,
-                 ess_threshold=args.ess_threshold, variant=args.variant)
+                 ess_threshold=args.ess_threshold, variant=args.variant,
+                 position_dim=scenario.position_dim)
     checkpoint = Path(args.out) / 'nebp.pt'
     steps = steps_per_epoch(len(train_set), args.batch_size,
                             scenario.num_steps)

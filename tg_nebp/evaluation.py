@@ -54,7 +54,8 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
                   progress: Optional[Callable] = None
                   ) -> Dict[str, torch.Tensor]:
     r"""Tracks every realization of :obj:`dataset` and returns the agents'
-    position errors and NEES values (:obj:`"errors"`, :obj:`"nees"`), the
+    position errors and NEES values (:obj:`"errors"`, :obj:`"nees"`; its
+    degrees of freedom, the position dimension, :obj:`"dof"`), the
     index of the realization each value belongs to (:obj:`"realization"`),
     plus the estimates of the first realization (:obj:`"first_mean"`,
     :obj:`"first_states"`, :obj:`"first_anchor"`) for plots. The values are
@@ -87,6 +88,7 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
             :obj:`batch_size`. (default: :obj:`None`)
     """
     tracked, first = {}, {}  # realization -> (errors, nees); realization 0
+    dof = 2
     with torch.no_grad():
         for indices, batch in _realization_batches(dataset, batch_size,
                                                    device):
@@ -95,7 +97,7 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
             agents = ~batch.anchor
             holds_first = indices[0] == 0  # its estimates go to the plots
             errors, nees, means = [], [], []
-            dim = batch.states.size(-1) // 2
+            dim = dof = batch.states.size(-1) // 2
             for step in tracker.steps(batch, generator):
                 truth = batch.states[:, step.t, :dim]
                 est = step.mean[:, :dim]
@@ -128,18 +130,20 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
         realization=torch.cat([torch.full_like(tracked[r][0], r,
                                                dtype=torch.long)
                                for r in order]),
-        **first)
+        dof=dof, **first)
 
 
 def summarize(errors: torch.Tensor, nees: torch.Tensor,
               thresholds: Sequence[float] = OUTAGE_THRESHOLDS,
-              confidence: Sequence[float] = CONFIDENCE) -> dict:
+              confidence: Sequence[float] = CONFIDENCE,
+              dof: int = 2) -> dict:
     r"""The :obj:`metrics.json` entry of a method: RMSE, outage
     probabilities keyed by threshold (:obj:`"0.5"`, ...) and
     :math:`\mathbb{P}(\text{accept } H_0)` keyed by confidence level
-    (:obj:`"0.95"`, ...)."""
+    (:obj:`"0.95"`, ...), the NEES tested with :obj:`dof` degrees of
+    freedom (the position dimension)."""
     outage = metrics.outage_from_errors(errors, thresholds)
-    accept = metrics.consistency_curve(nees, confidence)
+    accept = metrics.consistency_curve(nees, confidence, dof=dof)
     return {
         'rmse': metrics.rmse_from_errors(errors),
         'outage': {f'{t:.1f}': float(p) for t, p in zip(thresholds, outage)},
@@ -217,14 +221,18 @@ def summarize_result(result: Dict[str, torch.Tensor]) -> dict:
     :func:`track_dataset` (:func:`summarize`) or of :func:`bound_dataset`
     (:func:`summarize_bound`)."""
     if 'errors' in result:
-        return summarize(result['errors'], result['nees'])
+        return summarize(result['errors'], result['nees'],
+                         dof=result.get('dof', 2))
     return summarize_bound(result['squared_error'], result['outage'])
 
 
 def _select(result: Dict[str, torch.Tensor], mask: torch.Tensor) -> dict:
-    return {key: result[key][mask]
-            for key in ('errors', 'nees', 'squared_error', 'outage')
-            if key in result}
+    selected = {key: result[key][mask]
+                for key in ('errors', 'nees', 'squared_error', 'outage')
+                if key in result}
+    if 'dof' in result:
+        selected['dof'] = result['dof']
+    return selected
 
 
 def spread(result: Dict[str, torch.Tensor], level: float = 1.0) -> dict:

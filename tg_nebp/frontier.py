@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
 
-from tg_nebp.evaluation import summarize, track_dataset
+from tg_nebp.evaluation import summarize_result, track_dataset
 from tg_nebp.filters import ParticleBP
 from tg_nebp.io import read_resumable, write_json
 
@@ -151,7 +151,7 @@ def run_frontier(points: Iterable[GridPoint], dataset, out: Path,
         tracked = track_dataset(tracker, dataset, batch_size, device, seed,
                                 progress=progress)
         seconds = time.perf_counter() - start
-        entry = summarize(tracked['errors'], tracked['nees'])
+        entry = summarize_result(tracked)
         entry.update(dict(point), seconds=round(seconds, 3),
                      seconds_per_realization=round(seconds / len(dataset),
                                                    4),

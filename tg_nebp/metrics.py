@@ -1,7 +1,8 @@
 r"""Accuracy and consistency metrics of position estimates, as in the
 `"Neural Enhanced Belief Propagation for Cooperative Localization"
 <https://arxiv.org/abs/2105.12903>`_ paper. Every function takes estimates
-and truths of any leading shape :math:`(*, 2)` (e.g. :math:`(N, T, 2)`) and
+and truths of any leading shape :math:`(*, D)` (e.g. :math:`(N, T, 2)`;
+positions of any dimension :math:`D`) and
 an optional boolean :obj:`mask` :math:`(*)` selecting the entries to count
 (e.g. the agents, not the anchors).
 
@@ -106,15 +107,16 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     r"""Position normalized estimation error squared
     :math:`e = (\hat{\mathbf{p}} - \mathbf{p})^\top
     \hat{\boldsymbol{\Sigma}}_{\mathbf{p}}^{-1} (\hat{\mathbf{p}} -
-    \mathbf{p})` for covariances :math:`(*, 2, 2)`. A singular covariance
+    \mathbf{p})` for covariances :math:`(*, D, D)`. A singular covariance
     gives :math:`+\infty` (or :math:`0` for a zero error); a NaN estimate,
     truth or covariance, or a clearly indefinite covariance, gives NaN; a
     negative value from rounding of a numerically singular covariance
     counts as singular."""
     _check_positions(est_pos, true_pos)
-    if pos_cov.shape != est_pos.shape + (2, ):
+    dim = est_pos.size(-1)
+    if pos_cov.shape != est_pos.shape + (dim, ):
         raise ValueError(f"'pos_cov' must have shape "
-                         f"{list(est_pos.shape) + [2]}, got "
+                         f"{list(est_pos.shape) + [dim]}, got "
                          f"{list(pos_cov.shape)}")
     err = (est_pos - true_pos).double().unsqueeze(-1)
     cov = pos_cov.double()
@@ -127,7 +129,7 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     value = torch.where(singular | (value < 0), fallback, value)
     nan_cov = torch.isnan(cov).flatten(-2).any(-1)
     eig = torch.linalg.eigvalsh(torch.where(
-        nan_cov.unsqueeze(-1).unsqueeze(-1), torch.eye(2, dtype=cov.dtype,
+        nan_cov.unsqueeze(-1).unsqueeze(-1), torch.eye(dim, dtype=cov.dtype,
                                                        device=cov.device),
         cov))
     # NaN in, or a covariance that is no covariance (clearly indefinite):

@@ -35,8 +35,12 @@ def _save(fig, path):
 def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
                 anchor: torch.Tensor, path: Union[str, Path]):
     r"""True (black) and estimated agent tracks :math:`(N, T, \ge 2)` of one
-    realization, dots at the final positions, anchors as triangles."""
+    realization, dots at the final positions, anchors as triangles; 3-D
+    tracks (states of 6 entries) projected on the horizontal plane (the
+    title says so)."""
     fig, ax = _figure((6, 6))
+    if states.size(-1) == 6:
+        ax.set_title('projected on the horizontal plane (x, y)', fontsize=9)
     agents = (~anchor).nonzero().view(-1).tolist()
     for i in agents:
         ax.plot(states[i, :, 0], states[i, :, 1], color='black', lw=1)
@@ -93,15 +97,17 @@ def plot_outage(errors: Dict[str, torch.Tensor], path: Union[str, Path],
     _save(fig, path)
 
 
-def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path]):
-    r"""P(accept H0) of the two-sided chi-square NEES test versus confidence
-    level per method, the ideal diagonal, and the paper's curves of BP and
-    NEBP dashed."""
+def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path],
+                     dof: int = 2):
+    r"""P(accept H0) of the two-sided chi-square NEES test (:obj:`dof`
+    degrees of freedom: the position dimension) versus confidence level
+    per method, the ideal diagonal, and the paper's curves of BP and NEBP
+    dashed."""
     levels = torch.linspace(0.01, 0.99, 99)
     fig, ax = _figure((5, 4))
     ax.plot([0, 1], [0, 1], color='black', lw=0.8, ls=':', label='ideal')
     _plot_with_paper(ax, 'consistency', {
-        name: (levels, metrics.consistency_curve(values, levels))
+        name: (levels, metrics.consistency_curve(values, levels, dof=dof))
         for name, values in nees.items()})
     ax.axvline(0.95, color='gray', ls=':', lw=0.8)
     ax.set_xlabel('confidence level $1 - \\alpha$')

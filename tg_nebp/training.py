@@ -41,7 +41,8 @@ def position_loss(mean, states, t, anchor):
     r"""The paper's loss :math:`\sum_i \|\hat{\mathbf{p}}_i -
     \mathbf{p}_i\|^2` over the agents at time index :obj:`t`."""
     agents = ~anchor
-    return (mean[agents, :2] - states[agents, t, :2]).square().sum()
+    dim = states.size(-1) // 2  # the positions
+    return (mean[agents, :dim] - states[agents, t, :dim]).square().sum()
 
 
 def save_checkpoint(path: Union[str, Path], model: NEBP,

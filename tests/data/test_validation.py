@@ -116,7 +116,7 @@ CONV_CORRUPTIONS = [
     ('particles_wrong_K', _set('particles', lambda t: t[:, :-2]),
      r"'log_weights' must have shape \[5, 2\].*\(K = 2\), got \[5, 4\]"),
     ('particles_state_1', _set('particles', lambda t: t[..., :1]),
-     r"'particles' must hold a 2-D position.*state size 1"),
+     r"'particles' must hold a position, then a velocity.*state size 1"),
     ('particles_2d', _set('particles', lambda t: t[..., 0]),
      r"'particles' must have shape \[N, K, D\], got \(5, 4\)"),
     ('particles_no_K', _set('particles', lambda t: t[:, :0]),
@@ -367,7 +367,8 @@ def test_realization_agent_nan_prior_mean(realization):
 
 def test_realization_prior_mean_wrong_state_size(realization):
     realization.prior_mean = realization.prior_mean[:, :3]
-    check_both(realization, r"'prior_mean' must have shape \[30, 4\]")
+    check_both(realization,
+               r"'prior_mean' must have shape \[30, 4\] or \[30, 6\]")
 
 
 def test_realization_integer_prior_mean(realization):

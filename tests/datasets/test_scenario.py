@@ -76,7 +76,7 @@ def test_fingerprint_covers_every_generation_parameter():
     ('name', ''), ('name', 'a/b'), ('name', 'a b'), ('name', '..'),
     ('name', '.hidden'), ('name', 'a\\b'), ('name', 'a\x00b'),
     ('num_agents', 0),
-    ('num_steps', 0), ('anchor_positions', ((1.0, 2.0, 3.0), )),
+    ('num_steps', 0), ('anchor_positions', ((1.0, 2.0, 3.0, 4.0), )),
     ('agent_start_low', 50.0), ('prior_var', (1.0, 1.0, 1.0)),
     ('prior_var', (1.0, 1.0, 0.0, 1.0)), ('sigma_v0', -1.0),
     ('motion', {'name': 'constant-velocity-drag', 'params': {'drag': -1}}),
@@ -229,7 +229,7 @@ def test_wrong_types_name_the_field(key, value):
 @pytest.mark.parametrize('change,message', [
     (dict(num_agents=None), r"lacks the fields \['num_agents'\]"),
     (dict(num_agents=2.5), r"'num_agents' must be an integer, got 2.5"),
-    (dict(prior_var=10.0), r"'prior_var' must be a list of 4 numbers"),
+    (dict(prior_var=10.0), r"'prior_var' must be a list of numbers"),
     (dict(name='..'), r"'name' must be a plain file name"),
     (dict(num_steps=0), r"'num_steps' must be at least 1"),
 ])
@@ -276,3 +276,58 @@ def test_nlos_scenarios_are_the_paper_networks_with_nlos_links(name):
     state = {}
     for (j, i), flag in zip(data.edge_index.t().tolist(), flags.tolist()):
         assert state.setdefault((min(i, j), max(i, j)), flag) == flag
+
+
+# -- 3-D scenarios -----------------------------------------------------------
+
+def test_three_dimensional_scenario_pair():
+    test, train = Scenario.load('box3d_test'), Scenario.load('box3d_train')
+    assert (test.position_dim, train.position_dim) == (3, 3)
+    assert (test.num_agents, test.num_anchors) == (100, 13)
+    heights = {p[2] for p in test.anchor_positions}
+    assert heights == {0.0, 20.0}
+    data = test.replace(num_steps=2).generate(torch.Generator().manual_seed(0))
+    check_realization(data)
+    assert data.states.shape == (113, 2, 6) and data.prior_mean.shape == (
+        113, 6)
+    low, high = test.start_box()
+    start = data.prior_mean  # within the prior's spread of the box
+    assert low.tolist() == [10.0, 10.0, 2.0]
+    assert high.tolist() == [90.0, 90.0, 18.0]
+    # ranges are 3-D distances plus noise; every pair within range measured
+    states = data.states[:, 0].double()
+    first = data.edge_time == 0
+    src, dst = data.edge_index[:, first]
+    distances = (states[src, :3] - states[dst, :3]).norm(dim=-1)
+    assert float(distances.max()) <= 20.0 + 1e-4
+    noise = data.edge_attr[first, 0].double() - distances
+    assert abs(float(noise.mean())) < 0.1 and 0.9 < float(noise.std()) < 1.1
+    pairs = torch.cdist(states[:, :3], states[:, :3]) <= 20.0
+    pairs.fill_diagonal_(False)
+    pairs[:, 100:] = False  # anchors never receive
+    assert int(pairs.sum()) == int(first.sum())
+    assert bool(torch.isfinite(start).all())
+
+
+@pytest.mark.parametrize('change,message', [
+    (dict(anchor_positions=((0.0, 0.0, 0.0), (1.0, 1.0))),
+     'every anchor alike'),
+    (dict(anchor_positions=((0.0, 0.0, 0.0, 0.0), )), r'\[x, y, z\]'),
+    (dict(prior_var=(1.0, 1.0, 0.1, 0.1)), "'prior_var' must hold 6"),
+    (dict(agent_start_low=(1.0, 1.0)), 'one value per axis'),
+    (dict(agent_start_low=(1.0, 1.0, 5.0), agent_start_high=(5.0, 5.0, 4.0)),
+     'below .* on every axis'),
+    (dict(agent_start_low='low'), "'agent_start_low' must be a number"),
+])
+def test_three_dimensional_fields_are_checked(change, message):
+    with pytest.raises((TypeError, ValueError), match=message):
+        Scenario.load('box3d_test').replace(**change)
+
+
+def test_three_dimensional_network_grows_on_the_horizontal_plane():
+    grown = Scenario.load('box3d_test').grown(400)
+    assert grown.position_dim == 3
+    assert {p[2] for p in grown.anchor_positions} == {0.0, 20.0}
+    assert grown.agent_start_low == (20.0, 20.0, 2.0)
+    assert grown.agent_start_high == (180.0, 180.0, 18.0)
+    assert grown.num_anchors > 4 * 13 - 13

@@ -372,3 +372,70 @@ def test_sampled_nebp_trains_and_is_stored():
                for p in model.parameters())
     rebuilt = NEBP.from_config(model.config())
     assert rebuilt.num_samples == 4 and rebuilt.conv.bp.num_samples == 4
+
+
+# -- positions of any dimension ---------------------------------------------
+
+# NEBP's means from a checkpoint of a model initialized with seed 0 (K =
+# 200), on realization seed 3 of paper_test (4 steps, seed 1, one thread),
+# as the code before positions of any dimension gave them: the sum over the
+# first 100 nodes and node 5's state at the last step
+NEBP_BEFORE_3D = {
+    'paper': (38986.010226692015, [25.900571823120117, 56.372344970703125,
+                                   0.16250517964363098,
+                                   -0.03925434499979019]),
+    'equivariant': (39107.59330086998, [26.27747344970703, 56.40903854370117,
+                                        0.31577423214912415,
+                                        -0.017642734572291374]),
+}
+
+
+@pytest.mark.parametrize('variant', list(NEBP_BEFORE_3D))
+def test_two_dimensional_nebp_is_unchanged(variant, tmp_path):
+    from tg_nebp.training import nebp_from_checkpoint, save_checkpoint
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        data = Scenario.load('paper_test').replace(num_steps=4).generate(
+            gen(3))
+        torch.manual_seed(0)
+        if variant == 'equivariant':  # after the reference run's paper
+            NEBP(200, variant='paper')  # model and its reloaded copy
+            NEBP(200, variant='paper')
+        save_checkpoint(tmp_path / 'nebp.pt', NEBP(200, variant=variant))
+        with torch.no_grad():
+            mean = nebp_from_checkpoint(tmp_path / 'nebp.pt')(data,
+                                                              gen(1)).mean
+    finally:
+        torch.set_num_threads(threads)
+    total, state = NEBP_BEFORE_3D[variant]
+    assert float(mean[:100].double().sum()) == pytest.approx(total,
+                                                             rel=1e-7)
+    torch.testing.assert_close(mean[5, 3], torch.tensor(state), rtol=1e-4,
+                               atol=1e-5)
+
+
+@pytest.mark.parametrize('variant', ['paper', 'equivariant'])
+def test_three_dimensional_nebp_runs_and_keeps_its_dimension(variant):
+    cube = Scenario(name='cube', num_agents=3,
+                    anchor_positions=((0.0, 0.0, 0.0), (15.0, 0.0, 10.0),
+                                      (0.0, 15.0, 10.0)),
+                    agent_start_low=(3.0, 3.0, 2.0),
+                    agent_start_high=(12.0, 12.0, 8.0), num_steps=2,
+                    prior_var=(4.0, 4.0, 4.0, 0.01, 0.01, 0.01))
+    data = cube.generate(gen(5))
+    model = NEBP(16, 2, variant=variant, position_dim=3)
+    out = model(data, gen(0))
+    assert out.mean.shape == (6, 2, 6) and bool(torch.isfinite(
+        out.mean).all())
+    # the embedding holds a 6-entry mean and a 6 x 6 covariance
+    assert model.conv.g_n.channel_list[-1] == 6 + 36
+    loss = position_loss(out.mean[:, -1], data.states, 1, data.anchor)
+    loss.backward()
+    assert all(p.grad is not None for p in model.conv.g_e.parameters())
+    rebuilt = NEBP.from_config(model.config())
+    assert rebuilt.position_dim == 3
+    with pytest.raises(ValueError, match=r'built for 3-D positions \(states '
+                       r'of size 6\), but the realization holds states of '
+                       r'size 4'):
+        model(tiny_scenario(steps=1).generate(gen(1)), gen(0))

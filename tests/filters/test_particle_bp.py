@@ -790,3 +790,67 @@ def test_both_ends_batch_equals_each_graph_alone():
     torch.testing.assert_close(batched.mean, torch.cat([a.mean
                                                         for a in alone]),
                                rtol=1e-4, atol=1e-4)
+
+
+# -- positions of any dimension ---------------------------------------------
+
+# BP's means of realization seed 3 of paper_test (4 steps, K = 200, seed 1,
+# one thread), as the code before positions of any dimension gave them: the
+# sum over the first 100 nodes and node 5's state at the last step
+BEFORE_3D = {
+    'paired': (39058.96476991568, [24.40610122680664, 59.562530517578125,
+                                   0.09814085066318512,
+                                   0.13850262761116028]),
+    'marginalized': (39066.8194991963, [25.20376205444336,
+                                        57.491546630859375,
+                                        0.08056914806365967,
+                                        0.1753428876399994]),
+}
+
+
+@pytest.mark.parametrize('name', list(BEFORE_3D))
+def test_two_dimensional_results_are_unchanged(name):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        data = Scenario.load('paper_test').replace(num_steps=4).generate(
+            gen(3))
+        options = ({} if name == 'paired' else
+                   dict(num_samples=8, regularize='silverman'))
+        mean = ParticleBP(200, **options)(data, gen(1)).mean
+    finally:
+        torch.set_num_threads(threads)
+    total, state = BEFORE_3D[name]
+    assert float(mean[:100].double().sum()) == pytest.approx(total,
+                                                             rel=1e-9)
+    np.testing.assert_allclose(mean[5, 3].tolist(), state, rtol=1e-5,
+                               atol=1e-6)
+
+
+def three_d_scenario(steps=3, agents=4):
+    return Scenario(name='cube', num_agents=agents,
+                    anchor_positions=((0.0, 0.0, 0.0), (15.0, 0.0, 10.0),
+                                      (0.0, 15.0, 10.0), (15.0, 15.0, 0.0)),
+                    agent_start_low=(3.0, 3.0, 2.0),
+                    agent_start_high=(12.0, 12.0, 8.0), num_steps=steps,
+                    prior_var=(4.0, 4.0, 4.0, 0.01, 0.01, 0.01))
+
+
+@pytest.mark.parametrize('options', [{}, dict(num_samples=4,
+                                              regularize='silverman'),
+                                     dict(ends='both')])
+def test_three_dimensional_tracking_batches_and_localizes(options):
+    scenario = three_d_scenario()
+    small, large = (scenario.generate(gen(1)),
+                    scenario.replace(num_agents=6).generate(gen(2)))
+    tracker = ParticleBP(300, **options)
+    alone = [tracker(d, [gen(10 + g)]) for g, d in enumerate((small,
+                                                              large))]
+    batched = tracker(Batch.from_data_list([small, large]),
+                      [gen(10), gen(11)])
+    assert batched.mean.shape == (4 + 6 + 2 * 4, 3, 6)  # agents, anchors
+    torch.testing.assert_close(batched.mean, torch.cat([a.mean
+                                                        for a in alone]),
+                               rtol=1e-4, atol=1e-4)
+    errors = (alone[1].mean[..., :3] - large.states[..., :3]).norm(dim=-1)
+    assert float(errors[~large.anchor, -1].mean()) < 2.0

@@ -15,16 +15,17 @@ def test_log_likelihood_matches_scipy(sigma):
     g = torch.Generator().manual_seed(0)
     E, K = 6, 9
     ranges = 20 * torch.rand(E, 1, generator=g, dtype=torch.float64)
-    sender = 30 * torch.rand(E, K, 2, generator=g, dtype=torch.float64)
-    receiver = 30 * torch.rand(E, K, 2, generator=g, dtype=torch.float64)
+    # states [p, v]: the likelihood reads the positions
+    sender = 30 * torch.rand(E, K, 4, generator=g, dtype=torch.float64)
+    receiver = 30 * torch.rand(E, K, 4, generator=g, dtype=torch.float64)
     model = GaussianRange(sigma=sigma)
     out = model.log_likelihood(ranges, sender, receiver)
     assert out.shape == (E, K)
     ref = np.empty((E, K))
     for e in range(E):
         for k in range(K):
-            dist = np.linalg.norm(sender[e, k].numpy() -
-                                  receiver[e, k].numpy())
+            dist = np.linalg.norm(sender[e, k, :2].numpy() -
+                                  receiver[e, k, :2].numpy())
             ref[e, k] = norm.logpdf(float(ranges[e, 0]), loc=dist, scale=sigma)
     np.testing.assert_allclose(out.numpy(), ref, rtol=1e-12, atol=1e-12)
 

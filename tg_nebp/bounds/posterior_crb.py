@@ -6,6 +6,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_realization
+from tg_nebp.filters.tracker import check_state_dim
 from tg_nebp.gaussian import (add_link_information, block_diagonal,
                               check_dense_joint, marginal_blocks,
                               predict_joint, symmetric_inverse)
@@ -129,10 +130,7 @@ class PosteriorCRB(torch.nn.Module):
             raise ValueError("the posterior CRB needs the true 'states' of "
                              "the realization")
         size = states.size(-1)
-        if size != self.motion.state_dim:
-            raise ValueError(f"'states' holds states of size {size} but the "
-                             f"motion model {self.motion} has state "
-                             f"dimension {self.motion.state_dim}")
+        check_state_dim(size, self.motion)
         layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the posterior CRB', states.device)

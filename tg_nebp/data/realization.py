@@ -8,24 +8,26 @@ r"""The data model of :mod:`tg_nebp`.
   node :obj:`j` (:obj:`j` may be an anchor; anchors never receive),
 * :obj:`edge_attr` :obj:`[E, 1]`: the measured ranges in metres,
 * :obj:`anchor` :obj:`[N]` bool: static nodes with perfectly known position,
-* :obj:`pos` :obj:`[N, 2]`: true positions (ground truth, for training and
+* :obj:`pos` :obj:`[N, D]`: true positions (ground truth, for training and
   metrics only; trackers never read it),
 * :obj:`batch` :obj:`[N]` when taken from a batch of realizations.
 
-The filter state lives on the nodes: :obj:`particles` :obj:`[N, K, 4]` and
-:obj:`log_weights` :obj:`[N, K]` (state :math:`[p_x, p_y, v_x, v_y]`).
+The filter state lives on the nodes: :obj:`particles` :obj:`[N, K, 2D]` and
+:obj:`log_weights` :obj:`[N, K]` (state :math:`[\mathbf{p}, \mathbf{v}]`,
+position then velocity, :math:`D = 2` or :math:`3` entries each: in 2-D
+:math:`[p_x, p_y, v_x, v_y]`).
 
 **Realization** (:math:`T` snapshots over the same :math:`N` nodes) is ONE
 :class:`Realization`, so that PyG's :class:`~torch_geometric.loader.DataLoader`
 batches realizations of different sizes into one disjoint graph:
 
-* :obj:`states` :obj:`[N, T, 4]`: true states at time steps :math:`1..T`,
+* :obj:`states` :obj:`[N, T, 2D]`: true states at time steps :math:`1..T`,
 * :obj:`edge_index` :obj:`[2, E_total]`, :obj:`edge_attr` :obj:`[E_total, 1]`:
   the edges of all time steps concatenated,
 * :obj:`edge_time` :obj:`[E_total]`: the time index :math:`t \in [0, T)` of
   every edge (time step :math:`t + 1`),
-* :obj:`anchor` :obj:`[N]`, :obj:`prior_mean` :obj:`[N, 4]` and
-  :obj:`prior_cov` :obj:`[N, 4, 4]`: the prior at time 0 (an anchor's prior
+* :obj:`anchor` :obj:`[N]`, :obj:`prior_mean` :obj:`[N, 2D]` and
+  :obj:`prior_cov` :obj:`[N, 2D, 2D]`: the prior at time 0 (an anchor's prior
   mean is its known position with zero velocity and zero covariance),
 * :obj:`num_steps`: :math:`T` (a tensor :obj:`[B]` in a batch; all graphs of
   a batch share :math:`T`).
@@ -113,7 +115,7 @@ class Realization(Data):
                     num_nodes=self.num_nodes)
         states = getattr(self, 'states', None)
         if states is not None:
-            snap.pos = states[:, t, :2]
+            snap.pos = states[:, t, :states.size(-1) // 2]
         batch = getattr(self, 'batch', None)
         if batch is not None:
             snap.batch = batch

@@ -187,9 +187,9 @@ def check_particles(particles: Tensor, log_weights: Tensor,
     if state_dim is not None and particles.size(2) != state_dim:
         raise ValueError(f"'particles' has state size {particles.size(2)} "
                          f"but the model expects {state_dim}")
-    if particles.size(2) < 2:
-        raise ValueError(f"'particles' must hold a 2-D position in its first "
-                         f"two state entries, got state size "
+    if particles.size(2) < 2 or particles.size(2) % 2:
+        raise ValueError(f"'particles' must hold a position, then a "
+                         f"velocity, of the same dimension, got state size "
                          f"{particles.size(2)}")
     if particles.size(1) == 0:
         raise ValueError("'particles' holds K = 0 particles per node")
@@ -259,7 +259,7 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
         what = ('anchor without a known position' if bool(anchor[i]) else
                 'non-finite prior mean')
         raise ValueError(f"'prior_mean[{i}]': {what}")
-    big = _too_large(prior_mean[:, :2]).any(-1)
+    big = _too_large(prior_mean[:, :d // 2]).any(-1)
     if bool(big.any()):
         raise ValueError(f"'prior_mean[{_first(big)}]' holds a position "
                          f"beyond {magnitude_limit(prior_mean.dtype):.3g}, "
@@ -320,9 +320,12 @@ def check_realization(data, features: Sequence[str] = ('range', )
         e = _first(bad)
         raise ValueError(f"'edge_time[{e}]' = {int(t[e])} is outside "
                          f"[0, {steps})")
-    if data.prior_mean.shape != (n, 4):
-        raise ValueError(f"'prior_mean' must have shape [{n}, 4], got "
-                         f"{list(data.prior_mean.shape)}")
+    mean = data.prior_mean
+    if not (isinstance(mean, Tensor) and mean.dim() == 2
+            and mean.size(0) == n and mean.size(1) in (4, 6)):
+        raise ValueError(f"'prior_mean' must have shape [{n}, 4] or [{n}, "
+                         f"6] (a 2-D or 3-D position, then the velocity), "
+                         f"got {list(getattr(mean, 'shape', []))}")
     if not data.prior_mean.is_floating_point():
         raise ValueError(f"'prior_mean' must be a floating point tensor, got "
                          f"{data.prior_mean.dtype}")

@@ -39,13 +39,18 @@ class Scenario:
     :obj:`"paper_test"`: 100 agents, 13 anchors), loaded with
     :meth:`load`.
 
+    A scenario's dimension :math:`D` (2 or 3) follows its anchors: anchor
+    positions of three coordinates make a 3-D scenario, whose states are
+    :math:`[\mathbf{p}, \mathbf{v}]` of 6 entries.
+
     Args:
         name (str): Name (part of the processed file name).
         num_agents (int): Mobile agents :math:`I`.
-        anchor_positions (tuple): Anchor positions :math:`(A, 2)` in metres.
-        agent_start_low (float): Agents start uniformly in
-            :math:`[\mathrm{low}, \mathrm{high}]^2`.
-        agent_start_high (float): See :obj:`agent_start_low`.
+        anchor_positions (tuple): Anchor positions :math:`(A, D)` in metres.
+        agent_start_low (float or tuple): Agents start uniformly in the box
+            :math:`[\mathrm{low}, \mathrm{high}]` (a number for every axis
+            alike, or one per axis).
+        agent_start_high (float or tuple): See :obj:`agent_start_low`.
         num_steps (int, optional): Time steps :math:`T`. (default: :obj:`50`)
         sigma_v0 (float, optional): Std of the initial velocity.
             (default: :obj:`0.1`)
@@ -57,16 +62,16 @@ class Scenario:
             model that draws the graph and the link features.
             (default: the paper's :class:`~tg_nebp.models.GaussianRange`)
         prior_var (tuple, optional): Diagonal of the prior covariance
-            :math:`\boldsymbol{\Sigma}_0`.
-            (default: :obj:`(10.0, 10.0, 0.01, 0.01)`)
+            :math:`\boldsymbol{\Sigma}_0`, :math:`2D` entries (positions,
+            then velocities). (default: :obj:`(10.0, 10.0, 0.01, 0.01)`)
         description (str, optional): Free text, not part of the
             fingerprint. (default: :obj:`""`)
     """
     name: str
     num_agents: int
-    anchor_positions: Tuple[Tuple[float, float], ...]
-    agent_start_low: float
-    agent_start_high: float
+    anchor_positions: Tuple[Tuple[float, ...], ...]
+    agent_start_low: Union[float, Tuple[float, ...]]
+    agent_start_high: Union[float, Tuple[float, ...]]
     num_steps: int = 50
     sigma_v0: float = 0.1
     motion: Dict[str, Any] = dataclasses.field(
@@ -82,6 +87,10 @@ class Scenario:
         fix(self, 'anchor_positions',
             tuple(tuple(float(c) for c in p) for p in self.anchor_positions))
         fix(self, 'prior_var', tuple(float(v) for v in self.prior_var))
+        for key in ('agent_start_low', 'agent_start_high'):
+            value = getattr(self, key)
+            fix(self, key, tuple(float(v) for v in value)
+                if _is_sequence(value) else float(value))
         # a model is stored as its configuration; building it checks it
         for role in ('motion', 'measurement'):
             value = getattr(self, role)
@@ -92,16 +101,21 @@ class Scenario:
             if int(getattr(self, key)) < 1:
                 raise ValueError(f"'{key}' must be at least 1, got "
                                  f"{getattr(self, key)}")
-        if any(len(p) != 2 for p in self.anchor_positions):
-            raise ValueError("'anchor_positions' must be a list of [x, y]")
-        if not self.agent_start_low < self.agent_start_high:
+        dim = self.position_dim
+        if dim not in (2, 3) or any(len(p) != dim
+                                    for p in self.anchor_positions):
+            raise ValueError("'anchor_positions' must be a list of [x, y] "
+                             "or of [x, y, z], every anchor alike")
+        low, high = self.start_box()
+        if not bool((low < high).all()):
             raise ValueError(f"'agent_start_low' ({self.agent_start_low}) "
                              f"must be below 'agent_start_high' "
-                             f"({self.agent_start_high})")
-        if len(self.prior_var) != 4 or any(
+                             f"({self.agent_start_high}) on every axis")
+        if len(self.prior_var) != 2 * dim or any(
                 not (math.isfinite(v) and v > 0) for v in self.prior_var):
-            raise ValueError(f"'prior_var' must hold 4 positive variances, "
-                             f"got {self.prior_var}")
+            raise ValueError(f"'prior_var' must hold {2 * dim} positive "
+                             f"variances ({dim}-D positions, then "
+                             f"velocities), got {self.prior_var}")
         if not self.sigma_v0 >= 0:
             raise ValueError(f"'sigma_v0' must be non-negative, got "
                              f"{self.sigma_v0}")
@@ -118,6 +132,14 @@ class Scenario:
         if not isinstance(self.description, str):
             raise TypeError(f"'description' must be a string, got "
                             f"{self.description!r}")
+        for key in ('agent_start_low', 'agent_start_high'):
+            value = getattr(self, key)
+            values = value if _is_sequence(value) else [value]
+            if not values or not all(_is_real(v) for v in values):
+                raise TypeError(f"'{key}' must be a number or a list of one "
+                                f"number per axis, got {value!r}")
+            if not all(math.isfinite(v) for v in values):
+                raise ValueError(f"'{key}' must be finite, got {value}")
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if field.type is int and not is_integer(value):
@@ -132,15 +154,16 @@ class Scenario:
         if not _is_sequence(self.anchor_positions) or not all(
                 _is_sequence(p) and all(_is_real(c) for c in p)
                 for p in self.anchor_positions):
-            raise TypeError(f"'anchor_positions' must be a list of [x, y] "
-                            f"number pairs, got {self.anchor_positions!r}")
+            raise TypeError(f"'anchor_positions' must be a list of [x, y] or "
+                            f"[x, y, z] coordinates, got "
+                            f"{self.anchor_positions!r}")
         if not all(math.isfinite(c) for p in self.anchor_positions
                    for c in p):
             raise ValueError(f"'anchor_positions' must be finite, got "
                              f"{self.anchor_positions!r}")
         if not _is_sequence(self.prior_var) or not all(
                 _is_real(v) for v in self.prior_var):
-            raise TypeError(f"'prior_var' must be a list of 4 numbers, got "
+            raise TypeError(f"'prior_var' must be a list of numbers, got "
                             f"{self.prior_var!r}")
 
     @classmethod
@@ -190,23 +213,33 @@ class Scenario:
         as :math:`[0, \mathrm{low} + \mathrm{high}]^2` (the agents' square
         centred in it, as in both paper networks). For benchmarks of large
         networks: :obj:`grown(10_000)` of :obj:`"paper_test"` spans
-        :math:`[0, 1000]^2` with 1,300 anchors."""
+        :math:`[0, 1000]^2` with 1,300 anchors. A 3-D network grows on the
+        horizontal plane (x, y); its heights stay."""
         if int(num_agents) < 1:
             raise ValueError(f"'num_agents' must be at least 1, got "
                              f"{num_agents}")
         scale = math.sqrt(num_agents / self.num_agents)
-        side = self.agent_start_low + self.agent_start_high
+        low, high = self.start_box()
+        side_x, side_y = (low + high).tolist()[:2]
         tiles = math.ceil(scale - 1e-9)
-        limit = side * scale
-        anchors = tuple((x + a * side, y + b * side) for a in range(tiles)
-                        for b in range(tiles)
-                        for x, y in self.anchor_positions
-                        if x + a * side <= limit and y + b * side <= limit)
+        anchors = tuple(
+            (p[0] + a * side_x, p[1] + b * side_y, *p[2:])
+            for a in range(tiles) for b in range(tiles)
+            for p in self.anchor_positions
+            if p[0] + a * side_x <= side_x * scale
+            and p[1] + b * side_y <= side_y * scale)
+
+        def grow(value):
+            if not _is_sequence(value):
+                return value * scale
+            return tuple(v * scale if axis < 2 else v
+                         for axis, v in enumerate(value))
+
         return self.replace(
             name=f'{self.name}-{num_agents}agents', num_agents=num_agents,
             anchor_positions=anchors,
-            agent_start_low=self.agent_start_low * scale,
-            agent_start_high=self.agent_start_high * scale,
+            agent_start_low=grow(self.agent_start_low),
+            agent_start_high=grow(self.agent_start_high),
             description=f'{self.name} grown to {num_agents} agents')
 
     def __hash__(self) -> int:  # the model configurations are dicts
@@ -222,6 +255,32 @@ class Scenario:
     @property
     def num_anchors(self) -> int:
         return len(self.anchor_positions)
+
+    @property
+    def position_dim(self) -> int:
+        r"""The dimension :math:`D` of the positions: the anchors'
+        coordinates (a per-axis start box without anchors; 2 otherwise)."""
+        if self.anchor_positions:
+            return len(self.anchor_positions[0])
+        for value in (self.agent_start_low, self.agent_start_high):
+            if _is_sequence(value):
+                return len(value)
+        return 2
+
+    def start_box(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        r"""The agents' start box, its lower and upper corners :math:`(D)`
+        (float64)."""
+        dim = self.position_dim
+        corners = []
+        for value in (self.agent_start_low, self.agent_start_high):
+            corner = torch.tensor(value if _is_sequence(value) else
+                                  [value] * dim, dtype=torch.float64)
+            if corner.numel() != dim:
+                raise ValueError(f"'agent_start_low' and 'agent_start_high' "
+                                 f"need one value per axis ({dim}), got "
+                                 f"{value!r}")
+            corners.append(corner)
+        return corners[0], corners[1]
 
     @property
     def motion_model(self) -> MotionModel:
@@ -244,12 +303,13 @@ class Scenario:
         f64 = dict(dtype=torch.float64, generator=generator)
         num_agents, num_anchors = self.num_agents, self.num_anchors
         motion, measurement = self.motion_model, self.measurement_model
-        low, high = self.agent_start_low, self.agent_start_high
+        dim = self.position_dim
+        low, high = self.start_box()
 
-        agent_pos = low + (high - low) * torch.rand(num_agents, 2, **f64)
-        agent_vel = self.sigma_v0 * torch.randn(num_agents, 2, **f64)
+        agent_pos = low + (high - low) * torch.rand(num_agents, dim, **f64)
+        agent_vel = self.sigma_v0 * torch.randn(num_agents, dim, **f64)
         anchors = torch.tensor(self.anchor_positions,
-                               dtype=torch.float64).view(-1, 2)
+                               dtype=torch.float64).view(-1, dim)
         initial = torch.cat([
             torch.cat([agent_pos, agent_vel], dim=1),
             torch.cat([anchors, torch.zeros_like(anchors)], dim=1),
@@ -272,7 +332,7 @@ class Scenario:
                 links = measurement.step_links(links, generator)
             moved = motion.sample(state, generator=generator)
             state = torch.where(anchor.view(-1, 1), state, moved)
-            edges = measurement.connect(state[:, :2], receiver=~anchor)
+            edges = measurement.connect(state[:, :dim], receiver=~anchor)
             states.append(state)
             edge_index.append(edges)
             edge_attr.append(measurement.sample_features(

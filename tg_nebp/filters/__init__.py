@@ -1,7 +1,7 @@
 from .resampling import (RESAMPLERS, effective_sample_size, multinomial_resample,
                          residual_resample, silverman_bandwidth,
                          stratified_resample, systematic_resample)
-from .tracker import StepOutput, Tracker, TrackOutput
+from .tracker import StepOutput, Tracker, TrackOutput, check_state_dim
 from .particle_bp import ParticleBP
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF
@@ -17,6 +17,7 @@ __all__ = [
     'GBP_RECOMMENDED',
     'StepOutput',
     'TrackOutput',
+    'check_state_dim',
     'weighted_moments',
     'multinomial_resample',
     'systematic_resample',

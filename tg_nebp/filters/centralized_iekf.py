@@ -112,7 +112,7 @@ class CentralizedIEKF(Tracker):
         """
         self.check(data)
         layout = GraphLayout.of(data)
-        size = self.motion.state_dim
+        size = data.prior_mean.size(1)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the centralized IEKF', data.prior_mean.device)
         prior_mean = data.prior_mean.double()

@@ -60,6 +60,10 @@ class NEBP(ParticleBP):
             (default: :obj:`"paper"`)
         particle_dim (int, optional): Hidden size of the equivariant
             layer's per-particle :math:`g_v`. (default: :obj:`32`)
+        position_dim (int, optional): The positions' dimension :math:`D`
+            (2 or 3), which sizes the layer: a tracker (and its checkpoint)
+            runs on realizations of that dimension only.
+            (default: :obj:`2`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -76,7 +80,8 @@ class NEBP(ParticleBP):
                  num_samples: Union[int, str] = 1,
                  regularize: Union[float, str, None] = None,
                  ess_threshold: Optional[float] = None,
-                 variant: str = 'paper', particle_dim: int = 32):
+                 variant: str = 'paper', particle_dim: int = 32,
+                 position_dim: int = 2):
         if variant not in VARIANTS:
             raise ValueError(f"'variant' must be one of {sorted(VARIANTS)}, "
                              f"got {variant!r}")
@@ -90,7 +95,8 @@ class NEBP(ParticleBP):
                      correct_anchor_edges=correct_anchor_edges,
                      node_update=num_iterations > 1,
                      measurement=self.measurement, chunk_size=chunk_size,
-                     compile=compile, num_samples=num_samples)
+                     compile=compile, num_samples=num_samples,
+                     position_dim=position_dim)
         if variant == 'paper':
             self.conv = NEBPConv(num_particles, **layer)
         else:
@@ -98,6 +104,7 @@ class NEBP(ParticleBP):
                                             **layer)
         self.variant = variant
         self.particle_dim = particle_dim
+        self.position_dim = position_dim
         self.message_dim = message_dim
         self.hidden_dim = hidden_dim
         self.correct_anchor_edges = correct_anchor_edges
@@ -105,6 +112,17 @@ class NEBP(ParticleBP):
     @property
     def bp_conv(self) -> ParticleBPConv:
         return self.conv.bp
+
+    def check(self, data) -> None:
+        r"""The realization checks of every tracker, and that its
+        positions have the dimension this NEBP was built (trained) for."""
+        super().check(data)
+        size = data.prior_mean.size(1)
+        if size != 2 * self.position_dim:
+            raise ValueError(f"this NEBP was built for {self.position_dim}-D "
+                             f"positions (states of size "
+                             f"{2 * self.position_dim}), but the realization "
+                             f"holds states of size {size}")
 
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
@@ -132,6 +150,7 @@ class NEBP(ParticleBP):
                     variant=self.variant,
                     **(dict(particle_dim=self.particle_dim)
                        if self.variant == 'equivariant' else {}),
+                    position_dim=self.position_dim,
                     motion=self.motion.config(),
                     measurement=self.measurement.config())
 
@@ -142,7 +161,8 @@ class NEBP(ParticleBP):
         entries that do not size the GNN (:obj:`num_samples`: the GNN reads
         the BP message, however many sender samples estimate it; and, for
         the equivariant variant, :obj:`num_particles`). A configuration
-        without a :obj:`variant` (checkpoint version 2) is the paper's."""
+        without a :obj:`variant` (checkpoint version 2) is the paper's, one
+        without :obj:`position_dim` is 2-D."""
         config = {**config, **options}
         motion = model_from_config(config.pop('motion', None), 'motion')
         measurement = model_from_config(config.pop('measurement', None),

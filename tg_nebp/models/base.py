@@ -190,20 +190,17 @@ def model_from_config(config: Any, role: str) -> 'Model':
 class MotionModel(Model):
     r"""The motion role: :meth:`~tg_nebp.models.MotionModel.sample` draws
     :math:`\mathbf{x}_n \sim p(\mathbf{x}_n | \mathbf{x}_{n-1})` for
-    states :math:`(*, D)`, with :math:`D` =
-    :attr:`~tg_nebp.models.MotionModel.state_dim` and the position in the
-    first two entries."""
+    states :math:`(*, S)`, a state being :math:`[\mathbf{p}, \mathbf{v}]`
+    (position, then velocity, :math:`D` entries each, :math:`S = 2D`). The
+    library's models move positions of any dimension (read from the
+    states' size); a model for one dimension only states it in
+    :attr:`~tg_nebp.models.MotionModel.state_dim`, and the trackers check
+    realizations against it."""
     role = 'motion'
     formula = 'sample'
-    #: The state dimension :math:`D`.
-    state_dim: ClassVar[int] = 4
-
-    @property
-    def position_dim(self) -> int:
-        r"""How many of the state's entries (the first ones) are the
-        position, half the state dimension (a state is
-        :math:`[\mathbf{p}, \mathbf{v}]`)."""
-        return self.state_dim // 2
+    #: The state dimension :math:`S` the model is for; :obj:`None` for any
+    #: (even) size.
+    state_dim: ClassVar[Optional[int]] = None
 
     def sample(self, states: Tensor,
                generator: Optional[torch.Generator] = None) -> Tensor:
@@ -263,8 +260,8 @@ class MeasurementModel(Model):
     * :attr:`features`: the names of the link features it reads, the
       leading columns of :obj:`edge_attr`, the range first (further columns,
       such as the true NLOS flag of generated data, are carried along);
-    * :attr:`state_entries`: the state entries its likelihood reads (the
-      convolution gathers only those);
+    * :meth:`scope`: the state entries its likelihood reads (the
+      convolutions gather only those);
     * :meth:`connect`, :meth:`sample_links` and :meth:`sample_features`
       generate a scenario's graph and link features.
     """
@@ -276,8 +273,9 @@ class MeasurementModel(Model):
     #: The link features that generation writes, a superset of
     #: :attr:`~MeasurementModel.features`.
     generated_features: ClassVar[Tuple[str, ...]] = ('range', )
-    #: The state entries that the likelihood reads.
-    state_entries: ClassVar[Tuple[int, ...]] = (0, 1, 2, 3)
+    #: The state entries that the likelihood reads; :obj:`None` for all
+    #: (see :meth:`scope`).
+    state_entries: ClassVar[Optional[Tuple[int, ...]]] = None
 
     def log_likelihood(self, z: Tensor, sender: Tensor,
                        receiver: Tensor) -> Tensor:
@@ -289,7 +287,7 @@ class MeasurementModel(Model):
 
     def connect(self, pos: Tensor, receiver: Tensor) -> Tensor:
         r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
-        between nodes at positions :obj:`pos` :math:`(N, 2)`, into the
+        between nodes at positions :obj:`pos` :math:`(N, D)`, into the
         nodes of the bool mask :obj:`receiver` :math:`(N)`."""
         raise NotImplementedError
 
@@ -354,9 +352,12 @@ class MeasurementModel(Model):
 
     def scope(self, state_dim: int) -> Tuple[int, ...]:
         r"""The entries of a state of size :obj:`state_dim` that the
-        likelihood reads (:attr:`state_entries` below :obj:`state_dim`):
-        what :meth:`linearize` describes, and the scope on each end of
-        a Gaussian method's factor."""
+        likelihood reads (:attr:`state_entries` below :obj:`state_dim`,
+        all without them): what the particle convolutions gather, what
+        :meth:`linearize` describes, and the scope on each end of a
+        Gaussian method's factor."""
+        if self.state_entries is None:
+            return tuple(range(state_dim))
         return tuple(e for e in self.state_entries if e < state_dim)
 
     def linearize(self, z: Tensor, sender: Tensor, receiver: Tensor,
@@ -408,7 +409,6 @@ class RangeModel(MeasurementModel):
             (default: :obj:`20.0`)
     """
     formula = 'log_likelihood_of_distance'
-    state_entries = (0, 1)
 
     def __init__(self, max_range: float = 20.0):
         self.max_range = check_number(max_range, 'max_range')
@@ -421,9 +421,10 @@ class RangeModel(MeasurementModel):
 
     def log_likelihood(self, z: Tensor, sender: Tensor,
                        receiver: Tensor) -> Tensor:
+        dim = sender.size(-1) // 2  # the positions
         return self.log_likelihood_of_distance(
-            z, torch.linalg.vector_norm(sender[..., :2] - receiver[..., :2],
-                                        dim=-1))
+            z, torch.linalg.vector_norm(sender[..., :dim] -
+                                        receiver[..., :dim], dim=-1))
 
     def distance_score(self, z: Tensor, distances: Tensor) -> Tensor:
         r"""The score :math:`\partial \log p(\mathbf{z} | d) / \partial d`
@@ -546,8 +547,9 @@ class RangeModel(MeasurementModel):
                         link_state, edge_index: Tensor,
                         generator: Optional[torch.Generator] = None
                         ) -> Tensor:
-        distances = torch.linalg.vector_norm(states_j[:, :2] - states_i[:, :2],
-                                             dim=-1)
+        dim = states_j.size(-1) // 2
+        distances = torch.linalg.vector_norm(
+            states_j[:, :dim] - states_i[:, :dim], dim=-1)
         return self.sample_ranges(distances, link_state, edge_index,
                                   generator)
 
@@ -566,7 +568,7 @@ class RangeModel(MeasurementModel):
         r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
         from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
         j` within :obj:`max_range` of it, for positions :obj:`pos`
-        :math:`(N, 2)`, ordered by sender, then receiver. Senders are handled
+        :math:`(N, D)`, ordered by sender, then receiver. Senders are handled
         :obj:`block_size` at a time, so memory stays :math:`O(N)` per
         block."""
         num_nodes = pos.size(0)

@@ -18,7 +18,7 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
         \mathbf{x}_n = \mathbf{F} \mathbf{x}_{n-1}
         + \mathbf{W} \left( -c \, \mathbf{v}_{n-1} \odot
         |\mathbf{v}_{n-1}| + \mathbf{a}_n \right), \quad
-        \mathbf{a}_n \sim \mathcal{N}(\mathbf{0}, \sigma_a^2 \mathbf{I}_2)
+        \mathbf{a}_n \sim \mathcal{N}(\mathbf{0}, \sigma_a^2 \mathbf{I}_D)
 
     with state :math:`\mathbf{x} = [\mathbf{p}^\top, \mathbf{v}^\top]^\top`,
     :math:`\mathbf{F} = [[\mathbf{I}, \Delta \mathbf{I}], [\mathbf{0},
@@ -33,9 +33,13 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
         dt (float, optional): Time step :math:`\Delta` in seconds.
             (default: :obj:`1.0`)
 
+    The model moves positions of any dimension :math:`D` (the state
+    :math:`[\mathbf{p}, \mathbf{v}]` has :math:`2D` entries; the paper's
+    :math:`D = 2`), every axis alike.
+
     Shapes:
-        - **input:** states :math:`(*, 4)`
-        - **output:** states :math:`(*, 4)`
+        - **input:** states :math:`(*, 2D)`
+        - **output:** states :math:`(*, 2D)`
     """
     def __init__(self, sigma_a: float = 0.05, drag: float = 0.06,
                  dt: float = 1.0):
@@ -48,11 +52,12 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
 
     def propagate(self, states: Tensor, accel: Tensor) -> Tensor:
         r"""Applies the transition with a given acceleration noise
-        :obj:`accel` :math:`(*, 2)`."""
-        # fused multiply-adds: few passes over the strided [..., 2] views
-        vel = states[..., 2:]
+        :obj:`accel` :math:`(*, D)`."""
+        # fused multiply-adds: few passes over the strided [..., D] views
+        dim = states.size(-1) // 2
+        vel = states[..., dim:]
         accel = torch.addcmul(accel, vel, vel.abs(), value=-self.drag)
-        new_pos = torch.add(states[..., :2], vel, alpha=self.dt).add_(
+        new_pos = torch.add(states[..., :dim], vel, alpha=self.dt).add_(
             accel, alpha=0.5 * self.dt**2)
         new_vel = torch.add(vel, accel, alpha=self.dt)
         return torch.cat([new_pos, new_vel], dim=-1)
@@ -61,8 +66,9 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
                generator: Optional[torch.Generator] = None) -> Tensor:
         r"""Draws :math:`\mathbf{x}_n \sim p(\mathbf{x}_n |
         \mathbf{x}_{n-1})` for every state in :obj:`states`."""
-        accel = torch.randn(states.shape[:-1] + (2, ), dtype=states.dtype,
-                            device=states.device, generator=generator)
+        accel = torch.randn(states.shape[:-1] + (states.size(-1) // 2, ),
+                            dtype=states.dtype, device=states.device,
+                            generator=generator)
         return self.propagate(states, self.sigma_a * accel)
 
     def mean(self, states: Tensor) -> Tensor:
@@ -70,14 +76,14 @@ class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
         c \mathbf{W} (\mathbf{v} \odot |\mathbf{v}|)`: the driving noise
         :math:`\mathbf{W} \mathbf{a}` is additive."""
         return self.propagate(states, states.new_zeros(
-            states.shape[:-1] + (self.position_dim, )))
+            states.shape[:-1] + (states.size(-1) // 2, )))
 
     def noise_covariance(self, states: Tensor) -> Tensor:
         r""":math:`\sigma_a^2 \mathbf{W} \mathbf{W}^\top` (the same at
-        every state), :math:`(*, 4, 4)`."""
+        every state), :math:`(*, 2D, 2D)`."""
         # W as the transition's own response to a unit acceleration: the
         # model's formula, not a second copy of its matrices
-        dim = self.position_dim
+        dim = states.size(-1) // 2
         eye = torch.eye(dim, dtype=states.dtype, device=states.device)
         response = (self.propagate(states.new_zeros(dim, 2 * dim), eye) -
                     self.mean(states.new_zeros(1, 2 * dim)))  # rows W^T
@@ -96,7 +102,7 @@ class ConstantVelocity(ConstantVelocityDrag, name='constant-velocity'):
     .. math::
         \mathbf{x}_n = \mathbf{F} \mathbf{x}_{n-1} + \mathbf{W}
         \mathbf{a}_n, \quad \mathbf{a}_n \sim \mathcal{N}(\mathbf{0},
-        \sigma_a^2 \mathbf{I}_2).
+        \sigma_a^2 \mathbf{I}_D).
 
     Args:
         sigma_a (float, optional): Standard deviation :math:`\sigma_a` of the

@@ -224,3 +224,25 @@ def test_options_are_checked():
     assert (recommended['inflation'], recommended['iterations'],
             recommended['tolerance'], recommended['ends']) == (
                 1.5, 20, 0.01, 'receiver')
+
+
+def test_a_plane_in_three_dimensions_gives_the_two_dimensional_beliefs():
+    # every node at height zero: no range says anything about heights, and
+    # the horizontal beliefs are the 2-D ones (Gaussian BP, the IEKF and
+    # the bound alike)
+    from helpers import embed_in_3d
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.filters import CentralizedIEKF
+    data = tiny_scenario(steps=3).generate(gen(4))
+    flat = embed_in_3d(data)
+    plane = [0, 1, 3, 4]
+    for method in (GaussianBP(5), CentralizedIEKF()):
+        two, three = method(data), method(flat)
+        torch.testing.assert_close(three.mean[..., plane], two.mean,
+                                   rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(
+            three.cov[..., plane, :][..., plane], two.cov, rtol=1e-9,
+            atol=1e-12)
+    two, three = PosteriorCRB()(data), PosteriorCRB()(flat)
+    torch.testing.assert_close(three[..., plane, :][..., plane], two,
+                               rtol=1e-9, atol=1e-12)

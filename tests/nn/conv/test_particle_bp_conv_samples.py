@@ -165,3 +165,86 @@ def test_per_edge_sender_weights(samples, chunk):
                        "have shape"):
         conv(particles, lw, ei, ea, anchor=anchor,
              edge_sender_log_weights=per_edge[:-1])
+
+
+def three_d_graph(seed, agents=4, anchors=2, count=6):
+    # random 3-D particles (states [p, v] of 6 entries), edges into agents
+    g = gen(seed)
+    n = agents + anchors
+    truth = 12 * torch.rand(n, 3, generator=g, dtype=torch.float64)
+    particles = torch.zeros(n, count, 6, dtype=torch.float64)
+    particles[..., :3] = truth.unsqueeze(1)
+    particles[:agents, :, :3] += 2 * torch.randn(agents, count, 3,
+                                                 generator=g,
+                                                 dtype=torch.float64)
+    particles[..., 3:] = torch.randn(n, count, 3, generator=g,
+                                     dtype=torch.float64)
+    anchor = torch.arange(n) >= agents
+    pairs = [(j, i) for i in range(agents) for j in range(n) if i != j]
+    edge_index = torch.tensor(pairs).t().contiguous()
+    ranges = ((truth[edge_index[0]] - truth[edge_index[1]]).norm(dim=-1) +
+              0.5 * torch.randn(len(pairs), generator=g,
+                                dtype=torch.float64)).abs().view(-1, 1)
+    log_weights = torch.randn(n, count, generator=g, dtype=torch.float64)
+    return particles, log_weights, edge_index, ranges, anchor
+
+
+@pytest.mark.parametrize('samples,chunk', [('all', None), ('all', 3),
+                                           (1, None), (1, 2)])
+def test_three_dimensional_messages_against_a_loop(samples, chunk):
+    # log w_i^k + sum_j log sum_l w_j^l N(z; |p_j^l - p_i^k|_3, sigma^2)
+    # (all samples) or its paired term (l = k), in plain float64 loops
+    particles, lw, ei, ea, anchor = three_d_graph(47)
+    sigma, K = 0.8, lw.size(1)
+    conv = ParticleBPConv(GaussianRange(sigma), chunk_size=chunk,
+                          num_samples=samples)
+    for return_messages in (True, False):
+        out, _ = conv(particles, lw, ei, ea, anchor=anchor,
+                      return_messages=return_messages)
+        expected = lw.clone()
+        x = particles[..., :3].tolist()
+        for e in range(ei.size(1)):
+            j, i = int(ei[0, e]), int(ei[1, e])
+            for k in range(K):
+                terms = [float(lw[j, l]) - 0.5 * ((float(ea[e, 0]) - math.dist(
+                    x[j][l], x[i][k])) / sigma)**2 - math.log(
+                        math.sqrt(2 * math.pi) * sigma)
+                         for l in (range(K) if samples == 'all' else [k])]
+                top = max(terms)
+                expected[i, k] += top + math.log(sum(math.exp(t - top)
+                                                     for t in terms))
+        torch.testing.assert_close(out, expected, atol=1e-9, rtol=1e-9)
+
+
+def test_three_dimensional_gradients_equal_autograd_of_the_formula():
+    # the closed-form blockwise backward (paired) and the autograd one
+    # (M samples) against autograd through the materialized messages
+    particles, lw, ei, ea, anchor = three_d_graph(48)
+    for samples in (1, 3):
+        grads = []
+        for return_messages in (True, False):
+            p = particles.clone().requires_grad_()
+            conv = ParticleBPConv(GaussianRange(0.8), chunk_size=2,
+                                  num_samples=samples)
+            out, _ = conv(p, lw, ei, ea, anchor=anchor,
+                          return_messages=return_messages,
+                          sample_offsets=None if samples == 1 else
+                          torch.tensor([0, 2, 1, 5, 4, 3]))
+            out.logsumexp(-1).sum().backward()
+            grads.append(p.grad)
+        torch.testing.assert_close(grads[0], grads[1], atol=1e-10,
+                                   rtol=1e-10)
+        assert grads[0][..., :3].abs().amax() > 0
+
+
+def test_a_plane_in_three_dimensions_gives_the_two_dimensional_messages():
+    # 2-D particles embedded in 3-D at height zero: the same beliefs
+    particles, lw, ei, ea, anchor = random_graph(gen(49), 4, 2, 6)
+    flat = torch.zeros(particles.shape[:2] + (6, ), dtype=torch.float64)
+    flat[..., :2] = particles[..., :2]
+    flat[..., 3:5] = particles[..., 2:]
+    for samples in (1, 'all'):
+        conv = ParticleBPConv(GaussianRange(0.8), num_samples=samples)
+        two, _ = conv(particles, lw, ei, ea, anchor=anchor)
+        three, _ = conv(flat, lw, ei, ea, anchor=anchor)
+        torch.testing.assert_close(three, two, atol=1e-12, rtol=1e-12)

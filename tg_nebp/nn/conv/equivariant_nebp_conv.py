@@ -7,17 +7,25 @@ from torch_geometric.nn import MLP
 
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.models import MeasurementModel
-from tg_nebp.nn.conv.nebp_conv import EDGE_FEATURES, MLP_OPTIONS, NEBPConv
+from tg_nebp.nn.conv.nebp_conv import MLP_OPTIONS, NEBPConv, edge_features
 from tg_nebp.utils import floored_exp, log_normalize, weighted_moments
 
 __all__ = ['EquivariantNEBPConv']
 
-# the per-particle features: whitened position (2), log-message below its
-# maximum (1), range residual (1)
-PARTICLE_FEATURES = 4
-# the per-edge summaries of the message: weighted mean (2) and second
-# moments (3) of the whitened positions, effective sample size over K (1)
-MESSAGE_SUMMARIES = 6
+
+
+def particle_features(position_dim: int) -> int:
+    # the per-particle features: whitened position (D), log-message below
+    # its maximum (1), range residual (1)
+    return position_dim + 2
+
+
+def message_summaries(position_dim: int) -> int:
+    # the per-edge summaries of the message: weighted mean (D) and second
+    # moments (D (D + 1) / 2) of the whitened positions, effective sample
+    # size over K (1)
+    return position_dim + position_dim * (position_dim + 1) // 2 + 1
+
 # log-messages further below the maximum read as this (finite features for
 # -inf messages; such particles carry no weight anyway)
 LOG_MESSAGE_FLOOR = -30.0
@@ -101,20 +109,23 @@ class EquivariantNEBPConv(NEBPConv):
         num_samples (int or str, optional): Sender particles per receiver
             particle in the BP messages (see :class:`ParticleBPConv`).
             (default: :obj:`1`)
+        position_dim (int, optional): The positions' dimension :math:`D`
+            (see :class:`NEBPConv`). (default: :obj:`2`)
         compile (bool, optional): See :class:`NEBPConv`.
             (default: :obj:`False`)
 
     Shapes:
         - **input:**
-          particles :math:`(|\mathcal{V}|, K, 4)` for any :math:`K`,
+          particles :math:`(|\mathcal{V}|, K, S)` for any :math:`K`,
+          :math:`S = 2D`,
           log-weights :math:`(|\mathcal{V}|, K)`,
           edge indices :math:`(2, |\mathcal{E}|)`,
           link features :math:`(|\mathcal{E}|, F)` (the range first),
           anchor mask :math:`(|\mathcal{V}|)`,
           sender log-weights :math:`(|\mathcal{V}|, K)` *(optional)*,
-          node embeddings :math:`(|\mathcal{V}|, 20)` *(optional)*
+          node embeddings :math:`(|\mathcal{V}|, S + S^2)` *(optional)*
         - **output:** updated log-weights :math:`(|\mathcal{V}|, K)` and node
-          embeddings :math:`(|\mathcal{V}|, 20)`
+          embeddings :math:`(|\mathcal{V}|, S + S^2)`
     """
     def __init__(self, message_dim: int = 32, hidden_dim: int = 64,
                  particle_dim: int = 32, correct_anchor_edges: bool = False,
@@ -122,23 +133,24 @@ class EquivariantNEBPConv(NEBPConv):
                  measurement: Optional[MeasurementModel] = None,
                  feature_scale: float = 10.0,
                  chunk_size: Optional[int] = None, compile: bool = False,
-                 num_samples: Union[int, str] = 1):
+                 num_samples: Union[int, str] = 1, position_dim: int = 2):
         self.particle_dim = particle_dim
         super().__init__(None, message_dim, hidden_dim, correct_anchor_edges,
                          node_update, measurement, feature_scale, chunk_size,
-                         compile, num_samples)
+                         compile, num_samples, position_dim)
 
     def build_correction(self, message_dim: int, hidden_dim: int) -> None:
         r"""Builds :math:`g_e` (node features and message summaries),
         :math:`g_s`, and the per-particle :math:`g_v` as an edge part, a
         particle part and a shared output layer."""
         particle_dim = check_positive_int(self.particle_dim, 'particle_dim')
-        self.g_e = MLP([EDGE_FEATURES + MESSAGE_SUMMARIES, hidden_dim,
-                        message_dim], **MLP_OPTIONS)
+        dim = self.position_dim
+        self.g_e = MLP([edge_features(dim) + message_summaries(dim),
+                        hidden_dim, message_dim], **MLP_OPTIONS)
         self.g_s = MLP([message_dim, hidden_dim, 1], **MLP_OPTIONS)
         self.g_v_edge = torch.nn.Linear(message_dim, particle_dim)
-        self.g_v_particle = torch.nn.Linear(PARTICLE_FEATURES, particle_dim,
-                                            bias=False)
+        self.g_v_particle = torch.nn.Linear(particle_features(dim),
+                                            particle_dim, bias=False)
         self.g_v_out = torch.nn.Linear(particle_dim, 1)
         torch.nn.init.constant_(self.g_v_out.bias, INITIAL_LOG_OFFSET)
 
@@ -157,17 +169,19 @@ class EquivariantNEBPConv(NEBPConv):
         # scaled to mean one per edge: a per-edge constant, BP is unchanged
         log_phi = log_normalize(log_phi) + math.log(num_particles)
         src, dst = edge_index[0], edge_index[1]
-        positions = particles[..., :2]
+        dim = self.position_dim
+        positions = particles[..., :dim]
         mean, cov = weighted_moments(positions, log_weights)
-        whitened = _whiten(positions, mean, cov)  # [N, K, 2]
-        u = whitened.index_select(0, dst)  # [E, K, 2]
+        whitened = _whiten(positions, mean, cov)  # [N, K, D]
+        u = whitened.index_select(0, dst)  # [E, K, D]
 
         # the message-weighted prediction of the receiver, summarized
         pi = floored_exp(log_normalize(log_weights.index_select(0, dst) +
                                        log_phi))
         first = torch.einsum('ek,ekd->ed', pi, u)
-        second = torch.einsum('ek,ekd,ekf->edf', pi, u, u).flatten(1)[
-            :, [0, 1, 3]]
+        upper = torch.triu_indices(dim, dim, device=u.device)
+        second = torch.einsum('ek,ekd,ekf->edf', pi, u, u)[
+            :, upper[0], upper[1]]
         power = pi.square().sum(-1)
         ess = pi.sum(-1).square() / (power * num_particles).clamp_min(
             torch.finfo(power.dtype).tiny)
@@ -181,7 +195,7 @@ class EquivariantNEBPConv(NEBPConv):
         top = log_phi.amax(-1, keepdim=True)
         top = top.masked_fill(torch.isneginf(top), 0.0)
         below = (log_phi - top).clamp_min(LOG_MESSAGE_FLOOR) / 10.0
-        spread = (0.5 * cov.diagonal(dim1=-2, dim2=-1).sum(-1) + 1.0).sqrt()
+        spread = (cov.diagonal(dim1=-2, dim2=-1).sum(-1) / dim + 1.0).sqrt()
         sender_mean = mean.index_select(0, src).unsqueeze(1)
         distance = (positions.index_select(0, dst) - sender_mean).norm(
             dim=-1)
@@ -274,10 +288,11 @@ def _preactivation(edge_part: Tensor, features: Tensor,
 def _whiten(positions: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
     # L^-1 (p - mean) with L L^T = cov + a jitter relative to its trace (and
     # an absolute floor for anchors, whose particles all sit at the mean)
-    scale = cov.diagonal(dim1=-2, dim2=-1).sum(-1) / 2
+    dim = cov.size(-1)
+    scale = cov.diagonal(dim1=-2, dim2=-1).sum(-1) / dim
     jitter = (scale * 1e-6 + 1e-12).view(-1, 1, 1)
-    eye = torch.eye(2, dtype=cov.dtype, device=cov.device)
+    eye = torch.eye(dim, dtype=cov.dtype, device=cov.device)
     root = torch.linalg.cholesky(cov + jitter * eye)
-    centered = (positions - mean.unsqueeze(1)).transpose(1, 2)  # [N, 2, K]
+    centered = (positions - mean.unsqueeze(1)).transpose(1, 2)  # [N, D, K]
     return torch.linalg.solve_triangular(root, centered,
                                          upper=False).transpose(1, 2)

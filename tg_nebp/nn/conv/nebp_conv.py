@@ -16,28 +16,42 @@ from tg_nebp.utils import (compute_dtype, floored_exp, log_normalize,
                             logaddexp, long_edge_index, plain_tensor,
                             weighted_moments)
 
-__all__ = ['NEBPConv', 'node_embedding']
+__all__ = ['NEBPConv', 'node_embedding', 'embedding_dim']
 
-EMBEDDING_DIM = 20  # [mean (4), vec(covariance) (16)]
-# what g_e reads of the two embeddings: mean difference, both covariances
-EDGE_FEATURES = 4 + 2 * 16
 MLP_OPTIONS = dict(act='leaky_relu', norm=None, plain_last=True)
+
+
+def embedding_dim(position_dim: int = 2) -> int:
+    r"""The size of a node embedding for positions of
+    :obj:`position_dim` dimensions: the mean and the flattened covariance
+    of a state of size :math:`S = 2D`, :math:`S + S^2` (20 in 2-D)."""
+    size = 2 * position_dim
+    return size + size * size
+
+
+def edge_features(position_dim: int = 2) -> int:
+    # what g_e reads of the two embeddings: mean difference, both
+    # covariances (36 in 2-D)
+    size = 2 * position_dim
+    return size + 2 * size * size
 
 
 def node_embedding(particles: Tensor, log_weights: Tensor) -> Tensor:
     r"""The paper's node embedding :math:`\mathbf{h}_i = [\hat{\mathbf{x}}_i^
-    \top, \mathrm{vec}(\hat{\mathbf{C}}_i)^\top]^\top` :math:`(N, 20)`: the
-    weighted particle mean and covariance."""
+    \top, \mathrm{vec}(\hat{\mathbf{C}}_i)^\top]^\top` :math:`(N, S +
+    S^2)` (20 in 2-D): the weighted particle mean and covariance."""
     mean, cov = weighted_moments(particles, log_weights)
     return torch.cat([mean, cov.flatten(1)], dim=-1)
 
 
-def check_embedding(embedding: Tensor, num_nodes: int) -> None:
+def check_embedding(embedding: Tensor, num_nodes: int,
+                    position_dim: int = 2) -> None:
     r"""Checks that node embeddings are finite and of shape :math:`(N,
-    20)`."""
-    if embedding.shape != (num_nodes, EMBEDDING_DIM):
+    S + S^2)`."""
+    size = embedding_dim(position_dim)
+    if embedding.shape != (num_nodes, size):
         raise ValueError(f"'embedding' must have shape [{num_nodes}, "
-                         f"{EMBEDDING_DIM}], got {list(embedding.shape)}")
+                         f"{size}], got {list(embedding.shape)}")
     bad = ~torch.isfinite(embedding).all(-1)
     if bool(bad.any()):
         raise ValueError(f"'embedding[{int(bad.nonzero()[0, 0])}]' holds a "
@@ -121,6 +135,9 @@ class NEBPConv(MessagePassing):
         num_samples (int or str, optional): Sender particles per receiver
             particle in the BP messages (see :class:`ParticleBPConv`).
             (default: :obj:`1`)
+        position_dim (int, optional): The positions' dimension :math:`D`
+            (2 or 3): it sizes the embeddings and :math:`g_e`, so a layer
+            runs on states of size :math:`2D` only. (default: :obj:`2`)
         compile (bool, optional): Run the per-edge work (the BP messages
             and :meth:`corrected_messages`) through :func:`torch.compile`
             (fused kernels; the first calls compile). The aggregation stays
@@ -133,15 +150,15 @@ class NEBPConv(MessagePassing):
 
     Shapes:
         - **input:**
-          particles :math:`(|\mathcal{V}|, K, 4)`,
+          particles :math:`(|\mathcal{V}|, K, S)`, :math:`S = 2D`,
           log-weights :math:`(|\mathcal{V}|, K)`,
           edge indices :math:`(2, |\mathcal{E}|)`,
           link features :math:`(|\mathcal{E}|, F)` (the range first),
           anchor mask :math:`(|\mathcal{V}|)`,
           sender log-weights :math:`(|\mathcal{V}|, K)` *(optional)*,
-          node embeddings :math:`(|\mathcal{V}|, 20)` *(optional)*
+          node embeddings :math:`(|\mathcal{V}|, S + S^2)` *(optional)*
         - **output:** updated log-weights :math:`(|\mathcal{V}|, K)` and node
-          embeddings :math:`(|\mathcal{V}|, 20)`
+          embeddings :math:`(|\mathcal{V}|, S + S^2)`
     """
     SUPPORTS_FUSED_EDGE_INDEX = True
 
@@ -151,8 +168,12 @@ class NEBPConv(MessagePassing):
                  measurement: Optional[MeasurementModel] = None,
                  feature_scale: float = 10.0,
                  chunk_size: Optional[int] = None, compile: bool = False,
-                 num_samples: Union[int, str] = 1):
+                 num_samples: Union[int, str] = 1, position_dim: int = 2):
         super().__init__(aggr='add', node_dim=0)
+        if position_dim not in (2, 3):
+            raise ValueError(f"'position_dim' must be 2 or 3, got "
+                             f"{position_dim!r}")
+        self.position_dim = position_dim
         if num_particles is not None:  # None: a correction for any K
             num_particles = check_positive_int(num_particles,
                                                'num_particles')
@@ -169,16 +190,18 @@ class NEBPConv(MessagePassing):
             self.corrected_messages,
             dynamic=True) if compile else self.corrected_messages
         self.build_correction(message_dim, hidden_dim)
-        self.g_n = MLP([EMBEDDING_DIM + message_dim, hidden_dim,
-                        EMBEDDING_DIM], **MLP_OPTIONS) if node_update else None
+        size = embedding_dim(position_dim)
+        self.g_n = MLP([size + message_dim, hidden_dim, size],
+                       **MLP_OPTIONS) if node_update else None
 
     def build_correction(self, message_dim: int, hidden_dim: int) -> None:
         r"""Builds the correction's networks (in this order, which fixes
         their seeded initial weights): :math:`g_e` of the node features and
         the :math:`K` message values, the scale :math:`g_s`, and :math:`g_v`
         of :math:`K` offsets."""
-        self.g_e = MLP([EDGE_FEATURES + self.num_particles, hidden_dim,
-                        message_dim], **MLP_OPTIONS)
+        self.g_e = MLP([edge_features(self.position_dim) +
+                        self.num_particles, hidden_dim, message_dim],
+                       **MLP_OPTIONS)
         self.g_s = MLP([message_dim, hidden_dim, 1], **MLP_OPTIONS)
         self.g_v = MLP([message_dim, hidden_dim, self.num_particles],
                        **MLP_OPTIONS)
@@ -244,11 +267,12 @@ class NEBPConv(MessagePassing):
         if validate:
             check_layer_inputs(particles, log_weights, edge_index, edge_attr,
                                self.bp.measurement.features, anchor,
-                               sender_log_weights, state_dim=4)
+                               sender_log_weights,
+                               state_dim=2 * self.position_dim)
             if anchor is None:
                 raise ValueError("'anchor' is required by NEBPConv")
             if embedding is not None:
-                check_embedding(embedding, num_nodes)
+                check_embedding(embedding, num_nodes, self.position_dim)
         if (self.num_particles is not None
                 and particles.size(1) != self.num_particles):
             raise ValueError(f"'particles' holds K = {particles.size(1)} "
@@ -319,10 +343,12 @@ class NEBPConv(MessagePassing):
 
     def embedding_features(self, h_i: Tensor, h_j: Tensor) -> Tensor:
         r"""What :math:`g_e` reads of the two node embeddings
-        :math:`(|\mathcal{E}|, 36)`: the difference of the means and both
-        covariances, divided by :obj:`feature_scale`."""
-        return torch.cat([h_j[:, :4] - h_i[:, :4], h_i[:, 4:], h_j[:, 4:]],
-                         dim=-1) / self.feature_scale
+        :math:`(|\mathcal{E}|, S + 2 S^2)` (36 in 2-D): the difference of
+        the means and both covariances, divided by
+        :obj:`feature_scale`."""
+        size = 2 * self.position_dim
+        return torch.cat([h_j[:, :size] - h_i[:, :size], h_i[:, size:],
+                          h_j[:, size:]], dim=-1) / self.feature_scale
 
     def message(self, log_messages: Tensor) -> Tensor:
         return log_messages

@@ -207,7 +207,7 @@ class ParticleBPConv(MessagePassing):
         size = (particles.size(0), particles.size(0))
         edge_index = long_edge_index(edge_index, particles.size(0))
         planes = tuple(particles[..., d].to(dtype).contiguous()
-                       for d in model.state_entries)
+                       for d in model.scope(particles.size(-1)))
         if sample_offsets is None:
             sample_offsets = self.draw_offsets(particles.size(0),
                                                particles.size(1),
@@ -304,8 +304,10 @@ class ParticleBPConv(MessagePassing):
                     else 'autograd')
         if (not sampled and fused_bp_available(like)
                 and like.dtype == torch.float32
-                and isinstance(model, RangeModel)
+                and isinstance(model, RangeModel) and len(inputs) == 4
                 and model.provides('fused_log_pdf')):
+            # the kernel computes 2-D distances: two planes, the sender
+            # weights and the link features
             return 'fused'
         return 'blocks'
 
@@ -391,22 +393,23 @@ class ParticleBPConv(MessagePassing):
             receiver = torch.stack([at(p, dst) for p in planes], -1)
             log_lik = model.log_likelihood(link_features, sender, receiver)
         elif grad:
+            # a range model's planes are the positions, in any dimension
             diff = torch.stack([
                 at(s, src) - at(p, dst)
-                for s, p in zip(sender_planes[:2], planes[:2])], dim=-1)
+                for s, p in zip(sender_planes, planes)], dim=-1)
             distances = torch.linalg.vector_norm(diff, dim=-1)  # grad 0 at 0
             log_lik = model.log_likelihood_of_distance(link_features,
                                                        distances)
         else:  # in place on fresh temporaries: a third of the memory traffic
-            (sender_x, sender_y), (pos_x, pos_y) = sender_planes[:2], \
-                planes[:2]
-            if src is None:  # views of shared sender rows: not in place
-                dx = sender_x - at(pos_x, dst)
-                dy = sender_y - at(pos_y, dst)
-            else:
-                dx = sender_x.index_select(0, src).sub_(at(pos_x, dst))
-                dy = sender_y.index_select(0, src).sub_(at(pos_y, dst))
-            distances = dx.mul_(dx).addcmul_(dy, dy).sqrt_()
+            distances = None
+            for sender, pos in zip(sender_planes, planes):
+                if src is None:  # views of shared sender rows: not in place
+                    delta = sender - at(pos, dst)
+                else:
+                    delta = sender.index_select(0, src).sub_(at(pos, dst))
+                distances = (delta.mul_(delta) if distances is None else
+                             distances.addcmul_(delta, delta))
+            distances = distances.sqrt_()
             log_lik = (model.log_likelihood_of_distance_(
                 link_features, distances)
                        if model.provides('log_likelihood_of_distance_') else
@@ -563,21 +566,22 @@ def _range_block_grads(ctx, inputs, needs, begin, end, src, dst,
                        grad_messages):
     # messages m = log p(z | d) + w_src with d = |p_src - p_dst|: the model
     # gives dm/dd and dm/dz in closed form, and dd/dp_src = diff / d
+    # (a range model's planes are the positions, in any dimension)
     num_planes = ctx.num_planes
-    pos_x, pos_y = inputs[:2]
     link_features = inputs[num_planes + 1][begin:end]
-    dx = pos_x.index_select(0, src) - pos_x.index_select(0, dst)
-    dy = pos_y.index_select(0, src) - pos_y.index_select(0, dst)
-    distances = torch.sqrt(dx * dx + dy * dy)
+    deltas = [pos.index_select(0, src) - pos.index_select(0, dst)
+              for pos in inputs[:num_planes]]
+    distances = torch.sqrt(sum(delta * delta for delta in deltas))
     per_distance, per_range = ctx.model.distance_gradient(link_features,
                                                           distances)
     per_distance = grad_messages * per_distance
     # zero (not NaN) where paired particles coincide, as autograd's norm
     per_coordinate = torch.where(distances > 0, per_distance / distances,
                                  torch.zeros_like(distances))
-    grad_x, grad_y = per_coordinate * dx, per_coordinate * dy
-    planes = [((src, dst), (grad_x, -grad_x)), ((src, dst), (grad_y, -grad_y))]
-    planes += [((src, ), (torch.zeros_like(grad_x), ))] * (num_planes - 2)
+    planes = []
+    for delta in deltas:
+        grad = per_coordinate * delta
+        planes.append(((src, dst), (grad, -grad)))
     feature_grad = None
     if needs[num_planes + 1]:  # the range column; the others are not read
         feature_grad = torch.zeros_like(link_features)
