@@ -40,7 +40,7 @@ root_doc = 'index'
 # the figures and tables that README.md links to live in docs/ as well;
 # the tables are included by results.md, not pages of their own
 exclude_patterns = ['_build', 'frontier_*.md', 'compare_*.md',
-                    '**/.ipynb_checkpoints']
+                    'cli_outputs.md', '**/.ipynb_checkpoints']
 
 # -- cross-references -------------------------------------------------------
 
@@ -116,11 +116,13 @@ def public(module: str):
 # the packages and modules that have a page in docs/api
 API_PAGES = ['tg_nebp.nn.conv', 'tg_nebp.filters', 'tg_nebp.models',
              'tg_nebp.bounds', 'tg_nebp.gaussian',
-             'tg_nebp.experiments.compare',
+             'tg_nebp.experiments.compare', 'tg_nebp.experiments.frontier',
+             'tg_nebp.experiments.reproduce',
+             'tg_nebp.experiments.equivariant_nebp',
+             'tg_nebp.experiments.bench',
              'tg_nebp.data', 'tg_nebp.datasets', 'tg_nebp.metrics',
              'tg_nebp.evaluation', 'tg_nebp.training',
-             'tg_nebp.training_log', 'tg_nebp.frontier',
-             'tg_nebp.reproduce', 'tg_nebp.beyond', 'tg_nebp.plot',
+             'tg_nebp.training_log', 'tg_nebp.plot',
              'tg_nebp.io', 'tg_nebp.utils', 'tg_nebp.threads', 'tg_nebp.ops',
              'tg_nebp.reference']
 

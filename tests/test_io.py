@@ -89,3 +89,34 @@ def test_messages_on_one_line_without_colour_codes():
     assert io.one_line(error) == ('Weights only load failed. do this second '
                                   'line')
     assert io.first_line(error) == 'Weights only load failed. do this'
+
+
+def test_read_resumable_checks_every_entry_against_the_schema(tmp_path):
+    from tg_nebp.experiments.compare import ROW_SCHEMA
+    from tg_nebp.io import NUMBER, read_resumable, write_json
+    path, settings = tmp_path / 'r.json', dict(seed=0)
+    summary = dict(mean=0.1, std=0.0)
+    row = dict(method='m', rmse=1.0, seconds_per_realization=2,
+               outage={'0.5': 0.5, '1.0': 0.1, '2.0': 0.0},
+               accept={'0.95': 0.9},
+               spread={'realizations': [], 'outage_1m': summary,
+                       'rmse': summary, 'accept_0.95': summary})
+    good = dict(settings=settings, results={'s': {'a': row}})
+    write_json(path, good)
+    assert read_resumable(path, settings, 'results', schema=ROW_SCHEMA,
+                          depth=2) == good
+    for damaged, message in [
+            (dict(good, results={'s': [row]}), r"'results'\['s'\] is not "
+             r"an object"),
+            (dict(good, results={'s': {'a': dict(row, rmse=None)}}),
+             r"'results'\['s'\]\['a'\]\['rmse'\] is not of the expected"),
+            (dict(good, results={'s': {'a': dict(row, accept={})}}),
+             r".*\['accept'\] has no field '0.95'"),
+            (dict(good, results={'s': {'a': dict(row, rmse=True)}}),
+             r".*\['rmse'\] is not of the expected")]:
+        write_json(path, damaged)
+        with pytest.raises(ValueError, match=r"r\.json' is damaged: " +
+                           message):
+            read_resumable(path, settings, 'results', schema=ROW_SCHEMA,
+                           depth=2)
+    assert NUMBER == (int, float)

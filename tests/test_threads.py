@@ -108,3 +108,16 @@ def test_cli_threads(tmp_path, capsys, threads):
     err = capsys.readouterr().err
     assert err.startswith('error: --threads auto is for BP runs')
     assert err.count('\n') == 1
+
+
+def test_threads_in_force_sets_and_restores():
+    from tg_nebp.threads import threads_in_force
+    initial = torch.get_num_threads()
+    with threads_in_force(1) as governor:
+        assert governor is None and torch.get_num_threads() == 1
+    assert torch.get_num_threads() == initial
+    with threads_in_force('auto', 'cuda') as governor:  # no governor on GPU
+        assert governor is None
+    with threads_in_force('auto') as governor:
+        assert isinstance(governor, ThreadGovernor)
+    assert torch.get_num_threads() == initial

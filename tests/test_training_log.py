@@ -135,3 +135,71 @@ def test_tensorboard_events_of_the_interrupted_epoch_are_purged(tmp_path):
     events.Reload()
     assert [(e.step, e.value) for e in events.Scalars('loss/train_step')] \
         == [(1, 0.25), (2, 0.5), (3, 1.25), (4, 1.5)]
+
+
+def _log_of(folder, history, steps_per_epoch=2):
+    # a finished log of 'history', as a run writes it
+    with TrainingLog(folder, steps_per_epoch, tensorboard=False) as log:
+        for entry in history:
+            for step in range(1, steps_per_epoch + 1):
+                log.step(dict(epoch=entry['epoch'], step=step,
+                              loss=entry['train_loss'] + step))
+            log.epoch(entry)
+
+
+def test_resuming_with_another_runs_log_is_refused(tmp_path):
+    mine = [dict(epoch=0, train_loss=2.0, val_loss=1.5)]
+    other = [dict(epoch=0, train_loss=3.0, val_loss=2.5)]
+    _log_of(tmp_path, other)
+    before = (tmp_path / 'steps.csv').read_bytes()
+    with pytest.raises(ValueError, match="another run's: its epoch 0"):
+        TrainingLog(tmp_path, 2, mine, tensorboard=False)
+    # nothing was rewritten
+    assert (tmp_path / 'steps.csv').read_bytes() == before
+    # the run's own log resumes, keeping its finished epoch's steps
+    _log_of(tmp_path / 'own', mine)
+    with TrainingLog(tmp_path / 'own', 2, mine, tensorboard=False):
+        pass
+    assert len(read_training_log(tmp_path / 'own')['steps']) == 2
+
+
+def test_steps_of_an_epoch_the_log_does_not_show_finished_are_dropped(
+        tmp_path):
+    # steps.csv holds epoch-0 rows, epochs.csv none: they cannot be shown
+    # to be this run's
+    (tmp_path / 'steps.csv').write_text('epoch,step,loss\n0,1,9.0\n0,2,9.5\n')
+    history = [dict(epoch=0, train_loss=2.0, val_loss=1.5)]
+    with TrainingLog(tmp_path, 2, history, tensorboard=False):
+        pass
+    log = read_training_log(tmp_path)
+    assert log['steps'] == [] and log['epochs'] == history
+
+
+def test_a_damaged_log_names_its_file_and_does_not_block_a_new_run(
+        tmp_path):
+    (tmp_path / 'steps.csv').write_bytes(b'\xff\xfe\x00garbage\x80\x81')
+    history = [dict(epoch=0, train_loss=2.0, val_loss=1.5)]
+    with pytest.raises(ValueError, match=r"steps\.csv' is not a training "
+                       r"log CSV"):
+        TrainingLog(tmp_path, 2, history, tensorboard=False)
+    with TrainingLog(tmp_path, 2, tensorboard=False) as log:  # a new run
+        log.step(dict(epoch=0, step=1, loss=1.0))
+    assert read_training_log(tmp_path)['steps'] == [
+        dict(epoch=0.0, step=1.0, loss=1.0)]
+
+
+def test_cli_resume_with_another_runs_log_is_one_error_line(tmp_path,
+                                                             capsys):
+    log_dir = tmp_path / 'log'
+    assert main(train_argv(tmp_path, 1, '--log-dir', str(log_dir))) == 0
+    # another run (another learning rate) into its own folder
+    other = tmp_path / 'other'
+    other.mkdir()
+    argv = train_argv(other, 1, '--log-dir', str(other / 'log'))
+    argv[argv.index('--lr') + 1] = '1e-3'
+    assert main(argv) == 0
+    capsys.readouterr()
+    assert main(train_argv(tmp_path, 2, '--log-dir', str(other / 'log'),
+                           '--resume')) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another run's" in err[0]

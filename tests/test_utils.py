@@ -215,3 +215,10 @@ def test_sort_by_receiver_is_stable_and_int64(dtype):
     # an EdgeIndex already sorted by receiver is passed through
     again, same = sort_by_receiver(edge_index, 4, sorted_attr)
     assert same is sorted_attr and torch.equal(again, edge_index)
+
+
+def test_joined_process_group_outside_torchrun(monkeypatch):
+    from tg_nebp.utils import joined_process_group, process_group
+    monkeypatch.delenv('WORLD_SIZE', raising=False)
+    with joined_process_group('cpu') as device:
+        assert device == 'cpu' and process_group() == (1, 0)

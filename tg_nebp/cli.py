@@ -3,29 +3,24 @@ r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 import argparse
 import contextlib
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Callable, List, NoReturn, Optional
 
 import torch
-import torch.distributed as dist
 from tqdm import tqdm
 
-from tg_nebp.datasets import load_datasets
-from tg_nebp.bounds import PosteriorCRB
-from tg_nebp.filters import NEBP, CentralizedIEKF, GaussianBP, ParticleBP
+from tg_nebp.experiments.compare import compare
+from tg_nebp.experiments.evaluate import evaluate_scenario
+from tg_nebp.experiments.frontier import frontier
+from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
+from tg_nebp.experiments.train import train_scenario
 from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.resampling import RESAMPLERS
-from tg_nebp.io import check_writable_folder, one_line, write_text
-from tg_nebp.models import MODELS, model_like
-from tg_nebp.evaluation import evaluate_method
-from tg_nebp.reproduce import PRESET_NAMES, reproduce
-from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
-                              steps_per_epoch, train)
-from tg_nebp.training_log import TrainingLog
-from tg_nebp.threads import ThreadGovernor
-from tg_nebp.utils import process_group
+from tg_nebp.io import check_writable_folder, one_line
+from tg_nebp.models import MODELS
+from tg_nebp.threads import threads_in_force
+from tg_nebp.utils import joined_process_group, process_group
 
 __all__ = ['main']
 
@@ -165,29 +160,27 @@ def _add_measurement(parser, who: str):
         "data shows the cost of mismatch")
 
 
-def _measurement(args, scenario):
-    # the likelihood inside the tracker: the scenario's, or another one
-    measurement = scenario.measurement_model
-    if args.measurement is None:
-        return measurement
-    return model_like(args.measurement, 'measurement', measurement)
+class _Bar(tqdm):
+    r"""The progress bar of a command; its :obj:`update` after every time
+    step also lets the thread governor take its reading."""
+    governor = None
+
+    def update(self, n=1):
+        super().update(n)
+        if self.governor is not None:
+            self.governor.update()
 
 
-def _governed(progress: Callable, args) -> Callable:
-    # the thread governor takes its reading after every time step
-    governor = getattr(args, 'governor', None)
-    if governor is None:
-        return progress
+def _bars(args) -> Callable:
+    # the progress_factory of the library's commands: rank 0's bar, unless
+    # --quiet
+    def bar(total, desc):
+        made = _Bar(total=total, desc=desc, unit='step',
+                    disable=args.quiet or process_group()[1] > 0)
+        made.governor = args.governor
+        return made
 
-    def step(count):
-        progress(count)
-        governor.update()
-
-    return step
-
-
-def _bar(total: int, desc: str, quiet: bool = False):
-    return tqdm(total=total, desc=desc, unit='step', disable=quiet)
+    return bar
 
 
 # the options that only some methods take: (flag, attribute, its unset
@@ -214,65 +207,20 @@ def _check_method_options(args) -> None:
                              f", not {args.method}")
 
 
-def _evaluated(args, scenario):
-    # the tracker (or bound) of --method, and its metrics.json key
-    models = dict(motion=scenario.motion_model,
-                  measurement=_measurement(args, scenario))
-    if args.method == 'pcrb':
-        return PosteriorCRB(scenario.motion_model,
-                            scenario.measurement_model), 'pcrb'
-    if args.method == 'iekf':
-        tracker = CentralizedIEKF(args.iterations or 5,
-                                  marginal=args.marginal, **models)
-        return tracker, 'iekf-marginal' if args.marginal else 'iekf'
-    if args.method == 'gbp':
-        # the recommended configuration, with what the flags change
-        given = dict(num_iterations=args.iterations,
-                     inflation=args.inflation, ends=args.ends,
-                     tolerance=args.tolerance)
-        options = {k: v for k, v in given.items() if v is not None}
-        if options.get('tolerance') == 0:  # every iteration
-            options['tolerance'] = None
-        return GaussianBP.recommended(**options, **models), 'gbp'
-    if args.method == 'nebp':
-        if args.checkpoint is None:
-            raise ValueError("--method nebp needs --checkpoint PATH")
-        return nebp_from_checkpoint(args.checkpoint, args.particles,
-                                    compile=args.compile,
-                                    num_samples=args.samples), 'nebp'
-    iterations, ends = args.iterations or 1, args.ends or 'receiver'
-    if iterations > 1 and ends == 'receiver':
-        raise ValueError(
-            f"--iterations {iterations} with --ends receiver counts the "
-            f"receivers' own information again at every iteration (the "
-            f"senders' beliefs already hold it); use --ends both, whose "
-            f"iterations send extrinsic messages")
-    return ParticleBP(args.particles or 1000, iterations,
-                      resampler=args.resampler, compile=args.compile,
-                      num_samples=args.samples or 1,
-                      regularize=args.regularize,
-                      ess_threshold=args.ess_threshold, ends=ends,
-                      **models), 'bp'
-
-
-def _evaluate_on(args, device: str) -> int:
-    world_size, rank = process_group()
+def _evaluate(args) -> int:
     _check_method_options(args)
-    dataset, = load_datasets(args.root, (args.scenario, args.realizations,
-                                         args.seed))
-    tracker, key = _evaluated(args, dataset.scenario)
-    share = len(range(rank, len(dataset), world_size))  # rank 0's
-    particles = getattr(tracker, 'num_particles', None)
-    with _bar(share * dataset.scenario.num_steps,
-              key + (f' K={particles}' if particles else ''),
-              args.quiet or rank > 0) as bar:
-        result = evaluate_method(key, tracker.to(device).eval(),
-                                 dataset, args.batch_size, device,
-                                 args.seed, Path(args.out),
-                                 progress=_governed(bar.update, args))
-    if rank > 0:
-        return 0
-    entry = result['entry']
+    if args.method == 'nebp' and args.checkpoint is None:
+        raise ValueError("--method nebp needs --checkpoint PATH")
+    options = {name: getattr(args, name) for _, name, _, methods
+               in _METHOD_OPTIONS if args.method in methods}
+    with joined_process_group(args.device) as device:
+        result = evaluate_scenario(
+            args.method, args.scenario, args.realizations, args.seed,
+            args.root, args.out, args.batch_size, device, _bars(args),
+            resampler=args.resampler, compile=args.compile, **options)
+        if process_group()[1] > 0:
+            return 0
+    entry, key = result['entry'], result['key']
     what = 'RMSE floor' if key == 'pcrb' else 'RMSE'
     print(f"{key}: {what} {entry['rmse']:.3f} m, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
@@ -280,119 +228,47 @@ def _evaluate_on(args, device: str) -> int:
     return 0
 
 
-def _in_process_group(run: Callable[[argparse.Namespace, str], int]
-                      ) -> Callable[[argparse.Namespace], int]:
-    r"""The command :obj:`run(args, device)`, which under torchrun
-    (WORLD_SIZE > 1) every process runs in the process group it joins
-    first: NCCL with one GPU per process (LOCAL_RANK), gloo on the CPU."""
-
-    def command(args) -> int:
-        launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
-                    and not dist.is_initialized())
-        device = args.device
-        if launched:
-            if device.startswith('cuda'):
-                device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
-                torch.cuda.set_device(device)
-            dist.init_process_group('nccl' if device.startswith('cuda')
-                                    else 'gloo')
-        try:
-            return run(args, device)
-        finally:
-            if launched:
-                dist.destroy_process_group()
-
-    return command
-
-
-def _train_on(args, device: str) -> int:
-    rank = process_group()[1]
-    train_set, val_set = load_datasets(
-        args.root, (args.scenario, args.realizations, args.seed),
-        (args.scenario, args.val_realizations, args.seed + 1))
-    scenario = train_set.scenario
-    torch.manual_seed(args.seed)  # the GNN's initial weights
-    model = NEBP(args.particles, args.iterations, motion=scenario.motion_model,
-                 measurement=_measurement(args, scenario),
-                 compile=args.compile,
-                 num_samples=args.samples, regularize=args.regularize,
-                 ess_threshold=args.ess_threshold, variant=args.variant,
-                 position_dim=scenario.position_dim)
-    checkpoint = Path(args.out) / 'nebp.pt'
-    steps = steps_per_epoch(len(train_set), args.batch_size,
-                            scenario.num_steps)
-    done = (load_checkpoint(checkpoint)['progress'].get('history', [])
-            if args.resume and checkpoint.exists() else [])
-    log = (TrainingLog(args.log_dir, steps, done)
-           if args.log_dir is not None and rank == 0 else None)
-    with _bar(steps * args.epochs, 'train', args.quiet or rank > 0) as bar, \
-            (log or contextlib.nullcontext()):
-
-        def progress(info):
-            bar.set_postfix(epoch=info['epoch'], loss=f"{info['loss']:.4f}")
-            bar.update(1)
-            if log is not None:
-                log.step(info)
-
-        bar.update(min(len(done), args.epochs) * steps)
-        history = train(model, train_set, val_set, args.epochs,
-                        args.batch_size, args.lr, args.seed, device,
-                        checkpoint, args.resume, progress,
-                        on_epoch=log.epoch if log is not None else None)
-    if rank == 0:
-        for h in history:
-            print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
-                  f"validation loss {h['val_loss']:.4f} (m^2 per "
-                  f"agent-step)")
-        print(f'checkpoint -> {checkpoint}')
-        if log is not None:
-            events = ', TensorBoard events' if log.tensorboard else ''
-            print(f'log -> {log.log_dir} (steps.csv, epochs.csv, '
-                  f'history.png{events})')
+def _train(args) -> int:
+    with joined_process_group(args.device) as device:
+        trained = train_scenario(
+            args.scenario, args.out, args.variant, args.particles,
+            args.iterations, args.realizations, args.val_realizations,
+            args.epochs, args.batch_size, args.lr, args.seed,
+            args.measurement, args.samples, args.regularize,
+            args.ess_threshold, args.resume, args.log_dir, args.root,
+            device, args.compile, _bars(args))
+        if process_group()[1] > 0:
+            return 0
+    for h in trained.history:
+        print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
+              f"validation loss {h['val_loss']:.4f} (m^2 per agent-step)")
+    print(f'checkpoint -> {trained.checkpoint}')
+    if trained.log is not None:
+        events = ', TensorBoard events' if trained.log.tensorboard else ''
+        print(f'log -> {trained.log.log_dir} (steps.csv, epochs.csv, '
+              f'history.png{events})')
     return 0
 
 
 def _frontier(args) -> int:
-    from tg_nebp.frontier import frontier_table, grid, run_frontier
-    from tg_nebp.plot import plot_frontier
-
-    points = grid(args.particles, args.samples, args.resampler,
-                  args.regularize, args.ess_threshold)
-    if not points:
-        raise ValueError('the grid is empty: every --samples M exceeds '
-                         'every --particles K')
-    dataset, = load_datasets(args.root, (args.scenario, args.realizations,
-                                         args.seed))
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with _bar(len(points) * len(dataset) * dataset.scenario.num_steps,
-              f'frontier ({len(points)} points)', args.quiet) as bar:
-        result = run_frontier(points, dataset, out, args.seed, args.device,
-                              args.batch_size,
-                              progress=_governed(bar.update, args),
-                              log=bar.write if not args.quiet else print,
-                              compile=args.compile)
-    write_text(out / 'frontier.md', frontier_table(result))
-    plot_frontier(result, out / 'frontier.png')
+    result = frontier(args.particles, args.samples, args.resampler,
+                      args.regularize, args.ess_threshold, args.scenario,
+                      args.realizations, args.seed, out, args.root,
+                      args.device, args.batch_size, args.compile,
+                      _bars(args))
     print(f"{len(result['points'])} points -> {out / 'frontier.json'}, "
           f"{out / 'frontier.md'}, {out / 'frontier.png'}")
     return 0
 
 
 def _compare(args) -> int:
-    from tg_nebp.experiments.compare import (compare_points, compare_table,
-                                             run_compare)
-    from tg_nebp.plot import plot_compare
-
     out = Path(args.out)
-    with _bar(None, 'compare', args.quiet) as bar:
-        result = run_compare(args.root, args.scenario, args.realizations,
-                             args.seed, out, args.checkpoint, args.device,
-                             args.batch_size, args.methods,
-                             progress=_governed(bar.update, args),
-                             log=bar.write if not args.quiet else print)
-    write_text(out / 'compare.md', compare_table(result))
-    plot_compare(compare_points(result), out / 'compare.png')
+    result = compare(out, _bars(args), root=args.root,
+                     scenarios=args.scenario,
+                     realizations=args.realizations, seed=args.seed,
+                     checkpoints=args.checkpoint, device=args.device,
+                     batch_size=args.batch_size, methods=args.methods)
     print(f"{sum(map(len, result['results'].values()))} rows -> "
           f"{out / 'compare.json'}, {out / 'compare.md'}, "
           f"{out / 'compare.png'}")
@@ -401,8 +277,7 @@ def _compare(args) -> int:
 
 def _reproduce(args) -> int:
     metrics = reproduce(args.preset, args.device, args.out, args.root,
-                        progress_factory=lambda total, desc: _bar(
-                            total, desc, args.quiet), compile=args.compile,
+                        progress_factory=_bars(args), compile=args.compile,
                         num_samples=args.samples)
     print(f"report -> {Path(args.out) / 'report.md'}")
     for method, entry in metrics.items():
@@ -471,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(ev)
     _add_samples(ev, None)
     _add_resampling(ev)
-    ev.set_defaults(run=_in_process_group(_evaluate_on))
+    ev.set_defaults(run=_evaluate)
 
     tr = sub.add_parser(
         'train', help='train NEBP (default: on the paper\'s training '
@@ -519,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(tr)
     _add_samples(tr, 1)
     _add_resampling(tr)
-    tr.set_defaults(run=_in_process_group(_train_on))
+    tr.set_defaults(run=_train)
 
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
                         'training, BP and NEBP evaluation, report, figures')
@@ -604,7 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(cp)
     cp.set_defaults(run=_compare)
 
-    from tg_nebp.bench import add_arguments, run_bench
+    from tg_nebp.experiments.bench import add_arguments, run_bench
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '
                            'tracker on the test network')
     add_arguments(bench)
@@ -647,9 +522,8 @@ def _thread_invariant(args) -> bool:
 
 @contextlib.contextmanager
 def _threads_in_force(args):
-    r"""--threads for the run: a count, or a governor (:obj:`auto`, the
-    default of BP runs) that :func:`_governed` progress hooks update; the
-    thread count is restored afterwards."""
+    r"""--threads for the run: a count, or (:obj:`auto`, the default of BP
+    runs) a governor that the progress bars of :func:`_bars` update."""
     threads = args.threads
     if threads is None:
         threads = 'auto' if _thread_invariant(args) else None
@@ -658,20 +532,12 @@ def _threads_in_force(args):
                          "bp, frontier, bench): NEBP's results depend on the "
                          "thread count; give a number")
     if args.command == 'bench':  # its measurement processes set it
-        args.threads = threads
+        args.threads, args.governor = threads, None
         yield
         return
-    initial = torch.get_num_threads()
-    args.governor = None
-    if threads == 'auto' and not args.device.startswith('cuda'):
-        args.governor = ThreadGovernor()
-    elif isinstance(threads, int):
-        torch.set_num_threads(threads)
-    try:
+    with threads_in_force(threads, args.device) as governor:
+        args.governor = governor
         yield
-    finally:
-        if torch.get_num_threads() != initial:
-            torch.set_num_threads(initial)
 
 
 def main(argv: Optional[List[str]] = None) -> int:

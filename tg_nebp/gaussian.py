@@ -17,7 +17,8 @@ from torch import Tensor
 from tg_nebp.utils import free_memory_bytes
 
 __all__ = ['check_dense_joint', 'predict_joint', 'range_blocks',
-           'embed_scope', 'add_link_information', 'marginal_blocks', 'block_diagonal',
+           'embed_scope', 'add_link_information', 'marginal_blocks',
+           'block_diagonal',
            'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint

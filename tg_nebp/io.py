@@ -9,10 +9,10 @@ import socket
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable, Union
+from typing import Any, Callable, Optional, Union
 
 __all__ = ['atomic_write', 'write_json', 'write_text', 'read_json',
-           'read_resumable',
+           'read_resumable', 'NUMBER', 'claim_folder',
            'remove_stale_temporaries', 'check_writable_folder', 'one_line',
            'first_line']
 
@@ -124,15 +124,40 @@ def read_json(path: Union[str, Path]) -> Any:
                          f"{e.strerror or e}") from None
 
 
+#: A JSON number in an entry's schema (:func:`read_resumable`).
+NUMBER = (int, float)
+
+
+def _schema_error(value, schema, where: str) -> Optional[str]:
+    # where 'value' departs from 'schema': a type (or tuple of types), or a
+    # dict of required fields and their schemas; None where it does not
+    if isinstance(schema, dict):
+        if not isinstance(value, dict):
+            return f'{where} is not an object'
+        for field, inner in schema.items():
+            if field not in value:
+                return f"{where} has no field '{field}'"
+            error = _schema_error(value[field], inner, f"{where}['{field}']")
+            if error:
+                return error
+        return None
+    if isinstance(value, bool) or not isinstance(value, schema):
+        return f'{where} is not of the expected type ({value!r})'
+    return None
+
+
 def read_resumable(path: Union[str, Path], settings: dict, section: str,
-                   what: str = 'a result') -> dict:
+                   what: str = 'a result', schema: Optional[dict] = None,
+                   depth: int = 1) -> dict:
     r"""The content of a resumable result file (:obj:`frontier.json`,
     :obj:`compare.json`): :obj:`{"settings": settings, section: {}}` if
     :obj:`path` does not exist, else the file, which must be a JSON object
     with exactly these :obj:`settings` and a :obj:`section` that maps
-    names to objects; anything else is a :class:`ValueError` naming the
-    file, rather than results of other settings mixed in or a traceback
-    later."""
+    names to entries (through :obj:`depth` levels of objects), each with
+    the fields of :obj:`schema` (a dict of fields and their types or
+    sub-schemas); anything else is a :class:`ValueError` naming the file
+    and the entry, rather than results of other settings mixed in or a
+    traceback later."""
     path = Path(path)
     if not path.exists():
         return {'settings': settings, section: {}}
@@ -141,12 +166,37 @@ def read_resumable(path: Union[str, Path], settings: dict, section: str,
     if found != settings:
         raise ValueError(f"'{path}' holds {what} made with {found}, not "
                          f"{settings}: use another --out folder")
-    entries = content.get(section)
-    if not (isinstance(entries, dict) and all(
-            isinstance(e, dict) for e in entries.values())):
-        raise ValueError(f"'{path}' is damaged: its '{section}' must map "
-                         f"names to objects; remove the file to start again")
+    # the section's levels of objects, then every entry against the schema
+    entries = [(f"'{section}'", content.get(section))]
+    for _ in range(depth):
+        error = next((f'{where} is not an object' for where, value in entries
+                      if not isinstance(value, dict)), None)
+        if error is not None:
+            break
+        entries = [(f'{where}[{name!r}]', entry) for where, value in entries
+                   for name, entry in value.items()]
+    else:
+        error = next(filter(None, (_schema_error(value, schema or {}, where)
+                                   for where, value in entries)), None)
+    if error is not None:
+        raise ValueError(f"'{path}' is damaged: {error}; remove the file to "
+                         f"start again")
     return content
+
+
+def claim_folder(out: Union[str, Path], settings: dict) -> None:
+    r"""Marks the folder :obj:`out` as holding the results of a run with
+    these :obj:`settings` (:obj:`out/settings.json`); a folder that holds a
+    run with other settings is a :class:`ValueError`, not results of two
+    runs mixed in one folder."""
+    path = Path(out) / 'settings.json'
+    if path.exists():
+        found = read_json(path)
+        if found != settings:
+            raise ValueError(f"'{out}' holds a run with other settings "
+                             f"({found}, not {settings}); use another "
+                             f"--out")
+    write_json(path, settings)
 
 
 def check_writable_folder(path: Union[str, Path], name: str) -> Path:

@@ -121,14 +121,14 @@ def plot_consistency(nees: Dict[str, torch.Tensor], path: Union[str, Path],
 
 def plot_frontier(frontier: dict, path: Union[str, Path]):
     r"""The accuracy-cost frontier of :obj:`frontier.json`
-    (:func:`~tg_nebp.frontier.run_frontier`): :math:`P_\mathrm{out}` (1 m)
-    and P(accept :math:`H_0`) at the 0.95 level against seconds per
-    realization (log scale), one colour per number of sender samples
-    :math:`M`, one marker per resampling option, :math:`K` written at each
-    point, the Pareto-optimal points joined, and the paper's BP and NEBP
-    rows as horizontal lines."""
+    (:func:`~tg_nebp.experiments.frontier.run_frontier`):
+    :math:`P_\mathrm{out}` (1 m) and P(accept :math:`H_0`) at the 0.95
+    level against seconds per realization (log scale), one colour per
+    number of sender samples :math:`M`, one marker per resampling option,
+    :math:`K` written at each point, the Pareto-optimal points joined, and
+    the paper's BP and NEBP rows as horizontal lines."""
     from matplotlib.figure import Figure
-    from tg_nebp.frontier import CONFIDENCE_KEY, OUTAGE_KEY
+    from tg_nebp.evaluation import CONFIDENCE_KEY, OUTAGE_KEY
     from tg_nebp.reference import PAPER_TABLE
 
     entries = list(frontier['points'].values())

@@ -11,12 +11,14 @@ Particle BP gives bit-identical results for any thread count (its test
 runs the trackers at 1 and 2 threads), so governing its threads changes
 only its speed. NEBP's learned layers do not (their matrix products round
 by thread count): the command line governs the threads of BP runs only."""
+import contextlib
 import os
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional, Union
 
 import torch
 
-__all__ = ['ThreadGovernor', 'runnable_elsewhere', 'available_cores']
+__all__ = ['ThreadGovernor', 'threads_in_force', 'runnable_elsewhere',
+           'available_cores']
 
 
 def available_cores() -> int:
@@ -132,3 +134,25 @@ class ThreadGovernor:
 
     def __exit__(self, *exc):
         self.close()
+
+
+@contextlib.contextmanager
+def threads_in_force(threads: Union[int, str, None] = None,
+                     device: str = 'cpu'
+                     ) -> Iterator[Optional[ThreadGovernor]]:
+    r"""torch's CPU threads for the duration of the block: a count, or
+    :obj:`"auto"`, a :class:`ThreadGovernor` (yielded, for the caller to
+    :meth:`~ThreadGovernor.update` after every time step) on a CPU
+    :obj:`device`; :obj:`None` leaves torch's count. The count found at
+    the start is restored at the end."""
+    initial = torch.get_num_threads()
+    governor = None
+    if threads == 'auto' and not str(device).startswith('cuda'):
+        governor = ThreadGovernor()
+    elif isinstance(threads, int):
+        torch.set_num_threads(threads)
+    try:
+        yield governor
+    finally:
+        if torch.get_num_threads() != initial:
+            torch.set_num_threads(initial)

@@ -16,17 +16,47 @@ EPOCH_FIELDS = ('epoch', 'train_loss', 'val_loss')
 
 
 def _read_rows(path: Path, fields) -> List[Dict[str, float]]:
-    # a row cut short by a killed run is skipped, not an error
+    # a row cut short by a killed run is skipped, not an error; a file that
+    # is not text CSV is an error that names it
     if not path.exists():
         return []
     rows = []
-    with open(path, newline='') as f:
-        for row in csv.DictReader(f):
-            try:
-                rows.append({k: float(row[k]) for k in fields})
-            except (KeyError, TypeError, ValueError):
-                continue
+    try:
+        with open(path, newline='', encoding='utf-8') as f:
+            for row in csv.DictReader(f):
+                try:
+                    rows.append({k: float(row[k]) for k in fields})
+                except (KeyError, TypeError, ValueError):
+                    continue
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise ValueError(f"'{path}' is not a training log CSV ({e}); remove "
+                         f"it or use another log folder") from None
     return rows
+
+
+def _same(a: float, b: float) -> bool:
+    return a == b or (math.isnan(a) and math.isnan(b))
+
+
+def _kept_steps(log_dir: Path, history: List[Dict[str, float]]
+                ) -> List[Dict[str, float]]:
+    # the step rows of a resumed run: those of its finished epochs, as long
+    # as the log's epoch rows are this run's (the checkpoint's history);
+    # another run's log is an error, not rows mixed into this one
+    logged = read_training_log(log_dir)
+    for row in logged['epochs']:
+        epoch = int(row['epoch'])
+        if epoch >= len(history):
+            continue  # the interrupted epoch's, trained again
+        mine = history[epoch]
+        if not all(_same(row[k], float(mine[k])) for k in EPOCH_FIELDS):
+            raise ValueError(
+                f"the log in '{log_dir}' is another run's: its epoch {epoch} "
+                f"({row}) is not the checkpoint's ({mine}); resume with the "
+                f"run's own log folder, or use a new one")
+    verified = {int(row['epoch']) for row in logged['epochs']}
+    return [row for row in logged['steps'] if int(row['epoch']) in verified
+            and row['epoch'] < len(history)]
 
 
 def _write_rows(path: Path, fields, rows: List[Dict[str, float]]):
@@ -76,7 +106,11 @@ class TrainingLog:
     :obj:`history`: the log keeps the finished epochs' step rows and events
     (and takes their epoch rows from the history, so that a model trained
     without a log still gets its epochs drawn) and drops those of the
-    interrupted epoch, which the resumed run trains again.
+    interrupted epoch, which the resumed run trains again. The log's epoch
+    rows must be the history's: another run's log is a
+    :class:`ValueError`, and step rows of epochs that the log does not
+    show finished are dropped, so that two runs never mix. A new run
+    (empty :obj:`history`) replaces what the folder holds.
 
     Args:
         log_dir (str or Path): The folder (created if needed).
@@ -100,10 +134,11 @@ class TrainingLog:
         self.steps_per_epoch = steps_per_epoch
         self.log_dir.mkdir(parents=True, exist_ok=True)
         epochs_done = len(history)
-        steps = [row for row in read_training_log(self.log_dir)['steps']
-                 if row['epoch'] < epochs_done]
         self.epochs = [{k: entry[k] for k in EPOCH_FIELDS}
                        for entry in history]
+        # a new run starts a new log without reading what the folder holds
+        steps = (_kept_steps(self.log_dir, self.epochs) if epochs_done
+                 else [])
         _write_rows(self.log_dir / 'steps.csv', STEP_FIELDS, steps)
         _write_rows(self.log_dir / 'epochs.csv', EPOCH_FIELDS, self.epochs)
         self._steps = open(self.log_dir / 'steps.csv', 'a', newline='')

@@ -1,5 +1,7 @@
 r"""Small tensor helpers shared by the layers and the trackers."""
-from typing import NamedTuple, Tuple
+import contextlib
+import os
+from typing import Iterator, NamedTuple, Tuple
 
 import torch
 import torch.distributed as dist
@@ -19,6 +21,7 @@ __all__ = [
     'long_edge_index',
     'derive_seed',
     'process_group',
+    'joined_process_group',
     'free_memory_bytes',
     'LinkFactors',
     'link_factors',
@@ -222,6 +225,28 @@ def process_group() -> Tuple[int, int]:
     if dist.is_available() and dist.is_initialized():
         return dist.get_world_size(), dist.get_rank()
     return 1, 0
+
+
+@contextlib.contextmanager
+def joined_process_group(device: str = 'cpu') -> Iterator[str]:
+    r"""Joins the process group of a :obj:`torchrun` launch (WORLD_SIZE >
+    1) for the duration of the block and yields this process's device:
+    NCCL with one GPU per process (LOCAL_RANK) when :obj:`device` is CUDA,
+    gloo on the CPU. Outside :obj:`torchrun`, or in a group already
+    joined, it yields :obj:`device` and does nothing else."""
+    launched = (int(os.environ.get('WORLD_SIZE', '1')) > 1
+                and not dist.is_initialized())
+    if launched:
+        if device.startswith('cuda'):
+            device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
+            torch.cuda.set_device(device)
+        dist.init_process_group('nccl' if device.startswith('cuda')
+                                else 'gloo')
+    try:
+        yield device
+    finally:
+        if launched:
+            dist.destroy_process_group()
 
 
 def free_memory_bytes(device: str = 'cpu') -> int:

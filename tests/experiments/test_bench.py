@@ -1,11 +1,11 @@
-r"""Tests of :mod:`tg_nebp.bench`: the figures describe the graph that was
-measured, measurements that would not fit are skipped (not killed), and the
-command line prints one JSON object per measurement."""
+r"""Tests of :mod:`tg_nebp.experiments.bench`: the figures describe the
+graph that was measured, measurements that would not fit are skipped (not
+killed), and the command line prints one JSON object per measurement."""
 import json
 
 import pytest
 
-from tg_nebp import bench
+from tg_nebp.experiments import bench
 from tg_nebp.cli import main
 
 

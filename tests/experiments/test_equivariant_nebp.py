@@ -1,4 +1,5 @@
-r"""Tests of the experiments beyond the paper (:mod:`tg_nebp.beyond`,
+r"""Tests of the experiments beyond the paper
+(:mod:`tg_nebp.experiments.equivariant_nebp`,
 :obj:`tg-nebp reproduce --preset beyond`) on tiny scenarios."""
 import dataclasses
 import json
@@ -6,7 +7,7 @@ import json
 import pytest
 import torch
 
-import tg_nebp.beyond as beyond
+import tg_nebp.experiments.equivariant_nebp as beyond
 import tg_nebp.training as training
 from tg_nebp.cli import main
 from tg_nebp.datasets import CooperativeLocalizationDataset
@@ -140,7 +141,8 @@ def test_a_second_run_resumes_and_other_settings_are_refused(tiny,
     again = beyond.reproduce_beyond('cpu', out, root, log=lambda *a: None)
     assert json.dumps(again, sort_keys=True) == json.dumps(first,
                                                            sort_keys=True)
-    monkeypatch.setitem(beyond.BEYOND, 'cpu', dict(config, test_particles=[20]))
+    monkeypatch.setitem(beyond.BEYOND, 'cpu',
+                        dict(config, test_particles=[20]))
     with pytest.raises(ValueError, match='holds a run with other settings'):
         beyond.reproduce_beyond('cpu', out, root, log=lambda *a: None)
 

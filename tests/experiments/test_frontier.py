@@ -1,5 +1,5 @@
-r"""Tests of the accuracy-cost frontier (:mod:`tg_nebp.frontier`) and of
-:obj:`tg-nebp frontier`."""
+r"""Tests of the accuracy-cost frontier (:mod:`tg_nebp.experiments.frontier`)
+and of :obj:`tg-nebp frontier`."""
 import itertools
 import json
 import math
@@ -11,7 +11,8 @@ from tg_nebp.cli import main
 from tg_nebp.datasets import CooperativeLocalizationDataset
 from tg_nebp.evaluation import summarize, track_dataset
 from tg_nebp.filters import ParticleBP
-from tg_nebp.frontier import GridPoint, grid, pareto_front, run_frontier
+from tg_nebp.experiments.frontier import (GridPoint, grid, pareto_front,
+                                          run_frontier)
 
 from helpers import tiny_scenario
 
@@ -141,3 +142,56 @@ def test_frontier_command(tmp_path, capsys):
     assert main(['frontier', '--particles', '4', '--samples', '8', '--out',
                  str(out)]) == 2
     assert 'the grid is empty' in capsys.readouterr().err
+
+
+def test_changed_scenario_under_the_same_name_is_refused(tmp_path, capsys):
+    # the same name, other contents: the settings hold the fingerprint
+    path, out = tmp_path / 'tiny.json', tmp_path / 'out'
+    argv = ['frontier', '--scenario', str(path), '--realizations', '2',
+            '--particles', '4', '--samples', '1', '--root',
+            str(tmp_path / 'data'), '--out', str(out), '--quiet']
+    path.write_text(json.dumps(vars(tiny_scenario(steps=3))))
+    assert main(argv) == 0
+    before = (out / 'frontier.json').read_text()
+    changed = dict(vars(tiny_scenario(steps=3)), num_agents=5)
+    path.write_text(json.dumps(changed))
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'holds a frontier made with' in err[0]
+    assert (out / 'frontier.json').read_text() == before
+
+
+@pytest.mark.parametrize('damage, message', [
+    (lambda f: f.update(points=[1, 2]), r"'points' is not an object"),
+    (lambda f: f.pop('points'), r"'points' is not an object"),
+    (lambda f: next(iter(f['points'].values())).pop('outage'),
+     r"'points'\['particles=8 .*'\] has no field 'outage'"),
+    (lambda f: next(iter(f['points'].values()))['outage'].update(
+        {'1.0': 'high'}), r"'points'\[.*\]\['outage'\]\['1.0'\] is not of"),
+])
+def test_damaged_points_are_one_clear_error(dataset, tmp_path, damage,
+                                            message):
+    out = tmp_path / 'f'
+    run_frontier(grid([8], [1]), dataset, out, log=lambda _: None)
+    path = out / 'frontier.json'
+    content = json.loads(path.read_text())
+    damage(content)
+    path.write_text(json.dumps(content))
+    with pytest.raises(ValueError, match=f"frontier.json' is damaged: "
+                       f"{message}"):
+        run_frontier(grid([8], [1]), dataset, out, log=lambda _: None)
+
+
+def test_points_without_their_marks_are_marked_again(dataset, tmp_path):
+    out = tmp_path / 'f'
+    run_frontier(grid([8], [1, 2]), dataset, out, log=lambda _: None)
+    path = out / 'frontier.json'
+    content = json.loads(path.read_text())
+    for entry in content['points'].values():
+        del entry['pareto']
+    path.write_text(json.dumps(content))
+    resumed = run_frontier(grid([8], [1, 2]), dataset, out,
+                           log=lambda _: None)
+    assert all(set(e['pareto']) == {'outage', 'accept'}
+               for e in resumed['points'].values())

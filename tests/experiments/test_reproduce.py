@@ -1,6 +1,7 @@
-r"""Tests of :mod:`tg_nebp.reproduce`: the paper's experiment end to end at
-a tiny size (the preset's numbers are patched, its code path is not)."""
-import tg_nebp.reproduce as reproduce_module
+r"""Tests of :mod:`tg_nebp.experiments.reproduce`: the paper's experiment
+end to end at a tiny size (the preset's numbers are patched, its code path
+is not)."""
+import tg_nebp.experiments.reproduce as reproduce_module
 from tg_nebp.evaluation import summarize, track_dataset
 from tg_nebp.datasets import CooperativeLocalizationDataset
 from tg_nebp.filters import ParticleBP

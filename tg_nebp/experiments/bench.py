@@ -8,13 +8,15 @@ a fresh process (so that its peak memory is its own) and reports the median
 ms per call, edge-particles per second, and the peak memory beyond the
 inputs:
 
-* :obj:`bp`: :class:`ParticleBPConv` as the trackers call it (receiver-sorted
-  edges, no messages returned), forward and forward + backward (gradient of a
-  position loss w.r.t. the particles and sender log-weights),
+* :obj:`bp`: :class:`~tg_nebp.nn.conv.ParticleBPConv` as the trackers call
+  it (receiver-sorted edges, no messages returned), forward and forward +
+  backward (gradient of a position loss w.r.t. the particles and sender
+  log-weights),
 * :obj:`naive`: a plain eager gather-likelihood-scatter (the baseline),
-* :obj:`nebp`: :class:`NEBPConv`, forward and forward + backward (gradient of
-  the training loss w.r.t. its parameters),
-* :obj:`tracker`: :class:`ParticleBP`, seconds per time step end to end.
+* :obj:`nebp`: :class:`~tg_nebp.nn.conv.NEBPConv`, forward and forward +
+  backward (gradient of the training loss w.r.t. its parameters),
+* :obj:`tracker`: :class:`~tg_nebp.filters.ParticleBP`, seconds per time
+  step end to end.
 
 A measurement whose estimated memory exceeds what the device has free is
 skipped and says so."""

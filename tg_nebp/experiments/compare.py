@@ -1,13 +1,14 @@
 r"""One table of every method against the bound: the posterior Cramér-Rao
 bound, the centralized iterated EKF (Gaussian and Student-t likelihoods;
 joint and marginals-only), Gaussian BP, particle BP (the paper's
-configuration and the recommended one) and NEBP from checkpoints, on the same realizations with
-the same prior particle draws, with the same metrics, per-realization
-spreads and seconds per realization.
+configuration and the recommended one) and NEBP from checkpoints, on the
+same realizations with the same prior particle draws, with the same metrics,
+per-realization spreads and seconds per realization.
 
 Behind :obj:`tg-nebp compare`, which writes :obj:`compare.json` after every
 method (an interrupted run resumes where it stopped, and a run with more
 checkpoints adds their rows), :obj:`compare.md` and :obj:`compare.png`."""
+import contextlib
 import hashlib
 import os
 import time
@@ -19,10 +20,10 @@ from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
 from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
-from tg_nebp.io import read_resumable, write_json
+from tg_nebp.io import NUMBER, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
-__all__ = ['compare_methods', 'run_compare', 'compare_table',
+__all__ = ['compare_methods', 'run_compare', 'compare', 'compare_table',
            'compare_points', 'floor_ratios', 'COMPARE_VERSION',
            'COMPARE_SCENARIOS', 'BOUND']
 
@@ -108,6 +109,15 @@ def compare_methods(scenario: Scenario,
     return methods
 
 
+# what every row of compare.json holds, as the table and figure read it
+_SUMMARY = dict(mean=NUMBER, std=NUMBER)
+ROW_SCHEMA = dict(method=str, rmse=NUMBER, seconds_per_realization=NUMBER,
+                  outage={'0.5': NUMBER, '1.0': NUMBER, '2.0': NUMBER},
+                  accept={'0.95': NUMBER},
+                  spread=dict(realizations=list, outage_1m=_SUMMARY,
+                              rmse=_SUMMARY, **{'accept_0.95': _SUMMARY}))
+
+
 def _settings(datasets, seed: int, device: str) -> dict:
     # what every row of one file shares; a scenario is its fingerprint (every
     # generation parameter), not its name
@@ -190,7 +200,8 @@ def run_compare(root: str = 'datasets',
                                      for s in scenarios))
     path = Path(out) / 'compare.json'
     settings = _settings(datasets, seed, device)
-    result = read_resumable(path, settings, 'results', 'a comparison')
+    result = read_resumable(path, settings, 'results', 'a comparison',
+                            ROW_SCHEMA, depth=2)
     # every row is built (its options and checkpoints checked) before the
     # first one runs
     plan = []
@@ -300,3 +311,34 @@ def compare_points(compare: dict) -> Dict[str, List[dict]]:
             accept=(e['accept']['0.95'], e['spread']['accept_0.95']['std']),
             floor_ratio=ratios.get(key)) for key, e in rows.items()]
     return points
+
+
+def compare(out: Union[str, Path] = 'results/compare',
+            progress_factory: Optional[Callable] = None,
+            log: Callable = print, **options) -> dict:
+    r"""Behind :obj:`tg-nebp compare`: :func:`run_compare` with
+    :obj:`out` and :obj:`options` (its other arguments by name), then the
+    table :obj:`out/compare.md` (:func:`compare_table`) and the figure
+    :obj:`out/compare.png` (:func:`~tg_nebp.plot.plot_compare`).
+
+    Args:
+        progress_factory (callable, optional): :obj:`(total, description)`
+            to a context manager (a progress bar; :obj:`total` is
+            :obj:`None`) whose :obj:`update(n)` is called after every time
+            step and whose :obj:`write`, when it has one, replaces
+            :obj:`log`. (default: :obj:`None`)
+
+    Returns:
+        The content of :obj:`out/compare.json`.
+    """
+    from tg_nebp.plot import plot_compare
+
+    bar = (progress_factory(None, 'compare')
+           if progress_factory is not None else None)
+    with (bar if bar is not None else contextlib.nullcontext()):
+        result = run_compare(out=out, progress=getattr(bar, 'update', None),
+                             log=getattr(bar, 'write', log), **options)
+    out = Path(out)
+    write_text(out / 'compare.md', compare_table(result))
+    plot_compare(compare_points(result), out / 'compare.png')
+    return result

@@ -16,10 +16,11 @@ from typing import Callable, Dict, Optional
 
 import torch
 
-from tg_nebp.datasets import load_datasets
+from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import evaluate_method, spread
 from tg_nebp.filters import NEBP, ParticleBP
-from tg_nebp.io import atomic_write, read_json, write_json, write_text
+from tg_nebp.io import (atomic_write, claim_folder, read_json, write_json,
+                        write_text)
 from tg_nebp.models import model_like
 from tg_nebp.reference import PAPER_TABLE
 from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
@@ -219,12 +220,12 @@ def reproduce_beyond(device: str = 'cpu', out: str = 'results/beyond',
     config = BEYOND['cuda' if str(device).startswith('cuda') else 'cpu']
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    settings_path = out / 'settings.json'
-    settings = dict(config=config, device=str(device), seed=TEST_SEED)
-    if settings_path.exists() and read_json(settings_path) != settings:
-        raise ValueError(f"'{out}' holds a run with other settings "
-                         f"({read_json(settings_path)}); use another --out")
-    write_json(settings_path, settings)
+    # a scenario is its fingerprint: a file changed under the same name is
+    # another run
+    settings = dict(config=config, device=str(device), seed=TEST_SEED,
+                    fingerprints={name: Scenario.load(name).fingerprint()
+                                  for name in config['scenarios'].values()})
+    claim_folder(out, settings)
     start = time.perf_counter()
     names = config['scenarios']
     los, nlos = load_datasets(

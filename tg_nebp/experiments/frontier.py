@@ -6,32 +6,31 @@ consistency and seconds per realization, and the Pareto-optimal points.
 Behind :obj:`tg-nebp frontier`, which writes :obj:`frontier.json` after
 every point (an interrupted run resumes where it stopped),
 :obj:`frontier.md` and :obj:`frontier.png`."""
+import contextlib
 import itertools
 import os
 import time
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
 
-from tg_nebp.evaluation import summarize_result, track_dataset
+from tg_nebp.evaluation import (CONFIDENCE_KEY, OUTAGE_KEY, summarize_result,
+                                track_dataset)
 from tg_nebp.filters import ParticleBP
-from tg_nebp.io import read_resumable, write_json
+from tg_nebp.datasets import Scenario, load_datasets
+from tg_nebp.io import NUMBER, read_resumable, write_json, write_text
 
 __all__ = ['GridPoint', 'grid', 'pareto_front', 'run_frontier',
-           'frontier_table', 'FRONTIER_VERSION']
+           'frontier_table', 'frontier', 'FRONTIER_VERSION']
 
-#: The format version of :obj:`frontier.json`.
-FRONTIER_VERSION = 1
-
-# what a point is ranked by: P_out(1 m) (lower is better) and the distance of
-# P(accept H0) at the 0.95 level from its ideal 0.95 (a filter that accepts
-# more often than that is overly conservative, not better)
-OUTAGE_KEY, CONFIDENCE_KEY = '1.0', '0.95'
+#: The format version of :obj:`frontier.json` (2: the settings hold the
+#: scenario's fingerprint).
+FRONTIER_VERSION = 2
 
 
 class GridPoint(dict):
     r"""One configuration of the grid: :obj:`particles`, :obj:`samples`,
     :obj:`resampler`, :obj:`regularize`, :obj:`ess_threshold`; its
-    :attr:`~tg_nebp.frontier.GridPoint.key` names it in
+    :attr:`~tg_nebp.experiments.frontier.GridPoint.key` names it in
     :obj:`frontier.json`."""
     @property
     def key(self) -> str:
@@ -81,9 +80,21 @@ def pareto_front(costs: Sequence[float],
 
 def _settings(dataset, seed: int, device: str, batch_size: int,
               compile: bool) -> dict:
+    # a scenario is its fingerprint (every generation parameter), not its
+    # name: a file changed under the same name is another scenario
     return dict(version=FRONTIER_VERSION, scenario=dataset.scenario.name,
+                fingerprint=dataset.scenario.fingerprint(),
                 realizations=len(dataset), seed=seed, device=device,
                 batch_size=batch_size, compile=compile)
+
+
+# what every point of frontier.json holds, as the table and figure read it
+POINT_SCHEMA = dict(outage={'0.5': NUMBER, '1.0': NUMBER, '2.0': NUMBER},
+                    accept={CONFIDENCE_KEY: NUMBER},
+                    seconds_per_realization=NUMBER, particles=int,
+                    samples=(int, str), resampler=str,
+                    regularize=(int, float, str, type(None)),
+                    ess_threshold=(int, float, type(None)))
 
 
 def _mark_fronts(points: Dict[str, dict]) -> None:
@@ -133,7 +144,10 @@ def run_frontier(points: Iterable[GridPoint], dataset, out: Path,
     """
     path = Path(out) / 'frontier.json'
     settings = _settings(dataset, seed, device, batch_size, compile)
-    result = read_resumable(path, settings, 'points', 'a frontier')
+    result = read_resumable(path, settings, 'points', 'a frontier',
+                            POINT_SCHEMA)
+    if result['points']:  # a file from before the marks, or edited
+        _mark_fronts(result['points'])
     scenario = dataset.scenario
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model, compile=compile)
@@ -187,3 +201,53 @@ def frontier_table(frontier: dict) -> str:
             f"{e['accept'][CONFIDENCE_KEY]:.3f} | "
             f"{e['seconds_per_realization']:.2f} | {marks} |")
     return '\n'.join(lines) + '\n'
+
+
+def frontier(particles: Sequence[int], samples: Sequence[Union[int, str]],
+             resamplers: Sequence[str] = ('multinomial', ),
+             regularize: Sequence[Union[float, str, None]] = (None, ),
+             ess_threshold: Sequence[Optional[float]] = (None, ),
+             scenario: Union[str, Scenario] = 'paper_test',
+             realizations: int = 20, seed: int = 0,
+             out: Union[str, Path] = 'results/frontier',
+             root: str = 'datasets', device: str = 'cpu',
+             batch_size: int = 1, compile: bool = False,
+             progress_factory: Optional[Callable] = None,
+             log: Callable = print) -> dict:
+    r"""Behind :obj:`tg-nebp frontier`: runs the :func:`grid` of the
+    options on :obj:`realizations` realizations of :obj:`scenario`
+    (:func:`run_frontier`, resumable) and writes :obj:`out/frontier.md`
+    (:func:`frontier_table`) and :obj:`out/frontier.png`
+    (:func:`~tg_nebp.plot.plot_frontier`).
+
+    Args:
+        progress_factory (callable, optional): :obj:`(total, description)`
+            to a context manager whose :obj:`update(n)` is called after
+            every time step, and whose :obj:`write`, when it has one,
+            replaces :obj:`log` (a progress bar). (default: :obj:`None`)
+        log (callable, optional): Receives one line per point.
+            (default: :obj:`print`)
+
+    Returns:
+        The content of :obj:`out/frontier.json`.
+    """
+    from tg_nebp.plot import plot_frontier
+
+    points = grid(particles, samples, resamplers, regularize, ess_threshold)
+    if not points:
+        raise ValueError('the grid is empty: every --samples M exceeds '
+                         'every --particles K')
+    dataset, = load_datasets(root, (scenario, realizations, seed))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    total = len(points) * len(dataset) * dataset.scenario.num_steps
+    bar = (progress_factory(total, f'frontier ({len(points)} points)')
+           if progress_factory is not None else None)
+    with (bar if bar is not None else contextlib.nullcontext()):
+        result = run_frontier(points, dataset, out, seed, device, batch_size,
+                              progress=getattr(bar, 'update', None),
+                              log=getattr(bar, 'write', log),
+                              compile=compile)
+    write_text(out / 'frontier.md', frontier_table(result))
+    plot_frontier(result, out / 'frontier.png')
+    return result

@@ -3,18 +3,18 @@ BP and NEBP on the same test realizations with the same prior particle
 draws, and write :obj:`metrics.json`, :obj:`report.md` and the figures
 :obj:`tracks.png`, :obj:`outage.png`, :obj:`consistency.png`. The preset
 :obj:`"beyond"` runs the experiments beyond the paper instead
-(:mod:`tg_nebp.beyond`)."""
+(:mod:`tg_nebp.experiments.equivariant_nebp`)."""
 import time
 from pathlib import Path
 from typing import Callable, Optional, Union
 
 import torch
 
-from tg_nebp.beyond import reproduce_beyond
-from tg_nebp.datasets import load_datasets
+from tg_nebp.experiments.equivariant_nebp import reproduce_beyond
+from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import NEBP, ParticleBP
-from tg_nebp.io import read_json, write_text
+from tg_nebp.io import claim_folder, read_json, write_text
 from tg_nebp.reference import PAPER_TABLE
 from tg_nebp.training import steps_per_epoch, train
 from tg_nebp.training_log import TrainingLog
@@ -36,10 +36,16 @@ PRESETS = {
     'paper': dict(particles=50_000, train_realizations=100,
                   val_realizations=10, epochs=10, batch_size=2, lr=1e-4,
                   test_realizations=400, eval_batch_size=4),
+    # the paper's K on a GPU in about a minute (benchmarks/gpu_check.sh):
+    # the whole path at the paper's size, with a short training
+    'paper-short': dict(particles=50_000, train_realizations=20,
+                        val_realizations=4, epochs=2, batch_size=2,
+                        lr=1e-4, test_realizations=8, eval_batch_size=4),
 }
 #: The names of the presets, the paper's experiment at the sizes above and
 #: 'beyond' (the equivariant NEBP at several K, on marginalized BP and
-#: under NLOS mismatch; tg_nebp.beyond, its sizes in BEYOND by device).
+#: under NLOS mismatch; tg_nebp.experiments.equivariant_nebp, its sizes
+#: in BEYOND by device).
 PRESET_NAMES = sorted([*PRESETS, 'beyond'])
 
 
@@ -84,7 +90,8 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
               compile: bool = False, num_samples: Union[int, str] = 1
               ) -> dict:
     r"""Runs the whole experiment of :obj:`preset` (see :obj:`PRESETS`;
-    :obj:`"beyond"` runs :func:`~tg_nebp.beyond.reproduce_beyond`) and
+    :obj:`"beyond"` runs
+    :func:`~tg_nebp.experiments.equivariant_nebp.reproduce_beyond`) and
     writes its results to :obj:`out`; returns :obj:`metrics.json`'s
     content. :obj:`num_samples` is both trackers' number of sender samples
     per BP message (see :class:`~tg_nebp.filters.ParticleBP`).
@@ -104,6 +111,11 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
     config = PRESETS[preset]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    names = ('paper_train', 'paper_test')
+    claim_folder(out, dict(preset=preset, config=config, device=str(device),
+                           compile=compile, num_samples=num_samples,
+                           fingerprints={n: Scenario.load(n).fingerprint()
+                                         for n in names}))
     start = time.perf_counter()
     k = config['particles']
 

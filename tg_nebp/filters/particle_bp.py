@@ -166,8 +166,8 @@ class ParticleBP(Tracker):
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization` with :math:`N`
           nodes and :math:`T` steps
-        - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean :math:`(N, T, 4)` and
-          covariance :math:`(N, T, 4, 4)`
+        - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean
+          :math:`(N, T, S)` and covariance :math:`(N, T, S, S)`
     """
     def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
                  motion: Optional[MotionModel] = None,
@@ -377,8 +377,9 @@ class ParticleBP(Tracker):
 
     def steps(self, data: Realization,
               generator: Generators = None) -> Iterator[StepOutput]:
-        r"""Runs the time loop lazily, yielding a :class:`~tg_nebp.filters.StepOutput` per
-        time step (training takes an optimizer step between them).
+        r"""Runs the time loop lazily, yielding a
+        :class:`~tg_nebp.filters.StepOutput` per time step (training takes an
+        optimizer step between them).
 
         Args:
             data (Realization): A single or batched realization.

@@ -69,7 +69,8 @@ class Tracker(torch.nn.Module):
     def check(self, data: Realization) -> None:
         r"""Checks a realization (:func:`~tg_nebp.data.check_realization`
         with the link features the measurement model reads) and that its
-        states have the motion model's dimension (:func:`~tg_nebp.filters.check_state_dim`)."""
+        states have the motion model's dimension
+        (:func:`~tg_nebp.filters.check_state_dim`)."""
         check_realization(data, self.measurement.features)
         check_state_dim(data.prior_mean.size(1), self.motion)
 
