@@ -178,6 +178,18 @@ CASES: Dict[str, Prepare] = {
     'compare-missing-checkpoint': argv_only(
         ['compare', '--checkpoint', 'absent.pt', '--realizations', '1',
          '--quiet'], ['absent.pt']),
+    # parameters accepted before that broke the numbers later, blaming
+    # something else
+    'regularize-huge': argv_only(['evaluate', '--regularize', '1e30'],
+                                 ['--regularize']),
+    'lr-inf': argv_only(TRAIN + ['--lr', 'inf'], ['--lr']),
+    'lr-huge': argv_only(TRAIN + ['--lr', '1e6'], ['--lr']),
+    'scenario-student-t-nu-tiny': scenario_file(assign('measurement', dict(
+        name='student-t', params=dict(sigma=1.0, nu=0.05))), "'nu'"),
+    'scenario-student-t-nu-huge': scenario_file(assign('measurement', dict(
+        name='student-t', params=dict(sigma=1.0, nu=1e300))), "'nu'"),
+    'scenario-nlos-bias-tiny': scenario_file(assign('measurement', dict(
+        name='nlos', params=dict(sigma=1.0, bias_mean=1e-9))), "'bias_mean'"),
 }
 
 

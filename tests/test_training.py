@@ -454,3 +454,55 @@ def test_optimizer_and_loss_can_be_replaced():
     train(b, data, epochs=1, batch_size=1, optimizer=adam(1e-3),
           loss=step_loss)
     assert states_equal(a.state_dict(), b.state_dict())
+
+
+@pytest.mark.parametrize('drop', ['variant', 'position_dim'])
+def test_older_checkpoints_resume_as_what_they_meant(tmp_path, drop):
+    # version 2 lacks the variant (the paper's), checkpoints from before
+    # 3-D lack position_dim (2-D): both resume, to the uninterrupted run
+    data = tiny_data(2)
+    path = tmp_path / 'm.pt'
+    whole = make_model(6)
+    history = train(whole, data, data[:1], epochs=2, batch_size=2, lr=1e-2,
+                    checkpoint=tmp_path / 'whole.pt')
+    train(make_model(6), data, data[:1], epochs=1, batch_size=2, lr=1e-2,
+          checkpoint=path)
+    state = torch.load(path, weights_only=True)
+    del state['config'][drop]
+    if drop == 'variant':
+        state['version'] = 2
+    torch.save(state, path)
+    resumed = make_model(7)
+    assert train(resumed, data, data[:1], epochs=2, batch_size=2, lr=1e-2,
+                 checkpoint=path, resume=True) == history
+    assert states_equal(resumed.state_dict(), whole.state_dict())
+
+
+@pytest.mark.parametrize('damage, message', [
+    (lambda h: h[0].pop('val_loss'), "no number 'val_loss'"),
+    (lambda h: h[0].update(train_loss='low'), "no number 'train_loss'"),
+    (lambda h: h.__setitem__(0, 'epoch 0'), "no number 'epoch'"),
+    (lambda h: h[0].update(epoch=3), 'is epoch 3'),
+])
+def test_a_damaged_history_is_one_clear_error(tmp_path, damage, message):
+    data = tiny_data(2)
+    path = tmp_path / 'm.pt'
+    train(make_model(6), data, data[:1], epochs=1, batch_size=2, lr=1e-2,
+          checkpoint=path)
+    state = torch.load(path, weights_only=True)
+    damage(state['progress']['history'])
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=f"m.pt': .*{message}"):
+        train(make_model(6), data, data[:1], epochs=2, batch_size=2,
+              lr=1e-2, checkpoint=path, resume=True)
+
+
+def test_a_checkpoint_without_optimizer_state_is_not_resumed(tmp_path):
+    data = tiny_data(2)
+    path = tmp_path / 'm.pt'
+    model = make_model(6)
+    save_checkpoint(path, model, progress=dict(seed=0, batch_size=2,
+                                               lr=1e-2, history=[]))
+    with pytest.raises(ValueError, match='can be evaluated, not resumed'):
+        train(make_model(6), data, epochs=1, batch_size=2, lr=1e-2,
+              checkpoint=path, resume=True)

@@ -16,10 +16,12 @@ from tg_nebp.experiments.frontier import frontier
 from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.experiments.train import train_scenario
 from tg_nebp.filters.nebp import VARIANTS
+from tg_nebp.filters.particle_bp import MAX_BANDWIDTH
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
 from tg_nebp.models import MODELS
 from tg_nebp.threads import threads_in_force
+from tg_nebp.training import MAX_LR
 from tg_nebp.utils import joined_process_group, process_group
 
 __all__ = ['main']
@@ -58,14 +60,30 @@ def _samples(text: str):
     return _positive(text)
 
 
+def _within(low: float, high: float) -> Callable:
+    # the argparse type of a finite number in (low, high]
+    def parse(text: str) -> float:
+        value = _number(text)
+        if not low < value <= high:
+            raise argparse.ArgumentTypeError(f'must lie in ({low:g}, '
+                                             f'{high:g}], got {text}')
+        return value
+
+    return parse
+
+
+_learning_rate = _within(0.0, MAX_LR)
+
+
 def _bandwidth(text: str):
     if text == 'silverman':
         return text
     try:
-        return float(text)
+        float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a number or 'silverman', "
                                          f"got '{text}'") from None
+    return _within(0.0, MAX_BANDWIDTH)(text)
 
 
 def _grid_bandwidth(text: str):
@@ -376,7 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help='realizations per batch, over all processes; under '
                     'torchrun a multiple of N dividing --realizations '
                     '(default: 2)')
-    tr.add_argument('--lr', type=float, default=1e-4)
+    tr.add_argument('--lr', type=_learning_rate, default=1e-4,
+                    help=f'Adam learning rate, in (0, {MAX_LR:g}] '
+                    f'(default: 1e-4)')
     tr.add_argument('--iterations', type=_positive, default=1,
                     help='NEBP iterations per step (default: 1)')
     tr.add_argument('--seed', type=_non_negative, default=1,

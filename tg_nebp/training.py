@@ -22,12 +22,17 @@ from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP
+from tg_nebp.data.validation import check_number
 from tg_nebp.io import atomic_write, first_line, one_line
 from tg_nebp.utils import derive_seed, process_group
 
 __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
            'position_loss', 'save_checkpoint', 'load_checkpoint',
-           'nebp_from_checkpoint', 'CHECKPOINT_VERSION']
+           'nebp_from_checkpoint', 'checkpoint_history', 'CHECKPOINT_VERSION',
+           'MAX_LR']
+
+#: The largest learning rate :func:`train` accepts.
+MAX_LR = 1.0
 
 CHECKPOINT_FORMAT = 'tg_nebp.nebp'
 # 2: models stored as {'name': ..., 'params': ...}
@@ -243,9 +248,12 @@ def _resume(checkpoint, model: NEBP, optimizer, settings: dict
         raise ValueError(f"--resume needs an existing checkpoint, got "
                          f"'{checkpoint}'")
     state = load_checkpoint(checkpoint)
-    if state['config'] != model.config():
+    # an older checkpoint resumes as what it meant (version 2: the paper
+    # variant; before 3-D: positions in 2-D)
+    if NEBP.upgraded_config(state['config']) != model.config():
         raise ValueError(f"checkpoint '{checkpoint}' was written for "
                          f"another configuration: {state['config']}")
+    history = checkpoint_history(state, checkpoint)
     saved = state['progress']
     for key, value in settings.items():
         if saved.get(key) != value:
@@ -253,9 +261,42 @@ def _resume(checkpoint, model: NEBP, optimizer, settings: dict
                              f"with {key} = {saved.get(key)}, not "
                              f"{value}: resuming would not continue "
                              f"the same run")
+    if not isinstance(state.get('optimizer'), dict):
+        raise ValueError(f"checkpoint '{checkpoint}' holds no optimizer "
+                         f"state: it can be evaluated, not resumed")
     model.load_state_dict(state['model'])
     optimizer.load_state_dict(state['optimizer'])
-    return list(saved.get('history', []))
+    return history
+
+
+def checkpoint_history(state: Union[dict, str, Path],
+                       path: Optional[Union[str, Path]] = None
+                       ) -> List[Dict]:
+    r"""The training history of a checkpoint (a path, or the state that
+    :func:`load_checkpoint` read from :obj:`path`): one
+    :obj:`{"epoch", "train_loss", "val_loss"}` per finished epoch, checked,
+    so that a damaged history is an error naming the checkpoint and the
+    field rather than a :class:`KeyError` in a resumed run."""
+    if not isinstance(state, dict):
+        state, path = load_checkpoint(state), state
+    progress = state.get('progress')
+    history = progress.get('history', []) if isinstance(progress,
+                                                         dict) else None
+    if not isinstance(history, list):
+        raise ValueError(f"checkpoint '{path}': its training history is not "
+                         f"a list")
+    for index, entry in enumerate(history):
+        for field in ('epoch', 'train_loss', 'val_loss'):
+            value = entry.get(field) if isinstance(entry, dict) else None
+            if isinstance(value, bool) or not isinstance(value,
+                                                         (int, float)):
+                raise ValueError(f"checkpoint '{path}': epoch {index} of its "
+                                 f"training history has no number "
+                                 f"'{field}' ({entry!r})")
+        if entry['epoch'] != index:
+            raise ValueError(f"checkpoint '{path}': entry {index} of its "
+                             f"training history is epoch {entry['epoch']}")
+    return history
 
 
 def steps_per_epoch(num_realizations: int, batch_size: int,
@@ -372,9 +413,12 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
         The history: one :obj:`{"epoch", "train_loss", "val_loss"}` per
         epoch.
     """
-    if epochs < 1 or batch_size < 1 or not lr > 0:
-        raise ValueError(f"'epochs' and 'batch_size' must be positive and "
-                         f"'lr' > 0, got {epochs}, {batch_size}, {lr}")
+    if epochs < 1 or batch_size < 1:
+        raise ValueError(f"'epochs' and 'batch_size' must be positive, got "
+                         f"{epochs}, {batch_size}")
+    # Adam's step is about lr per parameter: beyond MAX_LR the weights and
+    # then the messages leave every meaningful range
+    check_number(lr, 'lr', maximum=MAX_LR)
     world_size, rank = process_group()
     _check_global_batches(len(train_set), batch_size, world_size)
     model.to(device)

@@ -62,11 +62,12 @@ def check_positive_int(value, name: str) -> int:
 
 
 def check_number(value, name: str, minimum: float = 0.0,
-                 inclusive: bool = False) -> float:
+                 inclusive: bool = False,
+                 maximum: float = math.inf) -> float:
     r"""Returns :obj:`value` as a :obj:`float` if it is a finite real number
-    above :obj:`minimum` (or equal to it, if :obj:`inclusive`); a string or
-    a bool is a :class:`TypeError`, anything else out of range a
-    :class:`ValueError`, both naming :obj:`name`."""
+    above :obj:`minimum` (or equal to it, if :obj:`inclusive`) and at most
+    :obj:`maximum`; a string or a bool is a :class:`TypeError`, anything
+    else out of range a :class:`ValueError`, both naming :obj:`name`."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise TypeError(f"'{name}' must be a number, got {value!r}")
     above = value >= minimum if inclusive else value > minimum
@@ -74,6 +75,9 @@ def check_number(value, name: str, minimum: float = 0.0,
         bound = 'at least' if inclusive else 'above'
         raise ValueError(f"'{name}' must be a finite number {bound} "
                          f"{minimum}, got {value}")
+    if value > maximum:
+        raise ValueError(f"'{name}' must be at most {maximum:g}, got "
+                         f"{value}")
     return float(value)
 
 

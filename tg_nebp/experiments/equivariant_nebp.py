@@ -23,7 +23,7 @@ from tg_nebp.io import (atomic_write, claim_folder, read_json, write_json,
                         write_text)
 from tg_nebp.models import model_like
 from tg_nebp.reference import PAPER_TABLE
-from tg_nebp.training import (load_checkpoint, nebp_from_checkpoint,
+from tg_nebp.training import (checkpoint_history, nebp_from_checkpoint,
                               steps_per_epoch, train)
 from tg_nebp.training_log import TrainingLog
 
@@ -92,8 +92,7 @@ def _train_arm(name: str, arm: dict, config: dict, root: str, device: str,
                  **options)
     checkpoint = out / name / 'nebp.pt'
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
-    previous = (load_checkpoint(checkpoint)['progress']['history']
-                if checkpoint.exists() else [])
+    previous = checkpoint_history(checkpoint) if checkpoint.exists() else []
     done = len(previous)
     log(f"training the equivariant NEBP '{name}' (K="
         f"{config['train_particles']}, {len(train_set)} realizations of "

@@ -11,7 +11,7 @@ import torch
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.experiments.evaluate import tracker_measurement
 from tg_nebp.filters import NEBP
-from tg_nebp.training import load_checkpoint, steps_per_epoch, train
+from tg_nebp.training import checkpoint_history, steps_per_epoch, train
 from tg_nebp.training_log import TrainingLog
 from tg_nebp.utils import process_group
 
@@ -74,7 +74,7 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
                  variant=variant, position_dim=scenario.position_dim)
     checkpoint = Path(out) / 'nebp.pt'
     steps = steps_per_epoch(len(train_set), batch_size, scenario.num_steps)
-    done = (load_checkpoint(checkpoint)['progress'].get('history', [])
+    done = (checkpoint_history(checkpoint)
             if resume and checkpoint.exists() else [])
     log = (TrainingLog(log_dir, steps, done)
            if log_dir is not None and rank == 0 else None)

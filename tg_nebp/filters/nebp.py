@@ -154,6 +154,14 @@ class NEBP(ParticleBP):
                     motion=self.motion.config(),
                     measurement=self.measurement.config())
 
+    @staticmethod
+    def upgraded_config(config: dict) -> dict:
+        r"""A configuration of an older checkpoint with the entries added
+        since at the values those checkpoints meant: no :obj:`variant`
+        (checkpoint version 2) is the paper's, no :obj:`position_dim` is
+        2-D. A current configuration is returned unchanged."""
+        return {'variant': 'paper', 'position_dim': 2, **config}
+
     @classmethod
     def from_config(cls, config: dict, **options) -> 'NEBP':
         r"""Rebuilds a tracker from :meth:`config`; :obj:`options` are
@@ -163,7 +171,7 @@ class NEBP(ParticleBP):
         the equivariant variant, :obj:`num_particles`). A configuration
         without a :obj:`variant` (checkpoint version 2) is the paper's, one
         without :obj:`position_dim` is 2-D."""
-        config = {**config, **options}
+        config = {**cls.upgraded_config(config), **options}
         motion = model_from_config(config.pop('motion', None), 'motion')
         measurement = model_from_config(config.pop('measurement', None),
                                         'measurement')

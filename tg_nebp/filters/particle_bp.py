@@ -26,6 +26,8 @@ __all__ = ['ParticleBP', 'weighted_moments',
 
 Generators = Union[torch.Generator, Sequence[torch.Generator], None]
 
+#: The largest regularization bandwidth :math:`h` a tracker accepts.
+MAX_BANDWIDTH = 10.0
 # ParticleBP.recommended(): chosen from the frontier (see its docstring)
 RECOMMENDED = dict(num_particles=500, num_samples=32, regularize='silverman')
 
@@ -150,8 +152,9 @@ class ParticleBP(Tracker):
         regularize (float or str, optional): Regularized resampling: after
             resampling, every particle is moved by Gaussian noise with
             covariance :math:`h^2` times the node's weighted particle
-            covariance; :obj:`"silverman"` takes :math:`h` from
-            :func:`~tg_nebp.filters.silverman_bandwidth`.
+            covariance (:math:`0 < h \le 10`); :obj:`"silverman"` takes
+            :math:`h` from :func:`~tg_nebp.filters.silverman_bandwidth`
+            (about 0.3-0.5 at the paper's :math:`K`).
             (default: :obj:`None`, the paper's plain resampling)
         ess_threshold (float, optional): Resample a node only when its
             effective sample size falls below this fraction of :math:`K`;
@@ -197,7 +200,10 @@ class ParticleBP(Tracker):
                 f"extrinsic messages without the overcount", stacklevel=2)
         self.ends = ends
         if regularize is not None and regularize != 'silverman':
-            regularize = check_number(regularize, 'regularize')
+            # a bandwidth is relative to the particle spread: beyond
+            # MAX_BANDWIDTH the jitter swamps the belief it regularizes
+            regularize = check_number(regularize, 'regularize',
+                                      maximum=MAX_BANDWIDTH)
         if ess_threshold is not None:
             ess_threshold = check_number(ess_threshold, 'ess_threshold')
             if ess_threshold > 1:

@@ -17,6 +17,13 @@ from tg_nebp.models.base import LOG_SQRT_2PI, RangeModel, redraw_negative
 __all__ = ['GaussianRange', 'StudentTRange', 'NLOSRange']
 
 
+#: The degrees of freedom that :class:`StudentTRange` accepts.
+NU_RANGE = (1.0, 1e6)
+#: The ratios of the NLOS bias mean to sigma that :class:`NLOSRange`
+#: accepts.
+BIAS_RATIO = (1e-6, 1e6)
+
+
 def _check_sigma(sigma) -> float:
     sigma = check_number(sigma, 'sigma')
     # the likelihoods scale squared residuals by 1 / (2 sigma^2): an
@@ -152,7 +159,15 @@ class StudentTRange(RangeModel, name='student-t'):
                  max_range: float = 20.0):
         super().__init__(max_range)
         self.sigma = _check_sigma(sigma)
-        self.nu = check_number(nu, 'nu')
+        nu = check_number(nu, 'nu')
+        # below 1 the tails are so heavy that generated ranges overflow;
+        # above 1e6 the float32 likelihood rounds away what sets it apart
+        # from GaussianRange, which is then the model to use
+        if not NU_RANGE[0] <= nu <= NU_RANGE[1]:
+            raise ValueError(f"'nu' must lie within [{NU_RANGE[0]:g}, "
+                             f"{NU_RANGE[1]:g}] (above, use GaussianRange), "
+                             f"got {nu}")
+        self.nu = nu
 
     def params(self) -> dict:
         return dict(sigma=self.sigma, nu=self.nu, max_range=self.max_range)
@@ -252,6 +267,13 @@ class NLOSRange(RangeModel, name='nlos'):
             raise ValueError(f"'p_nlos' must lie in [0, 1], got {p_nlos}")
         self.p_nlos = p_nlos
         self.bias_mean = check_number(bias_mean, 'bias_mean')
+        # beyond these ratios float32 cannot hold the likelihood's terms
+        # (rate sigma overflows, or the NLOS component is a Gaussian)
+        ratio = self.bias_mean / self.sigma
+        if not BIAS_RATIO[0] <= ratio <= BIAS_RATIO[1]:
+            raise ValueError(f"'bias_mean' must lie within "
+                             f"[{BIAS_RATIO[0]:g}, {BIAS_RATIO[1]:g}] times "
+                             f"'sigma', got {bias_mean} (sigma {sigma})")
         if not isinstance(oracle, bool):
             raise TypeError(f"'oracle' must be a bool, got {oracle!r}")
         self.oracle = oracle
@@ -274,15 +296,18 @@ class NLOSRange(RangeModel, name='nlos'):
         scaled = x / sigma
         log_los = -0.5 * scaled * scaled - math.log(sigma) - LOG_SQRT_2PI
         u = (rate * sigma**2 - x) / (math.sqrt(2) * sigma)
-        # log erfc(u) without underflow: erfcx for u > 0 (inputs clamped to
-        # each branch, so neither branch makes an inf or NaN gradient)
+        # for u > 0, erfc(u) = erfcx(u) exp(-u^2), and the exponent
+        # rate (rate sigma^2 - 2 x) / 2 - u^2 is exactly -x^2 / (2 sigma^2):
+        # written so, nothing cancels (the two terms are each about
+        # (rate sigma)^2 / 2, which float32 cannot subtract for a small
+        # bias). Inputs are clamped to each branch, so neither branch makes
+        # an inf or NaN gradient.
         positive, negative = u.clamp_min(0.0), u.clamp_max(0.0)
-        log_erfc = torch.where(
+        log_nlos = math.log(rate / 2) + torch.where(
             u > 0,
-            torch.log(torch.special.erfcx(positive)) - positive * positive,
+            torch.log(torch.special.erfcx(positive)) - 0.5 * scaled * scaled,
+            0.5 * rate * (rate * sigma**2 - 2 * x) +
             torch.log(torch.special.erfc(negative)))
-        log_nlos = (math.log(rate / 2) + 0.5 * rate *
-                    (rate * sigma**2 - 2 * x) + log_erfc)
         if self.oracle:
             return torch.where(z[:, 1:2] > 0.5, log_nlos, log_los)
         p = self.p_nlos
