@@ -23,7 +23,7 @@ from tg_nebp.training import (_check_global_batches, _local_batches,
 
 from tg_nebp.training_log import read_training_log
 
-from helpers import torchrun
+from helpers import tiny_scenario, torchrun
 
 def realizations(count, steps=8, offset=0, dtype=torch.float32):
     scenario = Scenario.load('paper_train').replace(num_steps=steps)
@@ -232,6 +232,25 @@ def test_torchrun_cli_trains_as_one_process(tmp_path, capsys):
                          a['progress']['history']):
         for loss in ('train_loss', 'val_loss'):
             assert math.isclose(got[loss], want[loss], rel_tol=1e-5)
+
+
+def test_a_bad_scenario_under_torchrun_is_one_line_on_every_rank(tmp_path):
+    fields = vars(tiny_scenario(steps=2))
+    fields['num_agents'] = 2.5
+    bad = tmp_path / 'bad.json'
+    bad.write_text(json.dumps(fields))
+    done = torchrun('-m', 'tg_nebp', 'evaluate', '--scenario', bad,
+                    '--realizations', '2', '--particles', '8', '--quiet',
+                    '--root', tmp_path / 'data', '--out', tmp_path / 'out',
+                    check=False)
+    assert done.returncode != 0
+    # the workers' lines (the launcher adds its own report after them)
+    lines = [line for line in (done.stdout + done.stderr).splitlines()
+             if line.startswith('error:')]
+    assert len(lines) == 2, done.stdout + done.stderr
+    assert all("'num_agents' must be an integer" in line for line in lines)
+    assert 'Connection reset' not in done.stdout + done.stderr
+    assert not (tmp_path / 'out' / 'metrics.json').exists()
 
 
 if __name__ == '__main__':  # the float64 worker of torchrun

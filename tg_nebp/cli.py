@@ -10,6 +10,7 @@ from typing import Callable, List, NoReturn, Optional
 import torch
 from tqdm import tqdm
 
+from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
 from tg_nebp.experiments.evaluate import evaluate_scenario
 from tg_nebp.experiments.frontier import frontier
@@ -499,7 +500,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(cp)
     cp.set_defaults(run=_compare)
 
-    from tg_nebp.experiments.bench import add_arguments, run_bench
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '
                            'tracker on the test network')
     add_arguments(bench)
@@ -574,6 +574,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             return args.run(args)
     except ValueError as e:  # bad input: a clear message, no traceback
         return _print_error(e)
+    except BenchFailed as e:  # measurements that failed, each in the table
+        _print_error(e)
+        return 1
     except OSError as e:  # a file or folder that cannot be read or written
         where = f" '{e.filename}'" if e.filename else ''
         return _print_error(f'{e.strerror or e}{where}')

@@ -2,6 +2,7 @@ r"""Tests of :mod:`tg_nebp.experiments.bench`: the figures describe the
 graph that was measured, measurements that would not fit are skipped (not
 killed), and the command line prints one JSON object per measurement."""
 import json
+import queue as queue_module
 
 import pytest
 
@@ -49,3 +50,55 @@ def test_cli_prints_one_json_object_per_measurement(capsys):
 def test_cli_rejects_non_positive_sizes(capsys):
     assert main(['bench', '--agents', '0']) == 2
     assert "'--agents' must be positive" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--samples', '16', '--particles', '8', '100'], "'--samples' [16]"),
+    (['--chunk-size', '0'], "'--chunk-size' must be positive"),
+])
+def test_options_are_checked_before_any_process(argv, message, capsys,
+                                                monkeypatch):
+    monkeypatch.setattr(bench.multiprocessing, 'get_context', None)
+    assert main(['bench', *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+class InlineContext:
+    r"""A multiprocessing context whose processes run their target at
+    start, in this process (so that a patched :func:`bench.measure`
+    holds)."""
+    Queue = staticmethod(queue_module.Queue)
+
+    class Process:
+        def __init__(self, target, args):
+            self.target, self.args, self.exitcode = target, args, 0
+
+        def start(self):
+            self.target(*self.args)
+
+        def is_alive(self):
+            return False
+
+        def join(self):
+            pass
+
+
+def test_a_failed_measurement_is_a_row_and_fails_the_bench(capsys,
+                                                           monkeypatch):
+    def measure(operation, *args):
+        if operation == 'naive':
+            raise RuntimeError('out of luck\nsecond line')
+        return dict(forward_ms=1.0)
+
+    monkeypatch.setattr(bench, 'measure', measure)
+    monkeypatch.setattr(bench.multiprocessing, 'get_context',
+                        lambda method: InlineContext)
+    assert main(['bench', '--ops', 'bp', 'naive', 'tracker', '--particles',
+                 '8', '--threads', '1']) == 1
+    captured = capsys.readouterr()
+    rows = captured.out.strip().splitlines()[1:]
+    assert len(rows) == 3
+    assert rows[1].endswith('failed: RuntimeError: out of luck')
+    assert captured.err.strip().splitlines() == [
+        'error: 1 of 3 measurements failed (see the table)']

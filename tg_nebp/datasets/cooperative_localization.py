@@ -230,12 +230,27 @@ def load_datasets(root: str, *specs: Tuple[Union[str, Scenario], int, int]
     them, so concurrent processes never write the same file. Used by
     :obj:`tg-nebp train`, :obj:`evaluate` and :obj:`reproduce`."""
     world_size, rank = process_group()
-    distributed = world_size > 1
-    if rank > 0:
-        dist.barrier()
-    datasets = [CooperativeLocalizationDataset(root, scenario, count, seed,
+
+    def load():
+        return [CooperativeLocalizationDataset(root, scenario, count, seed,
                                                log=False)
                 for scenario, count, seed in specs]
-    if rank == 0 and distributed:
-        dist.barrier()
-    return datasets
+
+    if world_size == 1:
+        return load()
+    # rank 0 tells the others whether it could: a bad scenario is then one
+    # error line on every rank, not a broken connection on the others
+    outcome = [None]
+    if rank == 0:
+        try:
+            datasets = load()
+        except (ValueError, OSError) as e:
+            outcome[0] = str(e)
+        dist.broadcast_object_list(outcome, src=0)
+        if outcome[0] is not None:
+            raise ValueError(outcome[0])
+        return datasets
+    dist.broadcast_object_list(outcome, src=0)
+    if outcome[0] is not None:
+        raise ValueError(f'rank 0 could not make the data: {outcome[0]}')
+    return load()

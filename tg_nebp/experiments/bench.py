@@ -31,10 +31,12 @@ from typing import Callable, Optional, Union
 
 import torch
 
+from tg_nebp.io import first_line
 from tg_nebp.threads import ThreadGovernor
 from tg_nebp.utils import free_memory_bytes
 
-__all__ = ['add_arguments', 'run_bench', 'measure', 'OPERATIONS']
+__all__ = ['add_arguments', 'run_bench', 'measure', 'BenchFailed',
+           'OPERATIONS']
 
 OPERATIONS = ('bp', 'naive', 'nebp', 'tracker')
 
@@ -299,7 +301,12 @@ def measure(operation: str, num_agents: int, num_particles: int,
 
 
 def _child(queue, *args):
-    queue.put(measure(*args))
+    # an error is a result (one line in the table), not a traceback
+    try:
+        figures = measure(*args)
+    except Exception as e:  # noqa: BLE001 - any failure of the measurement
+        figures = dict(failed=f'failed: {type(e).__name__}: {first_line(e)}')
+    queue.put(figures)
 
 
 def _result(queue, child) -> dict:
@@ -334,9 +341,17 @@ def _row(f: dict) -> str:
             f"{num('forward_backward_peak_mb', '11.1f')}")
 
 
+class BenchFailed(RuntimeError):
+    r"""Some measurements of :func:`run_bench` failed; the command line
+    exits with status 1."""
+
+
 def run_bench(args) -> int:
     r"""Runs :func:`measure` for every (agents, :math:`K`, operation), each
-    in a fresh process, and prints a table (or JSON lines)."""
+    in a fresh process, and prints a table (or JSON lines). The options are
+    checked before the first process starts (a :class:`ValueError`); a
+    measurement that fails is a row of the table, and then
+    :class:`BenchFailed` once all have run."""
     for name in ('agents', 'particles', 'samples'):
         if any(v < 1 for v in getattr(args, name)):
             raise ValueError(f"'--{name}' must be positive, got "
@@ -344,6 +359,16 @@ def run_bench(args) -> int:
     if args.batch < 1 or args.repeats < 1 or args.steps < 1:
         raise ValueError("'--batch', '--repeats' and '--steps' must be "
                          "positive")
+    if args.chunk_size is not None and args.chunk_size < 1:
+        raise ValueError(f"'--chunk-size' must be positive, got "
+                         f"{args.chunk_size}")
+    # every option is checked here, before the first measurement process
+    # starts: an M above a K would fail in each of them
+    too_many = [m for m in args.samples if m > min(args.particles)]
+    if too_many:
+        raise ValueError(f"'--samples' {too_many} exceed the smallest "
+                         f"'--particles' {min(args.particles)}: a message "
+                         f"draws at most K sender particles")
     context = multiprocessing.get_context('spawn')
     if not args.json:
         print(f"{'agents':>7} {'B':>3} {'E':>8} {'K':>7} {'M':>4} "
@@ -355,6 +380,7 @@ def run_bench(args) -> int:
             for samples in args.samples for operation in args.ops
             # the naive baseline pairs: measured once per K
             if not (operation == 'naive' and samples != args.samples[0])]
+    failed = 0
     for num_agents, num_particles, num_samples, operation in grid:
         queue = context.Queue()
         child = context.Process(
@@ -373,4 +399,8 @@ def run_bench(args) -> int:
                        **figures)
         print(json.dumps(figures) if args.json else _row(figures),
               flush=True)
+        failed += 'failed' in figures
+    if failed:
+        raise BenchFailed(f'{failed} of {len(grid)} measurements failed '
+                          f'(see the table)')
     return 0
