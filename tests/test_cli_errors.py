@@ -190,6 +190,11 @@ CASES: Dict[str, Prepare] = {
         name='student-t', params=dict(sigma=1.0, nu=1e300))), "'nu'"),
     'scenario-nlos-bias-tiny': scenario_file(assign('measurement', dict(
         name='nlos', params=dict(sigma=1.0, bias_mean=1e-9))), "'bias_mean'"),
+    # networks and particle counts that need terabytes: refused up front
+    'scenario-terabytes': scenario_file(assign('num_agents', 10**9),
+                                        "'num_agents'"),
+    'particles-terabytes': argv_only(EVALUATE + ['--particles', str(10**9)],
+                                     ["'particles'"]),
 }
 
 

@@ -331,3 +331,16 @@ def test_three_dimensional_network_grows_on_the_horizontal_plane():
     assert grown.agent_start_low == (20.0, 20.0, 2.0)
     assert grown.agent_start_high == (180.0, 180.0, 18.0)
     assert grown.num_anchors > 4 * 13 - 13
+
+
+def test_a_realization_that_cannot_fit_is_refused_before_any_work():
+    scenario = Scenario.load('paper_test')
+    needed = scenario.realization_bytes()
+    # states alone: 113 nodes x 50 steps x 4 entries in float64 and float32
+    assert needed >= 113 * 50 * 4 * 12
+    scenario.check_memory(free=needed)
+    with pytest.raises(ValueError, match="needs at least .* GiB.*lower "
+                       "'num_agents' or 'num_steps'"):
+        scenario.check_memory(free=needed - 1)
+    with pytest.raises(ValueError, match='1000000000 agents'):
+        scenario.replace(num_agents=10**9).generate(torch.Generator())

@@ -854,3 +854,15 @@ def test_three_dimensional_tracking_batches_and_localizes(options):
                                rtol=1e-4, atol=1e-4)
     errors = (alone[1].mean[..., :3] - large.states[..., :3]).norm(dim=-1)
     assert float(errors[~large.anchor, -1].mean()) < 2.0
+
+
+def test_particles_that_cannot_fit_are_refused_before_any_work():
+    bp = ParticleBP(1000)
+    needed = 113 * 1000 * (3 * 4 + 2) * 4
+    bp.check_memory(113, 4, torch.float32, free=needed)
+    with pytest.raises(ValueError, match="1000 particles on 113 nodes need "
+                       "at least"):
+        bp.check_memory(113, 4, torch.float32, free=needed - 1)
+    # float64 doubles it
+    with pytest.raises(ValueError):
+        bp.check_memory(113, 4, torch.float64, free=needed)

@@ -114,3 +114,17 @@ def test_model_like_keeps_shared_parameters():
         0.7, 3.0, 15.0)  # nu: the model's default
     with pytest.raises(ValueError, match="unknown measurement model 'x'"):
         model_like('x', 'measurement', nlos)
+
+
+@pytest.mark.parametrize('config, role, message', [
+    ({'name': 'gaussian', 'params': {}}, 'sensor',
+     "unknown model role 'sensor'; the roles are"),
+    ({'name': ['gaussian'], 'params': {}}, 'measurement',
+     "must be {'name': <str>"),
+    ({'name': 'gaussian', 'params': {'sigma': 'one'}}, 'measurement',
+     "'sigma' must be a number"),
+])
+def test_model_from_config_errors_name_the_field(config, role, message):
+    from tg_nebp.models import model_from_config
+    with pytest.raises((ValueError, TypeError), match=message):
+        model_from_config(config, role)

@@ -100,3 +100,24 @@ def test_own_models_work_everywhere(tmp_path):
         reloaded, data, batch_size=2, seed=0).items()
         if k in ('errors', 'nees')})
     assert 0 <= entry['outage']['1.0'] <= 1
+
+
+def test_a_likelihood_of_the_wrong_shape_names_the_model_and_shape():
+    class SummedRange(RangeModel, name='test-summed-range'):
+        # sums over the particles: one number per link instead of K
+        def params(self):
+            return dict(max_range=self.max_range)
+
+        def log_likelihood_of_distance(self, z, distances):
+            return -(z[:, :1] - distances).square().sum(-1)
+
+    data = tiny_scenario(steps=2).generate(gen(3))
+    for grad in (False, True):
+        with torch.set_grad_enabled(grad):
+            try:
+                ParticleBP(8, measurement=SummedRange())(data, gen(4))
+            except ValueError as e:
+                message = str(e)
+        assert message.startswith('the measurement model SummedRange(') and \
+            'of shape [' in message and ', 8], one per link and particle' \
+            in message

@@ -13,6 +13,7 @@ import torch
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import is_integer
 from tg_nebp.io import read_json
+from tg_nebp.utils import free_memory_bytes
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, Model, MotionModel,
                             model_from_config)
@@ -293,6 +294,31 @@ class Scenario:
         :obj:`measurement`."""
         return model_from_config(self.measurement, 'measurement')
 
+    def realization_bytes(self) -> int:
+        r"""A lower estimate of the memory one realization takes while it is
+        generated: the true states of every node and step in float64 (the
+        simulation) and float32 (what is stored), the prior, and one link
+        per agent and step (a network within range has more)."""
+        nodes, steps = self.num_agents + self.num_anchors, self.num_steps
+        size = 2 * self.position_dim
+        states = nodes * steps * size * (8 + 4)
+        prior = nodes * (size + size * size) * (8 + 4)
+        links = self.num_agents * steps * (2 * 8 + 4 + 8)
+        return states + prior + links
+
+    def check_memory(self, free: Optional[int] = None) -> None:
+        r"""Refuses, with a :class:`ValueError` naming the sizes, a scenario
+        whose realization (:meth:`realization_bytes`) does not fit in the
+        free memory (or :obj:`free` bytes), before any work starts."""
+        needed = self.realization_bytes()
+        free = free_memory_bytes('cpu') if free is None else free
+        if needed > free:
+            raise ValueError(
+                f"scenario '{self.name}': one realization of {self.num_agents}"
+                f" agents over {self.num_steps} steps needs at least "
+                f"{needed / 2**30:.3g} GiB, but {free / 2**30:.3g} GiB are "
+                f"free: lower 'num_agents' or 'num_steps'")
+
     def generate(self, generator: Optional[torch.Generator] = None
                  ) -> Realization:
         r"""Draws one realization (agents first, then anchors): true tracks,
@@ -300,6 +326,7 @@ class Scenario:
         the prior :math:`\boldsymbol{\mu}_{i,0} \sim
         \mathcal{N}(\mathbf{x}_{i,0}, \boldsymbol{\Sigma}_0)`. Simulated in
         float64 on the CPU, stored in float32."""
+        self.check_memory()
         f64 = dict(dtype=torch.float64, generator=generator)
         num_agents, num_anchors = self.num_agents, self.num_anchors
         motion, measurement = self.motion_model, self.measurement_model

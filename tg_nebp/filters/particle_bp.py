@@ -17,15 +17,18 @@ from tg_nebp.models import (LinkPairRange, MeasurementModel, MotionModel,
                             RangeModel)
 from tg_nebp.nn.conv import ParticleBPConv
 from tg_nebp.nn.conv.gaussian_bp_conv import ENDS
-from tg_nebp.utils import (compute_dtype, link_factors, log_normalize,
-                            long_edge_index, plain_tensor, sort_by_receiver,
-                            weighted_moments)
+from tg_nebp.utils import (compute_dtype, free_memory_bytes, link_factors,
+                           log_normalize, long_edge_index, plain_tensor,
+                           sort_by_receiver, weighted_moments)
 
 __all__ = ['ParticleBP', 'weighted_moments',
            'RECOMMENDED']
 
 Generators = Union[torch.Generator, Sequence[torch.Generator], None]
 
+#: The node-particle arrays of the state that a particle tracker holds at
+#: once at least (particles, their prediction, the resampled ones).
+PARTICLE_COPIES = 3
 #: The largest regularization bandwidth :math:`h` a tracker accepts.
 MAX_BANDWIDTH = 10.0
 # ParticleBP.recommended(): chosen from the frontier (see its docstring)
@@ -381,6 +384,25 @@ class ParticleBP(Tracker):
                               sample_offsets=sample_offsets)
         return belief, None
 
+    def check_memory(self, num_nodes: int, state_dim: int,
+                     dtype: torch.dtype = torch.float32, device='cpu',
+                     free: Optional[int] = None) -> None:
+        r"""Refuses, with a :class:`ValueError` naming the sizes, a run whose
+        particle arrays do not fit in the free memory of :obj:`device` (or
+        :obj:`free` bytes), before any work starts: a lower estimate of
+        :obj:`PARTICLE_COPIES` node-particle arrays of the state (the
+        particles, their prediction and resampling) and the weights."""
+        itemsize = torch.empty((), dtype=dtype).element_size()
+        needed = (num_nodes * self.num_particles *
+                  (PARTICLE_COPIES * state_dim + 2) * itemsize)
+        free = free_memory_bytes(str(device)) if free is None else free
+        if needed > free:
+            raise ValueError(
+                f"{self.num_particles} particles on {num_nodes} nodes need "
+                f"at least {needed / 2**30:.3g} GiB, but {free / 2**30:.3g} "
+                f"GiB are free on {device}: lower 'particles' or the "
+                f"network")
+
     def steps(self, data: Realization,
               generator: Generators = None) -> Iterator[StepOutput]:
         r"""Runs the time loop lazily, yielding a
@@ -399,10 +421,12 @@ class ParticleBP(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
-        counts = _nodes_per_graph(data, generator)
-        anchor = data.anchor
         # one dtype for the whole loop: half precision is promoted
         dtype = compute_dtype(data.prior_mean, data.prior_cov, data.edge_attr)
+        self.check_memory(data.num_nodes, data.prior_mean.size(1), dtype,
+                          data.prior_mean.device)
+        counts = _nodes_per_graph(data, generator)
+        anchor = data.anchor
         particles = self.sample_prior(data, generator).to(dtype)
         log_weights = particles.new_full(particles.shape[:2],
                                          -math.log(self.num_particles))

@@ -170,11 +170,15 @@ def model_from_config(config: Any, role: str) -> 'Model':
     r"""Rebuilds a model of :obj:`role` (:obj:`"motion"` or
     :obj:`"measurement"`) from :meth:`Model.config`; an unknown name or bad
     parameters are a :class:`ValueError` that says which."""
+    if role not in MODELS:
+        raise ValueError(f"unknown model role '{role}'; the roles are "
+                         f"{sorted(MODELS)}")
     registry = MODELS[role]
     if not (isinstance(config, dict) and set(config) == {'name', 'params'}
+            and isinstance(config['name'], str)
             and isinstance(config['params'], dict)):
         raise ValueError(f"a {role} model configuration must be "
-                         f"{{'name': ..., 'params': {{...}}}}, got "
+                         f"{{'name': <str>, 'params': {{...}}}}, got "
                          f"{config!r}")
     cls = registry.get(config['name'])
     if cls is None:

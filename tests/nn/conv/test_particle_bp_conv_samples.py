@@ -119,6 +119,10 @@ def test_draw_offsets_and_their_validation():
                        "integer tensor of shape \\[4\\]"):
         conv(particles, lw, ei, ea, anchor=anchor,
              sample_offsets=offsets[:3])
+    with pytest.raises(TypeError, match="'sample_offsets' must be an "
+                       "integer tensor of shape \\[4\\], got a list"):
+        conv(particles, lw, ei, ea, anchor=anchor,
+             sample_offsets=[0, 1, 2, 3])
     with pytest.raises(ValueError, match=r"'sample_offsets\[2\]' = 10 must "
                        r"lie in \[0, 10\)"):
         conv(particles, lw, ei, ea, anchor=anchor,

@@ -274,6 +274,10 @@ class ParticleBPConv(MessagePassing):
         if self.samples_for(num_particles) == 1:
             raise ValueError("'sample_offsets' given, but num_samples = 1 "
                              "pairs the particles")
+        if not isinstance(offsets, Tensor):
+            raise TypeError(f"'sample_offsets' must be an integer tensor of "
+                            f"shape [{num_nodes}], got a "
+                            f"{type(offsets).__name__}")
         if offsets.shape != (num_nodes, ) or offsets.is_floating_point():
             raise ValueError(f"'sample_offsets' must be an integer tensor of "
                              f"shape [{num_nodes}], got {offsets.dtype} "
@@ -392,6 +396,7 @@ class ParticleBPConv(MessagePassing):
             sender = torch.stack([at(p, src) for p in sender_planes], -1)
             receiver = torch.stack([at(p, dst) for p in planes], -1)
             log_lik = model.log_likelihood(link_features, sender, receiver)
+            expected = sender.shape[:-1]
         elif grad:
             # a range model's planes are the positions, in any dimension
             diff = torch.stack([
@@ -400,6 +405,7 @@ class ParticleBPConv(MessagePassing):
             distances = torch.linalg.vector_norm(diff, dim=-1)  # grad 0 at 0
             log_lik = model.log_likelihood_of_distance(link_features,
                                                        distances)
+            expected = distances.shape
         else:  # in place on fresh temporaries: a third of the memory traffic
             distances = None
             for sender, pos in zip(sender_planes, planes):
@@ -410,11 +416,17 @@ class ParticleBPConv(MessagePassing):
                 distances = (delta.mul_(delta) if distances is None else
                              distances.addcmul_(delta, delta))
             distances = distances.sqrt_()
+            expected = distances.shape
             log_lik = (model.log_likelihood_of_distance_(
                 link_features, distances)
                        if model.provides('log_likelihood_of_distance_') else
                        model.log_likelihood_of_distance(link_features,
                                                         distances))
+        if log_lik.shape != expected:  # a user's model, caught here
+            raise ValueError(
+                f"the measurement model {model!r} returned log-likelihoods "
+                f"of shape {list(log_lik.shape)}; expected "
+                f"{list(expected)}, one per link and particle")
         # in-place add stays differentiable in the sender log-weights
         return log_lik.add_(sender_weights if weights_gathered else
                             at(sender_weights, src))
