@@ -344,3 +344,17 @@ def test_a_realization_that_cannot_fit_is_refused_before_any_work():
         scenario.check_memory(free=needed - 1)
     with pytest.raises(ValueError, match='1000000000 agents'):
         scenario.replace(num_agents=10**9).generate(torch.Generator())
+
+
+@pytest.mark.parametrize('changes, message', [
+    (dict(sigma_v0=1e300), "'sigma_v0' .* or 'prior_var'"),
+    (dict(prior_var=[1e300] * 4), "'sigma_v0' .* or 'prior_var'"),
+    (dict(motion=ConstantVelocityDrag(drag=1e300)),
+     r'the motion model ConstantVelocityDrag\(.*drag=1e\+300.*\) drives '
+     r'the states beyond .* by step 1'),
+])
+def test_a_generator_that_leaves_float32_blames_its_parameters(changes,
+                                                               message):
+    scenario = Scenario.load('paper_test').replace(num_agents=5, **changes)
+    with pytest.raises(ValueError, match=message):
+        scenario.generate(torch.Generator().manual_seed(0))

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tg_nebp.models import GaussianRange, NLOSRange, StudentTRange
-from tg_nebp.models.measurement import BIAS_RATIO, NU_RANGE
+from tg_nebp.models.measurement import BIAS_RATIO, NU_RANGE, SIGMA_RANGE
 
 
 def log_uniform(low, high):
@@ -19,7 +19,7 @@ def log_uniform(low, high):
 
 
 def models():
-    sigma = log_uniform(1e-2, 1e2)
+    sigma = log_uniform(*SIGMA_RANGE)
     return st.one_of(
         st.builds(GaussianRange, sigma=sigma),
         st.builds(StudentTRange, sigma=sigma, nu=log_uniform(*NU_RANGE)),
@@ -65,6 +65,8 @@ def test_small_nlos_bias_no_longer_cancels():
     (lambda: StudentTRange(nu=0.05), "'nu' must lie within"),
     (lambda: NLOSRange(bias_mean=1e-9), "'bias_mean' must lie within"),
     (lambda: NLOSRange(sigma=2.0, bias_mean=3e6), "'bias_mean' must lie"),
+    (lambda: GaussianRange(sigma=1e300), "'sigma' must be at most"),
+    (lambda: StudentTRange(sigma=1e-9), "'sigma' must be at least"),
 ])
 def test_parameters_beyond_the_accurate_range_are_refused(make, field):
     with pytest.raises(ValueError, match=field):

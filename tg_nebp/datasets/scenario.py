@@ -11,7 +11,7 @@ from typing import Any, Dict, Optional, Tuple, Union
 import torch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import is_integer
+from tg_nebp.data.validation import is_integer, magnitude_limit
 from tg_nebp.io import read_json
 from tg_nebp.utils import free_memory_bytes
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
@@ -348,6 +348,13 @@ class Scenario:
         prior_mean[anchor] = initial[anchor]
         prior_cov = torch.diag_embed(prior_std.square().expand_as(initial))
         prior_cov[anchor] = 0.0
+        limit = magnitude_limit(torch.float32)
+        if not bool((initial.abs() <= limit).all() and
+                    (prior_mean.abs() <= limit).all()):
+            raise ValueError(f"scenario '{self.name}': 'sigma_v0' "
+                             f"({self.sigma_v0}) or 'prior_var' "
+                             f"({self.prior_var}) draw initial states beyond "
+                             f"{limit:.2g}, which float32 cannot hold")
 
         # per-link state over the realization (e.g. NLOS pairs); models
         # without one draw nothing
@@ -359,6 +366,12 @@ class Scenario:
                 links = measurement.step_links(links, generator)
             moved = motion.sample(state, generator=generator)
             state = torch.where(anchor.view(-1, 1), state, moved)
+            # the model's parameters are to blame, not the data checks later
+            if not bool((state.abs() <= limit).all()):
+                raise ValueError(f"scenario '{self.name}': the motion model "
+                                 f"{motion} drives the states beyond "
+                                 f"{limit:.2g} by step {t + 1}; check its "
+                                 f"parameters and 'sigma_v0'")
             edges = measurement.connect(state[:, :dim], receiver=~anchor)
             states.append(state)
             edge_index.append(edges)

@@ -13,6 +13,8 @@ __all__ = ['GaussianBP', 'GBP_RECOMMENDED']
 
 #: The configuration of :meth:`~tg_nebp.filters.GaussianBP.recommended`,
 #: chosen on validation realizations (see its docstring).
+#: The largest covariance inflation :class:`GaussianBP` accepts.
+MAX_INFLATION = 10.0
 GBP_RECOMMENDED = dict(num_iterations=20, tolerance=0.01, inflation=1.5)
 
 
@@ -88,8 +90,9 @@ class GaussianBP(Tracker):
                                                  'num_iterations')
         self.tolerance = (None if tolerance is None else
                           check_number(tolerance, 'tolerance'))
+        # beyond MAX_INFLATION the prior of every step is all but flat
         self.inflation = check_number(inflation, 'inflation', minimum=1.0,
-                                      inclusive=True)
+                                      inclusive=True, maximum=MAX_INFLATION)
         self.conv = GaussianBPConv(self.measurement, ends, damping)
 
     @classmethod

@@ -17,6 +17,8 @@ from tg_nebp.models.base import LOG_SQRT_2PI, RangeModel, redraw_negative
 __all__ = ['GaussianRange', 'StudentTRange', 'NLOSRange']
 
 
+#: The range noise scales :math:`\sigma` (metres) the range models accept.
+SIGMA_RANGE = (1e-6, 1e6)
 #: The degrees of freedom that :class:`StudentTRange` accepts.
 NU_RANGE = (1.0, 1e6)
 #: The ratios of the NLOS bias mean to sigma that :class:`NLOSRange`
@@ -25,12 +27,12 @@ BIAS_RATIO = (1e-6, 1e6)
 
 
 def _check_sigma(sigma) -> float:
-    sigma = check_number(sigma, 'sigma')
-    # the likelihoods scale squared residuals by 1 / (2 sigma^2): an
-    # infinite factor would turn a zero residual into NaN
-    if not sigma**2 * torch.finfo(torch.float32).max >= 0.5:
-        raise ValueError(f"'sigma' = {sigma} is too small: 1 / (2 "
-                         f"sigma^2) overflows float32")
+    # the likelihoods scale squared residuals by 1 / (2 sigma^2) in float32:
+    # within SIGMA_RANGE (metres) every term stays well inside its range
+    sigma = check_number(sigma, 'sigma', maximum=SIGMA_RANGE[1])
+    if sigma < SIGMA_RANGE[0]:
+        raise ValueError(f"'sigma' must be at least {SIGMA_RANGE[0]:g} m, "
+                         f"got {sigma}")
     return sigma
 
 
