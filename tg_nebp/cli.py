@@ -516,7 +516,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _print_error(message) -> int:
-    print(f'error: {one_line(message)}', file=sys.stderr)
+    # one write of the whole line: the ranks of a torchrun share a stream,
+    # and print's separate write of the newline lets their lines interleave
+    sys.stderr.write(f'error: {one_line(message)}\n')
+    sys.stderr.flush()
     return 2
 
 
