@@ -11,10 +11,10 @@ from tg_nebp.nn.conv.gaussian_bp_conv import (GaussianBelief, GaussianBPConv)
 
 __all__ = ['GaussianBP', 'GBP_RECOMMENDED']
 
-#: The configuration of :meth:`~tg_nebp.filters.GaussianBP.recommended`,
-#: chosen on validation realizations (see its docstring).
 #: The largest covariance inflation :class:`GaussianBP` accepts.
 MAX_INFLATION = 10.0
+#: The configuration of :meth:`~tg_nebp.filters.GaussianBP.recommended`,
+#: chosen on validation realizations (see its docstring).
 GBP_RECOMMENDED = dict(num_iterations=20, tolerance=0.01, inflation=1.5)
 
 
