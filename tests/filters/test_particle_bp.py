@@ -466,11 +466,11 @@ def test_half_precision_prior_is_tracked_in_float32():
 
 
 def test_zero_belief_names_the_node_and_its_ranges():
-    # sigma = 1e-18 and residuals of about 1 km: every scaled squared
-    # residual overflows float32 to -inf
+    # the smallest accepted sigma (1e-6 m) and residuals of about 1e14 m:
+    # every scaled squared residual overflows float32 to -inf
     net = static_network(1, 3, 2, seed=6)
-    net.prior_mean[0, :2] += 1e3
-    bp = ParticleBP(num_particles=8, measurement=GaussianRange(1e-18))
+    net.prior_mean[0, :2] += 1e14
+    bp = ParticleBP(num_particles=8, measurement=GaussianRange(1e-6))
     with pytest.raises(ValueError, match=r"node 0 at time index 0: its "
                        r"measurements \('edge_attr\[0\]' = .*, "
                        r"'edge_attr\[1\]' = .*\) give every one of its "

@@ -155,16 +155,19 @@ def test_bad_parameters_raise(name, kwargs):
 
 
 def test_smallest_sigma_gives_no_nan():
-    # zero residuals times the largest accepted factor stay finite, large
-    # ones overflow to -inf (never 0 * inf = NaN), in both code paths
-    model = GaussianRange(sigma=1e-19)
+    # zero residuals times the largest accepted factor stay finite, huge
+    # ones overflow to -inf (never 0 * inf = NaN), in both code paths; a
+    # smaller sigma is refused
+    model = GaussianRange(sigma=1e-6)
     ranges = torch.tensor([[3.0], [3.0]])
-    distances = torch.tensor([[3.0, 3.5], [3.0, 1e3]])
+    distances = torch.tensor([[3.0, 3.5], [3.0, 1e14]])
     for likelihood in (model.log_likelihood_of_distance,
                        model.log_likelihood_of_distance_):
         out = likelihood(ranges, distances.clone())
         assert not torch.isnan(out).any()
         assert torch.isfinite(out[:, 0]).all() and torch.isneginf(out[1, 1])
+    with pytest.raises(ValueError, match="'sigma' must be at least 1e-06"):
+        GaussianRange(sigma=1e-19)
 
 
 # ---- Student-t and NLOS ranges ---------------------------------------------
