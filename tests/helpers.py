@@ -27,6 +27,26 @@ def tiny_scenario(steps=5):
                     num_steps=steps)
 
 
+def assert_batch_equals_alone(method, fields=('mean', 'cov'), rtol=1e-10,
+                              atol=1e-12):
+    r"""A deterministic :obj:`method` (a tracker, or the bound) on a batch
+    of two tiny graphs of different sizes gives, field by field of its
+    output (or the output itself with :obj:`fields` :obj:`None`), each
+    graph's result alone, concatenated."""
+    from torch_geometric.data import Batch
+    scenario = tiny_scenario(steps=4)
+    small = scenario.generate(gen(1))
+    large = scenario.replace(num_agents=5).generate(gen(2))
+    alone = [method(d) for d in (small, large)]
+    batched = method(Batch.from_data_list([small, large]))
+    for field in fields or (None, ):
+        def pick(out):
+            return out if field is None else getattr(out, field)
+        torch.testing.assert_close(pick(batched),
+                                   torch.cat([pick(a) for a in alone]),
+                                   rtol=rtol, atol=atol)
+
+
 def random_graph(generator, num_agents, num_anchors, num_particles,
                  edge_prob=0.5, spread=2.0, area=15.0, sigma=1.0,
                  dtype=torch.float64, into_anchor=False):

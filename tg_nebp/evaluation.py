@@ -127,14 +127,21 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
                     'first_anchor': batch.anchor[nodes].cpu(),
                 }
     tracked, first = _gathered(tracked, first)
+    return dict(_by_realization(tracked, ('errors', 'nees')), dof=dof,
+                **first)
+
+
+def _by_realization(tracked: Dict[int, tuple], names: Sequence[str]
+                    ) -> Dict[str, torch.Tensor]:
+    # the per-realization tensors of 'tracked' {r: (one per name)}
+    # concatenated in realization order, and the realization of each row
     order = sorted(tracked)
-    return dict(
-        errors=torch.cat([tracked[r][0] for r in order]),
-        nees=torch.cat([tracked[r][1] for r in order]),
-        realization=torch.cat([torch.full_like(tracked[r][0], r,
-                                               dtype=torch.long)
-                               for r in order]),
-        dof=dof, **first)
+    out = {name: torch.cat([tracked[r][k] for r in order])
+           for k, name in enumerate(names)}
+    out['realization'] = torch.cat([
+        torch.full((len(tracked[r][0]), ), r, dtype=torch.long)
+        for r in order])
+    return out
 
 
 def summarize(errors: torch.Tensor, nees: torch.Tensor,
@@ -193,13 +200,7 @@ def bound_dataset(bound: PosteriorCRB, dataset: Sequence,
                 tracked[r] = (squared[owner == g].flatten(),
                               outage[owner == g].flatten(0, 1))
     tracked, _ = _gathered(tracked, {})
-    order = sorted(tracked)
-    return dict(
-        squared_error=torch.cat([tracked[r][0] for r in order]),
-        outage=torch.cat([tracked[r][1] for r in order]),
-        realization=torch.cat([torch.full_like(tracked[r][0], r,
-                                               dtype=torch.long)
-                               for r in order]))
+    return _by_realization(tracked, ('squared_error', 'outage'))
 
 
 def summarize_bound(squared_error: torch.Tensor, outage: torch.Tensor,

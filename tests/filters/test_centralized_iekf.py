@@ -2,15 +2,14 @@ import numpy as np
 import pytest
 import torch
 from scipy.optimize import minimize
-from torch_geometric.data import Batch
 
 from tg_nebp.datasets import Scenario
 from tg_nebp.filters import CentralizedIEKF
 from tg_nebp.gaussian import block_diagonal
 from tg_nebp.models import NLOSRange, StudentTRange
 
-from helpers import (gen, linear_kalman_filter, linear_scenario,
-                     tiny_scenario)
+from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
+                     linear_scenario, tiny_scenario)
 
 
 def test_linear_gaussian_iekf_is_the_kalman_filter():
@@ -72,17 +71,7 @@ def test_update_reaches_the_map_of_scipy(measurement):
 
 
 def test_batch_equals_each_graph_alone():
-    scenario = tiny_scenario(steps=4)
-    small = scenario.generate(gen(1))
-    large = scenario.replace(num_agents=5).generate(gen(2))
-    iekf = CentralizedIEKF(marginal=True)
-    alone = [iekf(d) for d in (small, large)]
-    batched = iekf(Batch.from_data_list([small, large]))
-    for field in ('mean', 'cov'):
-        torch.testing.assert_close(getattr(batched, field),
-                                   torch.cat([getattr(a, field)
-                                              for a in alone]),
-                                   rtol=1e-10, atol=1e-12)
+    assert_batch_equals_alone(CentralizedIEKF(marginal=True))
 
 
 def test_marginal_drops_the_cross_covariances():

@@ -18,14 +18,13 @@ import torch
 
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import evaluate_method, spread
-from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.experiments.train import train_scenario
+from tg_nebp.filters import ParticleBP
 from tg_nebp.io import (atomic_write, claim_folder, read_json, write_json,
                         write_text)
 from tg_nebp.models import model_like
 from tg_nebp.reference import PAPER_TABLE
-from tg_nebp.training import (checkpoint_history, nebp_from_checkpoint,
-                              steps_per_epoch, train)
-from tg_nebp.training_log import TrainingLog
+from tg_nebp.training import checkpoint_history, nebp_from_checkpoint
 
 __all__ = ['BEYOND', 'reproduce_beyond']
 
@@ -59,59 +58,44 @@ BEYOND = {
 }
 
 
-def _arms(config: dict, scenarios: dict) -> Dict[str, dict]:
-    # the trained models: name -> training scenario, tracker options,
-    # epochs
+def _arms(config: dict) -> Dict[str, dict]:
+    # the trained models: name -> training scenario, epochs, tracker
+    # options (train_scenario's)
     names = config['scenarios']
     return {
         'paired': dict(scenario=names['train'], epochs=config['epochs'],
-                       options=dict(num_samples=1)),
+                       options=dict(samples=1)),
         'marginalized': dict(
             scenario=names['train'], epochs=config['marginalized_epochs'],
-            options=dict(num_samples=config['train_samples'],
+            options=dict(samples=config['train_samples'],
                          regularize=config['regularize'])),
+        # the Gaussian likelihood with the NLOS data's sigma and range
         'nlos': dict(scenario=names['nlos_train'], epochs=config['epochs'],
-                     options=dict(num_samples=1, measurement=model_like(
-                         'gaussian', 'measurement',
-                         scenarios['nlos'].measurement_model))),
+                     options=dict(samples=1, measurement='gaussian')),
     }
 
 
 def _train_arm(name: str, arm: dict, config: dict, root: str, device: str,
                out: Path, log: Callable,
                progress_factory: Optional[Callable]) -> list:
-    train_set, val_set = load_datasets(
-        root, (arm['scenario'], config['train_realizations'], TRAIN_SEED),
-        (arm['scenario'], config['val_realizations'], VAL_SEED))
-    scenario = train_set.scenario
-    options = dict(motion=scenario.motion_model,
-                   measurement=scenario.measurement_model)
-    options.update(arm['options'])
-    torch.manual_seed(TRAIN_SEED)  # the GNN's initial weights
-    model = NEBP(config['train_particles'], variant='equivariant',
-                 **options)
     checkpoint = out / name / 'nebp.pt'
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
-    previous = checkpoint_history(checkpoint) if checkpoint.exists() else []
-    done = len(previous)
+    done = len(checkpoint_history(checkpoint)) if checkpoint.exists() else 0
     log(f"training the equivariant NEBP '{name}' (K="
-        f"{config['train_particles']}, {len(train_set)} realizations of "
-        f"{scenario.name}, {arm['epochs']} epochs, {done} done)")
-    steps = steps_per_epoch(len(train_set), config['batch_size'],
-                            scenario.num_steps)
-    bar = progress_factory((arm['epochs'] - done) * steps,
-                           f'train {name}') if progress_factory else None
+        f"{config['train_particles']}, {config['train_realizations']} "
+        f"realizations of {Scenario.load(arm['scenario']).name}, "
+        f"{arm['epochs']} epochs, {done} done)")
     start = time.perf_counter()
-    with TrainingLog(checkpoint.parent, steps, previous) as training_log:
-        history = train(model, train_set, val_set, epochs=arm['epochs'],
-                        batch_size=config['batch_size'], lr=config['lr'],
-                        seed=TRAIN_SEED, device=device,
-                        checkpoint=checkpoint, resume=checkpoint.exists(),
-                        progress=lambda info: (training_log.step(info),
-                                               bar and bar.update(1)),
-                        on_epoch=training_log.epoch)
-    if bar:
-        bar.close()
+    # the folder of the checkpoint holds its training log; a checkpoint
+    # there is resumed
+    history = train_scenario(
+        arm['scenario'], checkpoint.parent, 'equivariant',
+        config['train_particles'], realizations=config['train_realizations'],
+        val_realizations=config['val_realizations'], epochs=arm['epochs'],
+        batch_size=config['batch_size'], lr=config['lr'], seed=TRAIN_SEED,
+        resume=checkpoint.exists(), log_dir=checkpoint.parent, root=root,
+        device=device, progress_factory=progress_factory,
+        description=f'train {name}', **arm['options']).history
     if done < arm['epochs']:
         log(f'  trained in {(time.perf_counter() - start) / 60:.1f} min')
     for h in history:
@@ -235,7 +219,7 @@ def reproduce_beyond(device: str = 'cpu', out: str = 'results/beyond',
 
     histories = {name: _train_arm(name, arm, config, root, device, out, log,
                                   progress_factory)
-                 for name, arm in _arms(config, scenarios).items()}
+                 for name, arm in _arms(config).items()}
 
     raw = out / 'raw'
     raw.mkdir(exist_ok=True)

@@ -8,21 +8,19 @@ import time
 from pathlib import Path
 from typing import Callable, Optional, Union
 
-import torch
-
-from tg_nebp.experiments.equivariant_nebp import reproduce_beyond
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import evaluate_method
-from tg_nebp.filters import NEBP, ParticleBP
+from tg_nebp.experiments.equivariant_nebp import reproduce_beyond
+from tg_nebp.experiments.train import train_scenario
+from tg_nebp.filters import ParticleBP
 from tg_nebp.io import claim_folder, read_json, write_text
 from tg_nebp.reference import PAPER_TABLE
-from tg_nebp.training import steps_per_epoch, train
-from tg_nebp.training_log import TrainingLog
 
 __all__ = ['PRESETS', 'PRESET_NAMES', 'reproduce']
 
-# Seeds of the three disjoint data sets; evaluation draws particles from
-# the test seed so that BP and NEBP see the same prior particles.
+# Seeds of the three disjoint data sets (train_scenario draws the validation
+# data from the training seed + 1); evaluation draws particles from the test
+# seed so that BP and NEBP see the same prior particles.
 TRAIN_SEED, VAL_SEED, TEST_SEED = 1, 2, 0
 
 #: The sizes of the paper's experiment by preset name.
@@ -119,33 +117,22 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
     start = time.perf_counter()
     k = config['particles']
 
-    train_set, val_set, test_set = load_datasets(
-        root, ('paper_train', config['train_realizations'], TRAIN_SEED),
-        ('paper_train', config['val_realizations'], VAL_SEED),
-        ('paper_test', config['test_realizations'], TEST_SEED))
+    log(f"training NEBP (K={k}, {config['train_realizations']} "
+        f"realizations, {config['epochs']} epochs)")
+    nebp, history, _, _ = train_scenario(
+        'paper_train', out, particles=k,
+        realizations=config['train_realizations'],
+        val_realizations=config['val_realizations'],
+        epochs=config['epochs'], batch_size=config['batch_size'],
+        lr=config['lr'], seed=TRAIN_SEED, samples=num_samples, log_dir=out,
+        root=root, device=device, compile=compile,
+        progress_factory=progress_factory)
+    test_set, = load_datasets(
+        root, ('paper_test', config['test_realizations'], TEST_SEED))
     scenario = test_set.scenario
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model, compile=compile,
                   num_samples=num_samples)
-
-    log(f'training NEBP (K={k}, {len(train_set)} realizations, '
-        f"{config['epochs']} epochs)")
-    torch.manual_seed(TRAIN_SEED)  # the GNN's initial weights
-    nebp = NEBP(k, **models)
-    steps = steps_per_epoch(len(train_set), config['batch_size'],
-                            scenario.num_steps)
-    bar = progress_factory(config['epochs'] * steps, 'train') \
-        if progress_factory else None
-    with TrainingLog(out, steps) as training_log:
-        history = train(nebp, train_set, val_set, epochs=config['epochs'],
-                        batch_size=config['batch_size'], lr=config['lr'],
-                        seed=TRAIN_SEED, device=device,
-                        checkpoint=out / 'nebp.pt',
-                        progress=lambda info: (training_log.step(info),
-                                               bar and bar.update(1)),
-                        on_epoch=training_log.epoch)
-    if bar:
-        bar.close()
     for h in history:
         log(f"  epoch {h['epoch']}: train {h['train_loss']:.4f}, "
             f"validation {h['val_loss']:.4f}")

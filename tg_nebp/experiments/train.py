@@ -19,9 +19,11 @@ __all__ = ['train_scenario', 'TrainedScenario']
 
 
 class TrainedScenario(NamedTuple):
-    r"""What :func:`train_scenario` returns: the :obj:`history` (one dict
-    per epoch), the :obj:`checkpoint` path, and the :obj:`log` it wrote
-    (:obj:`None` without a log folder, and on ranks other than 0)."""
+    r"""What :func:`train_scenario` returns: the trained :obj:`model`, the
+    :obj:`history` (one dict per epoch), the :obj:`checkpoint` path, and
+    the :obj:`log` it wrote (:obj:`None` without a log folder, and on ranks
+    other than 0)."""
+    model: NEBP
     history: List[dict]
     checkpoint: Path
     log: Optional[TrainingLog]
@@ -39,8 +41,8 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
                    resume: bool = False, log_dir: Optional[str] = None,
                    root: str = 'datasets', device: str = 'cpu',
                    compile: bool = False,
-                   progress_factory: Optional[Callable] = None
-                   ) -> TrainedScenario:
+                   progress_factory: Optional[Callable] = None,
+                   description: str = 'train') -> TrainedScenario:
     r"""Trains NEBP (:obj:`variant` :obj:`'paper'` or
     :obj:`'equivariant'`) on :obj:`realizations` realizations of
     :obj:`scenario` drawn from :obj:`seed`, validated on
@@ -57,6 +59,8 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
             :obj:`set_postfix(**values)`, called after every optimizer
             step (a progress bar); a resumed run starts it at the finished
             epochs' steps. (default: :obj:`None`)
+        description (str, optional): The progress bar's description.
+            (default: :obj:`"train"`)
 
     Returns:
         A :class:`TrainedScenario`.
@@ -78,7 +82,7 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
             if resume and checkpoint.exists() else [])
     log = (TrainingLog(log_dir, steps, done)
            if log_dir is not None and rank == 0 else None)
-    bar = (progress_factory(steps * epochs, 'train')
+    bar = (progress_factory(steps * epochs, description)
            if progress_factory is not None else None)
     with (bar if bar is not None else contextlib.nullcontext()), \
             (log or contextlib.nullcontext()):
@@ -96,4 +100,4 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
         history = train(model, train_set, val_set, epochs, batch_size, lr,
                         seed, device, checkpoint, resume, progress,
                         on_epoch=log.epoch if log is not None else None)
-    return TrainedScenario(history, checkpoint, log)
+    return TrainedScenario(model, history, checkpoint, log)

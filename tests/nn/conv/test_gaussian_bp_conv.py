@@ -1,15 +1,14 @@
 import numpy as np
 import pytest
 import torch
-from torch_geometric.data import Batch
 
 from tg_nebp.data import Realization
 from tg_nebp.filters import GaussianBP
 from tg_nebp.models import ConstantVelocity
 from tg_nebp.nn.conv import GaussianBPConv
 
-from helpers import (gen, linear_kalman_filter, linear_offset_model,
-                     linear_scenario, tiny_scenario)
+from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
+                     linear_offset_model, linear_scenario, tiny_scenario)
 
 
 def one_step(pairs, anchors, seed=0, sigma=0.5, count=None):
@@ -161,17 +160,7 @@ def test_factors_and_message_edges():
 
 
 def test_batch_equals_each_graph_alone():
-    scenario = tiny_scenario(steps=4)
-    small = scenario.generate(gen(1))
-    large = scenario.replace(num_agents=5).generate(gen(2))
-    gbp = GaussianBP(3)
-    alone = [gbp(d) for d in (small, large)]
-    batched = gbp(Batch.from_data_list([small, large]))
-    for field in ('mean', 'cov'):
-        torch.testing.assert_close(getattr(batched, field),
-                                   torch.cat([getattr(a, field)
-                                              for a in alone]),
-                                   rtol=1e-10, atol=1e-12)
+    assert_batch_equals_alone(GaussianBP(3))
 
 
 def test_linear_tracker_over_steps_keeps_marginals_only():
