@@ -384,7 +384,7 @@ class ParticleBPConv(MessagePassing):
         # receivers from 'planes' at dst, senders from 'sender_planes' and
         # 'sender_weights' at src; a None index means that the tensors are
         # edge rows already (fresh sender rows, which may be overwritten),
-        # as the weights are when 'weights_gathered' 
+        # as the weights are when 'weights_gathered'
         def at(tensor, index):
             return tensor if index is None else tensor.index_select(0, index)
 
