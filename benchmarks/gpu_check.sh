@@ -23,14 +23,39 @@ cd "$(dirname "$0")/.."
 
 OUT=results/gpu_check
 DRY=0
+usage() {
+  cat <<'EOF'
+usage: bash benchmarks/gpu_check.sh [--out DIR] [--dry-run] [--help]
+
+The GPU check: the CUDA tests, tg-nebp bench, BP, marginalized BP, Gaussian
+BP and NEBP (both variants) at K = 50,000 on 8 test realizations, and the
+shortened paper preset, each step timed; DIR/summary.json gathers every
+figure.
+
+  --out DIR   output folder (default: results/gpu_check)
+  --dry-run   the same steps on the CPU, tiny (Triton's CPU interpreter)
+  --help      this text
+EOF
+}
+fail() {  # one error line, exit 2
+  echo "error: $1" >&2
+  exit 2
+}
 while [ $# -gt 0 ]; do
   case "$1" in
     --dry-run) DRY=1 ;;
-    --out) OUT="$2"; shift ;;
-    *) echo "error: unknown option '$1' (use --dry-run, --out DIR)" >&2; exit 2 ;;
+    --out)
+      [ $# -ge 2 ] && [ -n "$2" ] && [ "${2#-}" = "$2" ] \
+        || fail "--out needs a folder (--out DIR)"
+      OUT="$2"; shift ;;
+    --help|-h) usage; exit 0 ;;
+    *) fail "unknown option '$1' (use --dry-run, --out DIR, --help)" ;;
   esac
   shift
 done
+if [ -e "$OUT" ] && [ ! -d "$OUT" ]; then
+  fail "--out '$OUT' is a file, not a folder"
+fi
 
 if [ "$DRY" = 1 ]; then
   DEVICE=cpu; K=200; REAL=2; BENCH=(--particles 200 --batch 2 --repeats 2 --steps 2)
@@ -42,7 +67,7 @@ else
 fi
 PY=${PYTHON:-python3}
 ROOT="$OUT/datasets"
-mkdir -p "$OUT"
+mkdir -p "$OUT" 2>/dev/null || fail "--out '$OUT' cannot be created"
 STEPS="$OUT/steps.tsv"
 : > "$STEPS"
 
@@ -100,7 +125,7 @@ if [ "$DRY" = 1 ]; then
   step tests "$PY" -m pytest -q -p no:cacheprovider tests/ops tests/filters/test_particle_bp_cuda.py
 else
   "$PY" -c "import sys, torch; sys.exit(not torch.cuda.is_available())" \
-    || { echo "error: no CUDA device here (use --dry-run on a CPU)" >&2; exit 2; }
+    || fail "no CUDA device here (use --dry-run on a CPU)"
   step tests "$PY" -m pytest -q -p no:cacheprovider -rs tests/ops tests/filters/test_particle_bp_cuda.py \
     tests/test_training_distributed.py tests/nn/conv
 fi

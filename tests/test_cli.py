@@ -56,13 +56,14 @@ def test_train_with_another_likelihood(tmp_path):
         'name': 'gaussian', 'params': {'sigma': 0.8, 'max_range': 20.0}}
 
 
-def test_measurement_is_for_bp_only(tmp_path, capsys):
+def test_measurement_is_not_for_nebp(tmp_path, capsys):
     argv = ['evaluate', '--method', 'nebp', '--checkpoint', 'x.pt',
             '--measurement', 'gaussian', '--realizations', '1',
             '--root', str(tmp_path / 'data'), '--out', str(tmp_path / 'o'),
             '--quiet']
     assert main(argv) == 2
-    assert '--measurement is for --method bp' in capsys.readouterr().err
+    assert ("'measurement' (--measurement) is for method bp or iekf or gbp, "
+            "not nebp") in capsys.readouterr().err
 
 
 def test_samples_flag(tmp_path):

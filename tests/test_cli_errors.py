@@ -20,6 +20,8 @@ import pytest
 import torch
 
 from tg_nebp import NEBP
+from tg_nebp.experiments.compare import run_compare
+from tg_nebp.io import read_json, write_json
 from tg_nebp.training import save_checkpoint
 
 from helpers import mixed_k_checkpoint
@@ -127,6 +129,39 @@ def checkpoint_weights_of_other_k(folder):
     return NEBP_EVALUATE + ['--checkpoint', 'mixed.pt'], ['mixed.pt']
 
 
+COMPARE = ['compare', '--realizations', '1', '--quiet']
+
+
+def compare_scenarios_of_one_name(folder):
+    for name, agents in (('a.json', 10), ('b.json', 12)):
+        fields = dict(paper_test_fields(), name='same', num_agents=agents)
+        (folder / name).write_text(json.dumps(fields))
+    return (COMPARE + ['--methods', 'pcrb', '--scenario', 'a.json',
+                       'b.json'], ["'a.json'", "'b.json'", "'same'"])
+
+
+def compare_checkpoint_not_selected(folder):
+    save_checkpoint(folder / 'k8.pt', NEBP(num_particles=8))
+    return (COMPARE + ['--methods', 'pcrb', '--checkpoint', 'k8.pt'],
+            ['k8.pt', "'methods'"])
+
+
+def compare_zero_floor(folder):
+    # a finished comparison whose bound has a zero floor
+    fields = dict(paper_test_fields(), name='small', num_agents=4,
+                  num_steps=2)
+    (folder / 'small.json').write_text(json.dumps(fields))
+    argv = COMPARE + ['--methods', 'pcrb', '--scenario', 'small.json',
+                      '--root', 'data', '--out', 'out']
+    run_compare(root=str(folder / 'data'), scenarios=[folder / 'small.json'],
+                realizations=1, out=folder / 'out', methods=['pcrb'],
+                log=lambda line: None)
+    content = read_json(folder / 'out' / 'compare.json')
+    content['results']['small']['pcrb']['spread']['realizations'][0][2] = 0
+    write_json(folder / 'out' / 'compare.json', content)
+    return argv, ['compare.json', "['pcrb']", 'remove the file']
+
+
 def argv_only(argv: List[str], expected: List[str]) -> Prepare:
     return lambda folder: (argv, expected)
 
@@ -178,6 +213,29 @@ CASES: Dict[str, Prepare] = {
     'compare-missing-checkpoint': argv_only(
         ['compare', '--checkpoint', 'absent.pt', '--realizations', '1',
          '--quiet'], ['absent.pt']),
+    # before: one scenario's rows under the other's fingerprint; nothing
+    # run, then an error of the figure; an ignored checkpoint; a
+    # ZeroDivisionError in the table
+    'compare-scenarios-of-one-name': compare_scenarios_of_one_name,
+    'compare-methods-typo': argv_only(COMPARE + ['--methods', 'pcrbb'],
+                                      ["'pcrbb'", 'pcrb, iekf']),
+    'compare-nebp-without-checkpoint': argv_only(
+        COMPARE + ['--methods', 'nebp'], ["'nebp'", '--checkpoint']),
+    'compare-checkpoint-not-selected': compare_checkpoint_not_selected,
+    'compare-zero-floor': compare_zero_floor,
+    # options that a method does not take, ignored before
+    'compare-compile': argv_only(COMPARE + ['--methods', 'pcrb',
+                                            '--compile'], ['--compile']),
+    'iekf-with-resampler': argv_only(
+        ['evaluate', '--method', 'iekf', '--resampler', 'systematic'],
+        ['--resampler', 'iekf']),
+    'nebp-with-resampler': argv_only(
+        NEBP_EVALUATE + ['--checkpoint', 'absent.pt', '--resampler',
+                         'systematic'], ['--resampler', 'nebp']),
+    'gbp-with-compile': argv_only(
+        ['evaluate', '--method', 'gbp', '--compile'], ['--compile', 'gbp']),
+    'device-cuda-99': argv_only(EVALUATE + ['--device', 'cuda:99'],
+                                ['--device', 'cuda:99']),
     # parameters accepted before that broke the numbers later, blaming
     # something else
     'regularize-huge': argv_only(['evaluate', '--regularize', '1e30'],

@@ -126,3 +126,18 @@ def test_evaluate_writes_the_bound_and_the_iekf(tmp_path, capsys):
     assert written['iekf-marginal']['marginal'] is True
     assert written['iekf-marginal']['iterations'] == 5
     assert written['pcrb']['rmse'] < written['iekf-marginal']['rmse']
+
+
+@pytest.mark.parametrize('changes,message', [
+    (dict(batch_size=0), "'batch_size' must be positive, got 0"),
+    (dict(batch_size=1.5), "'batch_size' must be an integer"),
+    (dict(device='cuda:99'), "'device' is 'cuda:99', but"),
+])
+def test_a_bad_batch_size_or_device_is_named(changes, message):
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.evaluation import bound_dataset
+    data = [tiny_scenario(steps=2).generate(gen(0))]
+    for run in (lambda: track_dataset(ParticleBP(8), data, **changes),
+                lambda: bound_dataset(PosteriorCRB(), data, **changes)):
+        with pytest.raises((ValueError, TypeError), match=message):
+            run()

@@ -25,7 +25,35 @@ def test_unknown_option_is_one_error_line(tmp_path):
     done = run('--fast', '--out', str(tmp_path))
     assert done.returncode == 2
     assert done.stderr.splitlines() == [
-        "error: unknown option '--fast' (use --dry-run, --out DIR)"]
+        "error: unknown option '--fast' (use --dry-run, --out DIR, --help)"]
+
+
+@pytest.mark.parametrize('args,message', [
+    (('--out', ), '--out needs a folder (--out DIR)'),
+    (('--out', ''), '--out needs a folder (--out DIR)'),
+    (('--out', '--dry-run'), '--out needs a folder (--out DIR)'),
+    (('--out', '{file}'), "--out '{file}' is a file, not a folder"),
+    (('--out', '{file}/sub'), "--out '{file}/sub' cannot be created"),
+])
+def test_a_bad_out_is_one_error_line_before_any_work(tmp_path, args,
+                                                     message):
+    file = tmp_path / 'a_file'
+    file.write_text('keep')
+    done = run(*(a.format(file=file) for a in args), cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.splitlines() == ['error: ' +
+                                        message.format(file=file)]
+    assert done.stdout == ''
+    assert file.read_text() == 'keep'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['a_file']
+
+
+def test_help_prints_the_usage():
+    done = run('--help')
+    assert done.returncode == 0 and done.stderr == ''
+    assert done.stdout.startswith('usage: bash benchmarks/gpu_check.sh '
+                                  '[--out DIR] [--dry-run] [--help]')
+    assert '--dry-run' in done.stdout and '--out DIR' in done.stdout
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason='a CUDA device here')

@@ -1,6 +1,7 @@
 r"""Tests of :mod:`tg_nebp.io`: atomic writes, the removal of the
 temporaries that killed runs leave, writable-folder checks and one-line
 error messages."""
+import math
 import os
 import subprocess
 import sys
@@ -92,31 +93,74 @@ def test_messages_on_one_line_without_colour_codes():
 
 
 def test_read_resumable_checks_every_entry_against_the_schema(tmp_path):
-    from tg_nebp.experiments.compare import ROW_SCHEMA
-    from tg_nebp.io import NUMBER, read_resumable, write_json
+    from tg_nebp.io import NUMBER, Number, read_resumable, write_json
     path, settings = tmp_path / 'r.json', dict(seed=0)
-    summary = dict(mean=0.1, std=0.0)
-    row = dict(method='m', rmse=1.0, seconds_per_realization=2,
-               outage={'0.5': 0.5, '1.0': 0.1, '2.0': 0.0},
-               accept={'0.95': 0.9},
-               spread={'realizations': [], 'outage_1m': summary,
-                       'rmse': summary, 'accept_0.95': summary})
+    probability = Number(0.0, 1.0)
+    schema = dict(method=str, rmse=NUMBER, accept={'0.95': probability},
+                  per=[[probability, Number(0.0, positive=True)]] * 2)
+    row = dict(method='m', rmse=1.0, accept={'0.95': 0.9},
+               per=[[0.5, 1.0], [0.0, 2]])
     good = dict(settings=settings, results={'s': {'a': row}})
     write_json(path, good)
-    assert read_resumable(path, settings, 'results', schema=ROW_SCHEMA,
+    assert read_resumable(path, settings, 'results', schema=schema,
                           depth=2) == good
+    entry = r"'results'\['s'\]\['a'\]"
     for damaged, message in [
-            (dict(good, results={'s': [row]}), r"'results'\['s'\] is not "
-             r"an object"),
-            (dict(good, results={'s': {'a': dict(row, rmse=None)}}),
-             r"'results'\['s'\]\['a'\]\['rmse'\] is not of the expected"),
-            (dict(good, results={'s': {'a': dict(row, accept={})}}),
-             r".*\['accept'\] has no field '0.95'"),
-            (dict(good, results={'s': {'a': dict(row, rmse=True)}}),
-             r".*\['rmse'\] is not of the expected")]:
-        write_json(path, damaged)
+            ([row], r"'results'\['s'\] is not an object"),
+            (dict(row, rmse=None), entry + r"\['rmse'\] is not of the "
+             r"expected"),
+            (dict(row, accept={}), entry + r"\['accept'\] has no field "
+             r"'0.95'"),
+            (dict(row, rmse=True), entry + r"\['rmse'\] is not of the "
+             r"expected"),
+            # values, not only types: ranges, finite, lists of one length
+            (dict(row, accept={'0.95': 1.5}), entry + r"\['accept'\]"
+             r"\['0.95'\] is 1.5, not a finite number in \[0, 1\]"),
+            (dict(row, accept={'0.95': math.nan}), entry + r"\['accept'\]"
+             r"\['0.95'\] is nan, not a finite"),
+            (dict(row, accept={'0.95': True}), entry + r"\['accept'\]"
+             r"\['0.95'\] is True, not a finite"),
+            (dict(row, per=[[0.5, 0.0], [0.0, 2]]), entry + r"\['per'\]"
+             r"\[0\]\[1\] is 0.0, not a finite number > 0"),
+            (dict(row, per=[[0.5, math.inf], [0.0, 2]]), entry +
+             r"\['per'\]\[0\]\[1\] is inf, not a finite number > 0"),
+            (dict(row, per=[]), entry + r"\['per'\] is a list of length "
+             r"0, not 2"),
+            (dict(row, per=[[0.5], [0.0, 2]]), entry + r"\['per'\]\[0\] "
+             r"is a list of length 1, not 2"),
+            (dict(row, per='x'), entry + r"\['per'\] is not a list")]:
+        write_json(path, dict(good, results={'s': damaged if isinstance(
+            damaged, list) else {'a': damaged}}))
         with pytest.raises(ValueError, match=r"r\.json' is damaged: " +
-                           message):
-            read_resumable(path, settings, 'results', schema=ROW_SCHEMA,
+                           message + r".*remove the file"):
+            read_resumable(path, settings, 'results', schema=schema,
                            depth=2)
     assert NUMBER == (int, float)
+
+
+def test_read_resumable_with_a_schema_per_entry_name(tmp_path):
+    from tg_nebp.io import Number, read_resumable, write_json
+    path, settings = tmp_path / 'r.json', dict(seed=0)
+
+    def schema(name):  # the entry 'floor' divides: positive
+        return dict(rmse=Number(0.0, positive=name == 'floor'))
+
+    good = dict(settings=settings, points={'floor': {'rmse': 1.0},
+                                           'other': {'rmse': 0.0}})
+    write_json(path, good)
+    assert read_resumable(path, settings, 'points', schema=schema) == good
+    write_json(path, dict(good, points={'floor': {'rmse': 0.0}}))
+    with pytest.raises(ValueError, match=r"'points'\['floor'\]\['rmse'\] "
+                       r"is 0.0, not a finite number > 0"):
+        read_resumable(path, settings, 'points', schema=schema)
+
+
+def test_write_json_keeps_the_order_without_sort_keys(tmp_path):
+    rows = {'pcrb': 1, 'iekf': {'z': 1, 'a': 2}, 'bp': 3}
+    io.write_json(tmp_path / 'kept.json', rows, sort_keys=False)
+    io.write_json(tmp_path / 'sorted.json', rows)
+    kept = io.read_json(tmp_path / 'kept.json')
+    assert list(kept) == ['pcrb', 'iekf', 'bp']
+    assert list(kept['iekf']) == ['z', 'a']
+    assert list(io.read_json(tmp_path / 'sorted.json')) == ['bp', 'iekf',
+                                                            'pcrb']

@@ -43,3 +43,18 @@ def test_the_drivers_live_in_one_subpackage():
     assert top & ALIASES == ALIASES
     for alias in ALIASES - {'_moved.py'}:
         assert len((PACKAGE / alias).read_text().splitlines()) < 8
+
+
+def modules_under(folder: str):
+    return list((PACKAGE / folder).rglob('*.py'))
+
+
+def test_the_bound_and_the_trackers_do_not_lean_on_each_other():
+    # the bound is the yardstick of the trackers: what both need (the
+    # dense joint's algebra and layout, the checks) sits a floor lower
+    for folder, other in (('bounds', 'tg_nebp.filters'),
+                          ('filters', 'tg_nebp.bounds')):
+        offenders = {str(p.relative_to(PACKAGE)): name
+                     for p in modules_under(folder) for name in imported(p)
+                     if name == other or name.startswith(other + '.')}
+        assert offenders == {}, folder

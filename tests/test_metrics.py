@@ -1,8 +1,11 @@
 import math
 
+import mpmath
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from tg_nebp import metrics
@@ -266,9 +269,90 @@ def test_empty_selection_is_an_error():
 
 # -- the outage of a Gaussian error (the bound's efficient estimator) --------
 
+def _mp_splits(small, large, r):
+    # dyadic angles from pi / 2 down to far below the scales of the peak at
+    # 0 of the direction integrands below (tan theta ~ sqrt(small / large)
+    # and the Gaussian width in sin theta), so that each piece is smooth on
+    # its own scale for mpmath's quadrature
+    scale = mpmath.sqrt(small / large)
+    if r > 0 and small < large:
+        scale = min(scale, 1 / (r * mpmath.sqrt(1 / small - 1 / large)))
+    points = [mpmath.pi / 2]
+    while points[-1] > scale / 100:
+        points.append(points[-1] / 2)
+    return [mpmath.mpf(0)] + points[::-1]
+
+
+def _mp_dawson(y):
+    # Dawson's F(y) = exp(-y^2) int_0^y exp(t^2) dt; for large y (where
+    # mpmath's erfi is slow) its asymptotic series sum_k (2k - 1)!! /
+    # (2 y^2)^k / (2 y), whose smallest term, about exp(-y^2), is far
+    # below mpmath's precision
+    if y < 12:
+        return mpmath.sqrt(mpmath.pi) / 2 * mpmath.exp(-y * y) * \
+            mpmath.erfi(y)
+    term = total = 1 / (2 * y)
+    k = 0
+    while abs(term) > mpmath.eps * total:
+        k += 1
+        term *= (2 * k - 1) / (2 * y * y)
+        total += term
+    return total
+
+
+def _mp_outage(eigenvalues, r):
+    # P(sum_k l_k X_k^2 > r^2) at mpmath's precision, by formulas other
+    # than gaussian_outage's (which conditions on the smallest variance):
+    # in polar coordinates for two positive eigenvalues l1 >= l2,
+    #   (2 / pi) int_0^{pi/2} exp(-r^2 a / 2) / (sqrt(l1 l2) a) dtheta,
+    #   a = cos^2 theta / l1 + sin^2 theta / l2;
+    # for three, l1 >= l2 >= l3, conditioning on X1 with the outage of the
+    # other two in polar coordinates, whose integral over X1 is Dawson's F:
+    #   erfc(r / sqrt(2 l1)) + exp(-r^2 / (2 l1)) 4 / pi^1.5 / sqrt(l2 l3)
+    #   int_0^{pi/2} F(r sqrt(g / (2 l1))) / (sqrt(g) a) dtheta,
+    #   a = cos^2 theta / l2 + sin^2 theta / l3, g = l1 a - 1 >= 0.
+    # exp(-r^2 / (2 l1)) stays outside the integrals and the rest of the
+    # factors inside, so that they are not small: mpmath's tolerance is
+    # absolute
+    lam = sorted((mpmath.mpf(v) for v in eigenvalues if v > 0),
+                 reverse=True)
+    r = mpmath.mpf(r)
+    if not lam:
+        return mpmath.mpf(0)
+    if len(lam) == 1:
+        return mpmath.erfc(r / mpmath.sqrt(2 * lam[0]))
+    if len(lam) == 2:
+        l1, l2 = lam
+        scale = 2 / mpmath.pi / mpmath.sqrt(l1 * l2)
+
+        def f(t):
+            a = mpmath.cos(t)**2 / l1 + mpmath.sin(t)**2 / l2
+            return scale * mpmath.exp(-r * r * (a - 1 / l1) / 2) / a
+        return mpmath.exp(-r * r / (2 * l1)) * mpmath.quad(
+            f, _mp_splits(l2, l1, r), method='gauss-legendre')
+    l1, l2, l3 = lam
+    scale = 4 / mpmath.pi**1.5 / mpmath.sqrt(l2 * l3)
+
+    def f(t):
+        a = mpmath.cos(t)**2 / l2 + mpmath.sin(t)**2 / l3
+        g = l1 * a - 1
+        if g == 0:  # the limit of F(y) / sqrt(g), F(y) ~ y
+            return scale * r / mpmath.sqrt(2 * l1) / a
+        return scale * _mp_dawson(r * mpmath.sqrt(g / (2 * l1))) / \
+            mpmath.sqrt(g) / a
+    return mpmath.erfc(r / mpmath.sqrt(2 * l1)) + mpmath.exp(
+        -r * r / (2 * l1)) * mpmath.quad(f, _mp_splits(l3, l2, r),
+                                         method='gauss-legendre')
+
+
+def _rotation(dim, generator):
+    q, _ = torch.linalg.qr(torch.randn(dim, dim, generator=generator,
+                                       dtype=torch.float64))
+    return q
+
+
 @pytest.mark.parametrize('dim', [1, 2, 3])
 def test_gaussian_outage_isotropic_is_chi_square(dim):
-    from scipy.stats import chi2
     variance = 0.3
     cov = variance * torch.eye(dim, dtype=torch.float64).expand(2, -1, -1)
     thresholds = [0.1, 0.5, 1.0, 2.0]
@@ -277,6 +361,70 @@ def test_gaussian_outage_isotropic_is_chi_square(dim):
     expected = [chi2.sf(r**2 / variance, dim) for r in thresholds]
     np.testing.assert_allclose(out[0].numpy(), expected, rtol=1e-9,
                                atol=1e-15)
+
+
+def _diag(*values):
+    return torch.diag(torch.tensor(values, dtype=torch.float64))
+
+
+def test_gaussian_outage_closed_forms():
+    radii = np.array([0.0, 0.05, 0.7, 1.3, 4.0, 12.0, 50.0])
+    # isotropic: Rayleigh in 2-D, Maxwell in 3-D, far into the tail
+    for s in (1e-3, 0.4, 30.0):
+        x = radii / s
+        rayleigh = np.exp(-x**2 / 2)
+        maxwell = [math.erfc(v / math.sqrt(2)) + math.sqrt(2 / math.pi) *
+                   v * math.exp(-v * v / 2) for v in x]
+        for cov, expected in ((_diag(s * s, s * s), rayleigh),
+                              (_diag(s * s, s * s, s * s), maxwell)):
+            got = metrics.gaussian_outage(cov, radii)
+            np.testing.assert_allclose(got.numpy(), expected, rtol=1e-12,
+                                       atol=0)
+    # rank one: the 1-D normal tail, however the axis lies
+    variance = 2.5
+    tail = [math.erfc(r / math.sqrt(2 * variance)) for r in radii]
+    axis = torch.tensor([0.48, -0.6, 0.64], dtype=torch.float64)
+    for cov in (_diag(variance, 0), _diag(variance, 0, 0),
+                _diag(0, 0, variance), variance * torch.outer(axis, axis)):
+        got = metrics.gaussian_outage(cov, radii)
+        np.testing.assert_allclose(got.numpy(), tail, rtol=1e-12, atol=1e-15)
+    # rank two in 3-D is the 2-D outage of its non-zero block
+    np.testing.assert_allclose(
+        metrics.gaussian_outage(_diag(2.0, 0.3, 0), radii).numpy(),
+        metrics.gaussian_outage(_diag(2.0, 0.3), radii).numpy(), rtol=1e-13,
+        atol=0)
+    # a zero covariance never errs; any other errs at r = 0
+    for dim in (1, 2, 3):
+        assert metrics.gaussian_outage(torch.zeros(dim, dim),
+                                       radii).abs().max() == 0
+        assert float(metrics.gaussian_outage(1e-30 * torch.eye(dim),
+                                             [0.0])) == 1
+
+
+@pytest.mark.parametrize('ratio', [1e5, 1e6, 1e8, 1e12])
+def test_gaussian_outage_of_elongated_covariances(ratio):
+    # diag(1, 1 / ratio) at r = 1 is erfc(1 / sqrt 2) up to the small
+    # axis's own effect, about 0.76 / ratio relative (the old direction
+    # average gave 0.24, 2e-3 and 1e-206 for 1e5, 1e6, 1e8)
+    cov = _diag(1.0, 1 / ratio)
+    got = float(metrics.gaussian_outage(cov, [1.0]))
+    expected = math.erfc(1 / math.sqrt(2))
+    assert abs(got / expected - 1) < 1 / ratio
+    with mpmath.workdps(30):
+        exact = float(_mp_outage([1.0, 1 / ratio], 1.0))
+    assert got == pytest.approx(exact, rel=1e-13, abs=0)
+
+
+def test_gaussian_outage_of_a_ring_shaped_posterior():
+    # one agent ranging to one anchor with sigma = 1 mm: variance 10 m^2
+    # along the ring, 1e-6 m^2 across it; the outage at 1 m is about 0.75
+    # (the old direction average gave 0.001)
+    cov = _diag(10.0, 1e-6)
+    got = metrics.gaussian_outage(cov, [0.5, 1.0, 3.0])
+    with mpmath.workdps(30):
+        exact = [float(_mp_outage([10.0, 1e-6], r)) for r in (0.5, 1, 3)]
+    np.testing.assert_allclose(got.numpy(), exact, rtol=1e-13, atol=0)
+    assert abs(float(got[1]) - 0.7518) < 1e-4
 
 
 @pytest.mark.parametrize('eigenvalues', [(1.0, 0.1), (1.0, 0.001),
@@ -300,27 +448,145 @@ def test_gaussian_outage_2d_against_adaptive_quadrature(eigenvalues):
         assert abs(got - (1 - inside)) < 1e-9
 
 
-def test_gaussian_outage_3d_against_monte_carlo():
-    g = torch.Generator().manual_seed(0)
-    root = torch.randn(3, 3, generator=g, dtype=torch.float64)
-    cov = root @ root.t() / 3 + 0.05 * torch.eye(3, dtype=torch.float64)
-    count = 1_000_000
-    errors = torch.randn(count, 3, generator=g, dtype=torch.float64) @ \
-        torch.linalg.cholesky(cov).t()
+@settings(max_examples=40, deadline=None)
+@given(dim=st.sampled_from([2, 3]), seed=st.integers(0, 2**32 - 1),
+       log_scale=st.floats(-3, 3),
+       log_spread=st.lists(st.floats(0, 12), min_size=2, max_size=2),
+       axis=st.integers(0, 2),
+       log_radii=st.lists(st.floats(-2, 1.6), min_size=2, max_size=2))
+def test_gaussian_outage_against_mpmath(dim, seed, log_scale, log_spread,
+                                        axis, log_radii):
+    # a rotated covariance, condition number up to 1e12, thresholds from
+    # 1/100 to 40 standard deviations of one of its axes; the reference is
+    # the exact outage of the float64 matrix given (its eigenvalues to 30
+    # digits). Exact eigenvalues give errors of ~1e-13 relative; the
+    # absolute tolerance is for eigvalsh's rounding of a small eigenvalue
+    # (~1e-16 of the largest), which moves the outage by up to ~1e-16
+    # sqrt(condition number) (5e-11 at 1e12, the worst of 1800 cases)
+    spread = [0.0] + log_spread[:dim - 1]
+    eigenvalues = torch.tensor([10**(log_scale - v) for v in spread],
+                               dtype=torch.float64)
+    q = _rotation(dim, torch.Generator().manual_seed(seed))
+    cov = q @ torch.diag(eigenvalues) @ q.t()
+    cov = 0.5 * (cov + cov.t())
+    radii = [float(eigenvalues[axis % dim].sqrt()) * 10**v for v in log_radii]
+    got = metrics.gaussian_outage(cov, radii)
+    with mpmath.workdps(30):
+        exact = mpmath.eigsy(mpmath.matrix(cov.tolist()), eigvals_only=True)
+        expected = [float(_mp_outage(list(exact), r)) for r in radii]
+        condition = float(max(exact) / min(exact))
+    for value, reference in zip(got.tolist(), expected):
+        assert abs(value - reference) <= 1e-12 + 4e-16 * condition**0.5
+        if reference > 1e-300:
+            assert abs(value / reference - 1) <= 1e-10
+
+
+@pytest.mark.parametrize('dim', [2, 3])
+@pytest.mark.parametrize('condition', [1.0, 1e3, 1e6, 1e9, 1e12])
+def test_gaussian_outage_against_monte_carlo(dim, condition):
+    # 400,000 draws of a rotated covariance whose eigenvalues span
+    # `condition` (log-evenly), at thresholds on the scales of its largest
+    # and smallest axes; within 5 binomial standard errors
+    g = torch.Generator().manual_seed(int(math.log10(condition)) + 10 * dim)
+    eigenvalues = torch.logspace(0, -math.log10(condition), dim,
+                                 dtype=torch.float64)
+    q = _rotation(dim, g)
+    count = 400_000
+    errors = torch.randn(count, dim, generator=g, dtype=torch.float64) * \
+        eigenvalues.sqrt() @ q.t()
     norms = errors.norm(dim=-1)
-    for r in (0.3, 1.0, 2.0):
+    largest, smallest = eigenvalues[0].sqrt(), eigenvalues[-1].sqrt()
+    radii = [float(v) for v in (0.3 * largest, largest, 2.5 * largest,
+                                smallest, 3 * smallest)]
+    got = metrics.gaussian_outage(q @ torch.diag(eigenvalues) @ q.t(),
+                                  radii)
+    for r, value in zip(radii, got.tolist()):
         p = float((norms > r).double().mean())
-        got = float(metrics.gaussian_outage(cov, [r]))
-        assert abs(got - p) < 5 * max(p * (1 - p), 1e-6)**0.5 / count**0.5
+        error = (max(p * (1 - p), 1 / count) / count)**0.5
+        assert abs(value - p) < 5 * error, (r, value, p)
 
 
-def test_gaussian_outage_refuses_what_it_cannot_do():
+def test_gaussian_outage_refuses_what_is_no_covariance():
+    eye = torch.eye(2, dtype=torch.float64)
     with pytest.raises(ValueError, match='D in 1, 2, 3'):
         metrics.gaussian_outage(torch.eye(4), [1.0])
-    with pytest.raises(ValueError, match='positive definite'):
-        metrics.gaussian_outage(torch.zeros(2, 2), [1.0])
-    with pytest.raises(ValueError, match='non-negative'):
-        metrics.gaussian_outage(torch.eye(2), [-1.0])
+    # eigvalsh would read one triangle: the identity
+    with pytest.raises(ValueError, match=r"'cov' is not symmetric"):
+        metrics.gaussian_outage(torch.tensor([[1.0, 5.0], [0.0, 1.0]]),
+                                [1.0])
+    skew = torch.stack([eye, eye, eye + torch.tensor([[0.0, 1e-6],
+                                                      [0.0, 0.0]])])
+    with pytest.raises(ValueError, match=r"'cov\[2\]' is not symmetric"):
+        metrics.gaussian_outage(skew, [1.0])
+    with pytest.raises(ValueError, match=r"'cov\[1, 0\]' is indefinite"):
+        metrics.gaussian_outage(torch.stack([eye, _diag(1.0, -1e-3)])
+                                .unsqueeze(1), [1.0])
+    for cov in ([[1.0, math.inf], [math.inf, 1.0]],
+                [[-math.inf, 0.0], [0.0, 1.0]]):
+        with pytest.raises(ValueError, match="'cov' has a -inf variance, "
+                           "or an infinite covariance"):
+            metrics.gaussian_outage(torch.tensor(cov), [1.0])
+    with pytest.raises(TypeError, match="'cov'"):
+        metrics.gaussian_outage([[1.0, 0.0], [0.0, 1.0]], [1.0])
+    # rounding: triangles 8e-10 apart are a covariance, the mean of both
+    # (eigvalsh alone would read one: 4e-10 off here); so is an eigenvalue
+    # of -1e-12 (one of zero)
+    radii = [0.3, 1.0, 3.0]
+    skewed = torch.tensor([[1.0, 0.3 + 4e-10], [0.3 - 4e-10, 0.5]],
+                          dtype=torch.float64)
+    torch.testing.assert_close(
+        metrics.gaussian_outage(skewed, radii), metrics.gaussian_outage(
+            torch.tensor([[1.0, 0.3], [0.3, 0.5]], dtype=torch.float64),
+            radii), rtol=1e-13, atol=0)
+    assert float(metrics.gaussian_outage(_diag(1.0, -1e-12), [1.0])) == \
+        pytest.approx(math.erfc(1 / math.sqrt(2)), rel=1e-14)
+
+
+def test_gaussian_outage_refuses_bad_thresholds():
+    for thresholds in (['1'], '1', [None], [1.0, [2.0]],
+                       torch.tensor([True])):
+        with pytest.raises(TypeError, match="'thresholds'"):
+            metrics.gaussian_outage(torch.eye(2), thresholds)
+    for thresholds in ([-1.0], [1.0, math.nan]):
+        with pytest.raises(ValueError, match="'thresholds'"):
+            metrics.gaussian_outage(torch.eye(2), thresholds)
+
+
+def test_gaussian_outage_of_nan_and_infinite_entries():
+    # NaN in, NaN out for that covariance only; an infinite variance never
+    # stays within a finite threshold; no error stays beyond r = inf
+    cov = torch.stack([torch.eye(2), torch.tensor([[1.0, math.nan],
+                                                   [math.nan, 1.0]]),
+                       torch.tensor([[math.inf, 0.0], [0.0, 1.0]])])
+    out = metrics.gaussian_outage(cov, [0.0, 1.0, math.inf])
+    assert out[0].tolist() == [1.0, pytest.approx(math.exp(-0.5)), 0.0]
+    assert torch.isnan(out[1]).all()
+    assert out[2].tolist() == [1.0, 1.0, 0.0]
+
+
+def test_gaussian_outage_keeps_the_batch_shape_in_float64():
+    g = torch.Generator().manual_seed(3)
+    root = torch.randn(2, 3, 2, 2, generator=g)
+    cov = root @ root.transpose(-1, -2) + 0.1 * torch.eye(2)  # float32
+    thresholds = torch.tensor([0.2, 0.5, 1.0, 2.0])
+    out = metrics.gaussian_outage(cov, thresholds)
+    assert out.shape == (2, 3, 4) and out.dtype == torch.float64
+    # each the outage of its float32 matrix in float64 (the mean of both
+    # triangles, which float32 rounding may set apart)
+    for i in range(2):
+        for j in range(3):
+            single = cov[i, j].double()
+            single = 0.5 * (single + single.t())
+            torch.testing.assert_close(
+                out[i, j], metrics.gaussian_outage(single, thresholds),
+                rtol=1e-12, atol=0)
+    assert metrics.gaussian_outage(cov[:0], thresholds).shape == (0, 3, 4)
+    # a float32 covariance's triangles may differ by its rounding (here 2
+    # units of 0.3, 6e-8)
+    skewed = torch.tensor([[1.0, 0.3], [0.3, 1.0]])
+    skewed[1, 0] = skewed[1, 0] + 5e-8
+    assert skewed[1, 0] != skewed[0, 1]
+    assert torch.isfinite(metrics.gaussian_outage(skewed, thresholds)).all()
 
 
 def test_nees_of_three_dimensional_errors_has_three_degrees_of_freedom():

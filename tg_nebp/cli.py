@@ -7,12 +7,11 @@ import sys
 from pathlib import Path
 from typing import Callable, List, NoReturn, Optional
 
-import torch
 from tqdm import tqdm
 
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
-from tg_nebp.experiments.evaluate import evaluate_scenario
+from tg_nebp.experiments.evaluate import METHOD_OPTIONS, evaluate_scenario
 from tg_nebp.experiments.frontier import frontier
 from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.experiments.train import train_scenario
@@ -23,7 +22,7 @@ from tg_nebp.io import check_writable_folder, one_line
 from tg_nebp.models import MODELS
 from tg_nebp.threads import threads_in_force
 from tg_nebp.training import MAX_LR
-from tg_nebp.utils import joined_process_group, process_group
+from tg_nebp.utils import check_device, joined_process_group, process_group
 
 __all__ = ['main']
 
@@ -141,12 +140,10 @@ def _add_test_data(parser: argparse.ArgumentParser, realizations: int):
 
 
 def _device(name: str) -> str:
-    if name not in ('cpu', 'cuda') and not name.startswith('cuda:'):
-        raise argparse.ArgumentTypeError(f"must be 'cpu' or 'cuda', got "
-                                         f"'{name}'")
-    if name.startswith('cuda') and not torch.cuda.is_available():
-        raise argparse.ArgumentTypeError('CUDA is not available here')
-    return name
+    try:
+        return check_device(name)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _threads(text: str):
@@ -155,7 +152,7 @@ def _threads(text: str):
 
 def _add_common(parser: argparse.ArgumentParser):
     parser.add_argument('--device', type=_device, default='cpu',
-                        help="'cpu' (default) or 'cuda'")
+                        help="'cpu' (default), 'cuda' or 'cuda:N'")
     parser.add_argument('--threads', type=_threads, default=None,
                         metavar='N|auto',
                         help="torch's CPU threads: a number, or 'auto' (as "
@@ -166,9 +163,13 @@ def _add_common(parser: argparse.ArgumentParser):
                         'NEBP)')
     parser.add_argument('--root', default='datasets',
                         help='dataset root (default: datasets)')
+
+
+def _add_compile(parser: argparse.ArgumentParser, who: str = ''):
+    # not common: compare runs its rows as they are configured
     parser.add_argument('--compile', action='store_true',
-                        help='fuse the per-edge work with torch.compile (the '
-                        'first steps compile)')
+                        help=f'{who}fuse the per-edge work with '
+                        'torch.compile (the first steps compile)')
 
 
 def _add_measurement(parser, who: str):
@@ -202,41 +203,14 @@ def _bars(args) -> Callable:
     return bar
 
 
-# the options that only some methods take: (flag, attribute, its unset
-# value, the methods that take it)
-_METHOD_OPTIONS = (
-    ('--checkpoint', 'checkpoint', None, ('nebp', )),
-    ('--particles', 'particles', None, ('bp', 'nebp')),
-    ('--samples', 'samples', None, ('bp', 'nebp')),
-    ('--regularize', 'regularize', None, ('bp', )),
-    ('--ess-threshold', 'ess_threshold', None, ('bp', )),
-    ('--measurement', 'measurement', None, ('bp', 'iekf', 'gbp')),
-    ('--iterations', 'iterations', None, ('bp', 'iekf', 'gbp')),
-    ('--marginal', 'marginal', False, ('iekf', )),
-    ('--inflation', 'inflation', None, ('gbp', )),
-    ('--tolerance', 'tolerance', None, ('gbp', )),
-    ('--ends', 'ends', None, ('bp', 'gbp')),
-)
-
-
-def _check_method_options(args) -> None:
-    for flag, name, unset, methods in _METHOD_OPTIONS:
-        if getattr(args, name) != unset and args.method not in methods:
-            raise ValueError(f"{flag} is for --method {' or '.join(methods)}"
-                             f", not {args.method}")
-
-
 def _evaluate(args) -> int:
-    _check_method_options(args)
-    if args.method == 'nebp' and args.checkpoint is None:
-        raise ValueError("--method nebp needs --checkpoint PATH")
-    options = {name: getattr(args, name) for _, name, _, methods
-               in _METHOD_OPTIONS if args.method in methods}
+    # method_tracker refuses an option that the method does not take
+    options = {name: getattr(args, name) for name in METHOD_OPTIONS}
     with joined_process_group(args.device) as device:
         result = evaluate_scenario(
             args.method, args.scenario, args.realizations, args.seed,
             args.root, args.out, args.batch_size, device, _bars(args),
-            resampler=args.resampler, compile=args.compile, **options)
+            **options)
         if process_group()[1] > 0:
             return 0
     entry, key = result['entry'], result['key']
@@ -316,10 +290,12 @@ def build_parser() -> argparse.ArgumentParser:
         'evaluate', help='run a tracker (or the bound) on the test network '
         'and write DIR/metrics.json', description='Runs a method on the test '
         'realizations and merges its entry into DIR/metrics.json: particle '
-        'BP (bp), NEBP from a checkpoint (nebp), the centralized iterated EKF '
-        '(iekf; iekf-marginal with --marginal) or the posterior Cramer-Rao '
-        'bound of the same realizations (pcrb: its RMSE is the floor, its '
-        'outage that of an efficient estimator). Sharded over N processes: '
+        'BP (bp), NEBP from a checkpoint (nebp), Gaussian BP (gbp), the '
+        'centralized iterated EKF (iekf; iekf-marginal with --marginal) or '
+        'the posterior Cramer-Rao bound of the same realizations (pcrb: its '
+        'RMSE is the floor, its outage that of an efficient estimator); an '
+        'option that the method does not take is an error. Sharded over N '
+        'processes: '
         '"torchrun --nproc_per_node=N -m tg_nebp evaluate ..." (gloo on the '
         'CPU; NCCL with --device cuda, one GPU per process): rank r tracks '
         'realizations r, r + N, ..., rank 0 gathers the errors, prints and '
@@ -357,12 +333,14 @@ def build_parser() -> argparse.ArgumentParser:
                     '1; gbp, at most, default: 20) or Gauss-Newton '
                     'iterations per step (iekf, default: 5)')
     ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
-                    default='multinomial')
+                    default=None, help='bp: how to draw the particles of '
+                    'the next step (default: multinomial)')
     _add_measurement(ev, 'BP\'s or the IEKF')
     ev.add_argument('--out', default='results/evaluate',
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
+    _add_compile(ev, 'bp, nebp: ')
     _add_samples(ev, None)
     _add_resampling(ev)
     ev.set_defaults(run=_evaluate)
@@ -413,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
                     'end (default: no log)')
     tr.add_argument('--quiet', action='store_true')
     _add_common(tr)
+    _add_compile(tr)
     _add_samples(tr, 1)
     _add_resampling(tr)
     tr.set_defaults(run=_train)
@@ -425,6 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
                     'results/beyond with --preset beyond)')
     rp.add_argument('--quiet', action='store_true')
     _add_common(rp)
+    _add_compile(rp)
     _add_samples(rp, 1)
     rp.set_defaults(run=_reproduce)
 
@@ -461,6 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help='output folder (default: results/frontier)')
     fr.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(fr)
+    _add_compile(fr)
     fr.set_defaults(run=_frontier)
 
     cp = sub.add_parser(
@@ -474,14 +455,16 @@ def build_parser() -> argparse.ArgumentParser:
         '--checkpoint on the same '
         'realizations and prior particle draws of every scenario, and '
         'writes DIR/compare.json after every method, then the table '
-        'DIR/compare.md and DIR/compare.png. Run again to resume or to add '
+        'DIR/compare.md and DIR/compare.png, its tables in the order of '
+        'the scenarios and of the rows. Run again to resume or to add '
         'checkpoints: rows already in the file are skipped; a file made '
         'with other realizations, seed, device or scenario contents is an '
-        'error.')
+        'error, as is a damaged one. The rows run as they are configured '
+        '(no --compile).')
     cp.add_argument('--scenario', nargs='+', default=['paper_test',
                                                       'paper_test_nlos'],
-                    metavar='NAME|FILE', help='scenarios (default: '
-                    'paper_test paper_test_nlos)')
+                    metavar='NAME|FILE', help='scenarios, of distinct '
+                    'names (default: paper_test paper_test_nlos)')
     cp.add_argument('--realizations', type=_positive, default=20,
                     help='realizations per scenario (default: 20)')
     cp.add_argument('--seed', type=_non_negative, default=0,
@@ -489,11 +472,13 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument('--batch-size', type=_positive, default=1,
                     help='realizations tracked together (default: 1)')
     cp.add_argument('--checkpoint', nargs='+', default=[], metavar='PATH',
-                    help='NEBP checkpoints, one row each')
+                    help='NEBP checkpoints, one row each (which --methods '
+                    'must select)')
     cp.add_argument('--methods', nargs='+', default=None, metavar='PREFIX',
                     help='run only the rows whose key starts with one of '
                     'these (pcrb, iekf, iekf-marginal, gbp, gbp-plain, '
-                    'bp-paper, bp-recommended, nebp; default: all)')
+                    'bp-paper, bp-recommended, nebp; default: all); a '
+                    'prefix that selects no row is an error')
     cp.add_argument('--out', default='results/compare',
                     help='output folder (default: results/compare)')
     cp.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -504,6 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
                            'tracker on the test network')
     add_arguments(bench)
     _add_common(bench)
+    _add_compile(bench)
     bench.set_defaults(run=run_bench)
     return parser
 

@@ -13,7 +13,8 @@ from tg_nebp import metrics
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.filters import Tracker
 from tg_nebp.io import read_json, write_json
-from tg_nebp.utils import derive_seed, process_group
+from tg_nebp.data.validation import check_positive_int
+from tg_nebp.utils import check_device, derive_seed, process_group
 
 __all__ = ['track_dataset', 'bound_dataset', 'summarize', 'summarize_bound',
            'summarize_result', 'spread', 'evaluate_method',
@@ -33,6 +34,8 @@ OUTAGE_KEY, CONFIDENCE_KEY = '1.0', '0.95'
 def _realization_batches(dataset: Sequence, batch_size: int, device: str):
     # this process's realizations (r, r + W, ... under torchrun), batched:
     # (their indices, the batch)
+    check_positive_int(batch_size, 'batch_size')
+    check_device(device)
     world_size, rank = process_group()
     mine = list(range(rank, len(dataset), world_size))
     for start in range(0, len(mine), batch_size):

@@ -1,30 +1,59 @@
 r"""Dense joint Gaussians over the agents of one graph, shared by the
 centralized filter (:class:`~tg_nebp.filters.CentralizedIEKF`) and the
-posterior Cramér-Rao bound (:class:`~tg_nebp.bounds.PosteriorCRB`): the
-prediction of a joint covariance through a per-agent motion model, the
-information of measured links added into a joint information matrix, the
-agents' marginals, and the memory check that refuses a joint too large for
-the machine before any work starts.
+posterior Cramér-Rao bound (:class:`~tg_nebp.bounds.PosteriorCRB`): where
+each graph's agents sit in its joint, the prediction of a joint covariance
+through a per-agent motion model, the information of measured links added
+into a joint information matrix, the agents' marginals, and the memory
+check that refuses a joint too large for the machine before any work
+starts. Neither the bound nor a tracker imports the other: what they share
+lives here and in :mod:`tg_nebp.data.validation`.
 
 A joint over :math:`A` agents with states of size :math:`S` is an
 :math:`(AS, AS)` matrix whose block :math:`(a, b)` belongs to agents
 :math:`a` and :math:`b`; anchors are known and hold no block."""
-from typing import Optional, Sequence, Tuple
+from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
+from torch_geometric.data import Batch
 
 from tg_nebp.utils import free_memory_bytes
 
-__all__ = ['check_dense_joint', 'predict_joint', 'range_blocks',
-           'embed_scope', 'add_link_information', 'marginal_blocks',
-           'block_diagonal',
+__all__ = ['GraphLayout', 'check_dense_joint', 'check_predicted_prior',
+           'predict_joint', 'range_blocks', 'embed_scope',
+           'add_link_information', 'marginal_blocks', 'block_diagonal',
            'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
 #: recursion (covariance, information, factor, temporaries), for the
 #: memory estimate of :func:`check_dense_joint`.
 JOINT_COPIES = 6
+
+
+class GraphLayout(NamedTuple):
+    r"""Where the agents of each graph of a (batched) realization are:
+    their node indices per graph, and every node's index among its graph's
+    agents (:math:`-1` for anchors)."""
+    agents: List[Tensor]
+    agent_index: Tensor
+    graph_of: Tensor
+
+    @classmethod
+    def of(cls, data) -> 'GraphLayout':
+        r"""The layout of :obj:`data`, a single or batched realization."""
+        num_nodes = data.num_nodes
+        graph_of = (data.batch if isinstance(data, Batch) else
+                    torch.zeros(num_nodes, dtype=torch.long,
+                                device=data.anchor.device))
+        agents, agent_index = [], torch.full((num_nodes, ), -1,
+                                             dtype=torch.long,
+                                             device=data.anchor.device)
+        for g in range(int(graph_of.max()) + 1 if num_nodes else 0):
+            nodes = ((graph_of == g) & ~data.anchor).nonzero().view(-1)
+            agent_index[nodes] = torch.arange(nodes.numel(),
+                                              device=nodes.device)
+            agents.append(nodes)
+        return cls(agents, agent_index, graph_of)
 
 
 def check_dense_joint(num_agents: int, state_dim: int, what: str,
@@ -43,6 +72,32 @@ def check_dense_joint(num_agents: int, state_dim: int, what: str,
             f"{size} float64 matrices, about {needed / 2**30:.3g} GiB in "
             f"all, but {free / 2**30:.3g} GiB are free on {device}: it runs "
             f"up to about {fits} agents per graph here")
+
+
+def check_predicted_prior(data, motion, what: str) -> None:
+    r"""Refuses, with a :class:`ValueError` naming :obj:`prior_cov` and the
+    agent, a prior whose prediction through the motion model,
+    :math:`\mathbf{F} \boldsymbol{\Sigma}_0 \mathbf{F}^\top + \mathbf{Q}`,
+    has no float64 Cholesky factor: the first covariance that a Gaussian
+    method (:obj:`what`) inverts. A zero prior variance is fine where the
+    motion model's noise reaches it (a velocity known at the start); an
+    agent whose whole state is known is an anchor."""
+    agents = ~data.anchor
+    mean = data.prior_mean[agents].double()
+    jacobian = motion.jacobian(mean)
+    predicted = (jacobian @ data.prior_cov[agents].double() @
+                 jacobian.transpose(-1, -2) + motion.noise_covariance(mean))
+    _, failed = torch.linalg.cholesky_ex(predicted)
+    if bool(failed.any()):
+        first = int(failed.nonzero()[0, 0])
+        node = int(agents.nonzero()[first, 0])
+        eig = torch.linalg.eigvalsh(predicted[first])
+        raise ValueError(
+            f"'prior_cov[{node}]' of agent {node} is singular where the "
+            f"motion model {motion} adds no noise (predicted eigenvalues "
+            f"{[float(f'{e:.3g}') for e in eig]}): {what} needs a "
+            f"positive predicted variance in every direction (a known state "
+            f"is an anchor's)")
 
 
 def block_diagonal(blocks: Tensor) -> Tensor:

@@ -3,16 +3,18 @@ temporary name in the same folder and renamed, so a killed run never leaves
 a half-written result; the temporaries that killed runs leave behind are
 removed at the next write to their folder."""
 import json
+import math
 import os
 import re
 import socket
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional, Union
 
 __all__ = ['atomic_write', 'write_json', 'write_text', 'read_json',
-           'read_resumable', 'NUMBER', 'claim_folder',
+           'read_resumable', 'NUMBER', 'Number', 'claim_folder',
            'remove_stale_temporaries', 'check_writable_folder', 'one_line',
            'first_line']
 
@@ -97,9 +99,11 @@ def _umask() -> int:
     return mask
 
 
-def write_json(path: Union[str, Path], obj: Any):
-    r"""Writes :obj:`obj` as indented JSON, atomically."""
-    write_text(path, json.dumps(obj, indent=2, sort_keys=True) + '\n')
+def write_json(path: Union[str, Path], obj: Any, sort_keys: bool = True):
+    r"""Writes :obj:`obj` as indented JSON, atomically, with the keys of
+    every object sorted, or in their order in :obj:`obj` (an order that
+    means something, such as a table's rows) without :obj:`sort_keys`."""
+    write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + '\n')
 
 
 def write_text(path: Union[str, Path], text: str):
@@ -128,9 +132,21 @@ def read_json(path: Union[str, Path]) -> Any:
 NUMBER = (int, float)
 
 
+@dataclass(frozen=True)
+class Number:
+    r"""In an entry's schema (:func:`read_resumable`): a finite JSON number
+    from :obj:`minimum` to :obj:`maximum`, above :obj:`minimum` only if
+    :obj:`positive` (a divisor)."""
+    minimum: float = -math.inf
+    maximum: float = math.inf
+    positive: bool = False
+
+
 def _schema_error(value, schema, where: str) -> Optional[str]:
-    # where 'value' departs from 'schema': a type (or tuple of types), or a
-    # dict of required fields and their schemas; None where it does not
+    # where 'value' departs from 'schema': a type (or tuple of types), a
+    # Number, a list of schemas (a list of as many items, of these schemas
+    # in order) or a dict of required fields and their schemas; None where
+    # it does not
     if isinstance(schema, dict):
         if not isinstance(value, dict):
             return f'{where} is not an object'
@@ -141,21 +157,45 @@ def _schema_error(value, schema, where: str) -> Optional[str]:
             if error:
                 return error
         return None
+    if isinstance(schema, list):
+        if not isinstance(value, list):
+            return f'{where} is not a list ({value!r})'
+        if len(value) != len(schema):
+            return (f'{where} is a list of length {len(value)}, not '
+                    f'{len(schema)}')
+        for i, (item, inner) in enumerate(zip(value, schema)):
+            error = _schema_error(item, inner, f'{where}[{i}]')
+            if error:
+                return error
+        return None
+    if isinstance(schema, Number):
+        low, high = schema.minimum, schema.maximum
+        if (isinstance(value, bool) or not isinstance(value, NUMBER)
+                or not (math.isfinite(value) and value <= high and (
+                    value > low if schema.positive else value >= low))):
+            within = (f"in {'(' if schema.positive else '['}{low:g}, "
+                      f"{high:g}]" if high < math.inf else
+                      f"{'>' if schema.positive else '>='} {low:g}")
+            return f'{where} is {value!r}, not a finite number {within}'
+        return None
     if isinstance(value, bool) or not isinstance(value, schema):
         return f'{where} is not of the expected type ({value!r})'
     return None
 
 
 def read_resumable(path: Union[str, Path], settings: dict, section: str,
-                   what: str = 'a result', schema: Optional[dict] = None,
+                   what: str = 'a result',
+                   schema: Union[dict, Callable[[str], dict], None] = None,
                    depth: int = 1) -> dict:
     r"""The content of a resumable result file (:obj:`frontier.json`,
     :obj:`compare.json`): :obj:`{"settings": settings, section: {}}` if
     :obj:`path` does not exist, else the file, which must be a JSON object
     with exactly these :obj:`settings` and a :obj:`section` that maps
     names to entries (through :obj:`depth` levels of objects), each with
-    the fields of :obj:`schema` (a dict of fields and their types or
-    sub-schemas); anything else is a :class:`ValueError` naming the file
+    the fields of :obj:`schema`: a dict of fields and their types, value
+    ranges (:class:`Number`), lists of schemas (a list of as many items)
+    or sub-schemas, or a function from an entry's name to its dict, where
+    entries differ. Anything else is a :class:`ValueError` naming the file
     and the entry, rather than results of other settings mixed in or a
     traceback later."""
     path = Path(path)
@@ -167,17 +207,21 @@ def read_resumable(path: Union[str, Path], settings: dict, section: str,
         raise ValueError(f"'{path}' holds {what} made with {found}, not "
                          f"{settings}: use another --out folder")
     # the section's levels of objects, then every entry against the schema
-    entries = [(f"'{section}'", content.get(section))]
+    entries = [(f"'{section}'", None, content.get(section))]
     for _ in range(depth):
-        error = next((f'{where} is not an object' for where, value in entries
+        error = next((f'{where} is not an object'
+                      for where, _, value in entries
                       if not isinstance(value, dict)), None)
         if error is not None:
             break
-        entries = [(f'{where}[{name!r}]', entry) for where, value in entries
+        entries = [(f'{where}[{name!r}]', name, entry)
+                   for where, _, value in entries
                    for name, entry in value.items()]
     else:
-        error = next(filter(None, (_schema_error(value, schema or {}, where)
-                                   for where, value in entries)), None)
+        schema_of = schema if callable(schema) else lambda _: schema or {}
+        error = next(filter(None, (_schema_error(value, schema_of(name),
+                                                 where)
+                                   for where, name, value in entries)), None)
     if error is not None:
         raise ValueError(f"'{path}' is damaged: {error}; remove the file to "
                          f"start again")

@@ -163,95 +163,199 @@ def consistency_curve(nees_values: Tensor, confidence: Sequence[float],
     return accept.view(confidence.shape).cpu()
 
 
-# quadrature of the direction average in gaussian_outage: midpoint nodes
-# of a quarter circle (2-D) and of an octant's azimuth, Gauss-Legendre
-# nodes of its cos(polar angle) (3-D); their accuracy is tested
-OUTAGE_NODES_2D = 256
-OUTAGE_NODES_3D = (48, 64)
-# covariances per block of the quadrature (its memory)
-_OUTAGE_BLOCK = 4096
-
-
-def _directions(dim: int, dtype, device):
-    # unit vectors u and weights w, sum w = 1, of the average over the
-    # sphere of a function even in every coordinate (one quadrant or octant
-    # stands for all)
-    if dim == 2:
-        angle = (torch.arange(OUTAGE_NODES_2D, dtype=torch.float64) +
-                 0.5) * (math.pi / 2 / OUTAGE_NODES_2D)
-        units = torch.stack([angle.cos(), angle.sin()], -1)
-        weights = torch.full((OUTAGE_NODES_2D, ), 1 / OUTAGE_NODES_2D,
-                             dtype=torch.float64)
-    else:
-        polar, azimuth = OUTAGE_NODES_3D
-        nodes, gauss = np.polynomial.legendre.leggauss(polar)
-        cosine = torch.from_numpy(0.5 * (nodes + 1))  # on [0, 1]
-        angle = (torch.arange(azimuth, dtype=torch.float64) + 0.5) * (
-            math.pi / 2 / azimuth)
-        sine = (1 - cosine.square()).sqrt().view(-1, 1)
-        units = torch.stack([(sine * angle.cos()).flatten(),
-                             (sine * angle.sin()).flatten(),
-                             cosine.view(-1, 1).expand(-1, azimuth).flatten()],
-                            -1)
-        weights = (torch.from_numpy(0.5 * gauss).view(-1, 1) / azimuth
-                   ).expand(-1, azimuth).flatten()
-    return units.to(dtype=dtype, device=device), weights.to(dtype=dtype,
-                                                            device=device)
+# gaussian_outage's quadrature: Gauss-Legendre nodes per integral of its
+# recursion, and the end of each integral's window in widths of its peak
+# (the integrand has fallen by exp(-10^2 / 2) = 2e-22 there); their
+# accuracy is tested against mpmath
+_OUTAGE_NODES = 32
+_OUTAGE_WINDOW = 10.0
+# elements of the quadrature's largest temporary per block (its memory)
+_OUTAGE_BLOCK = 1 << 18
+# radii, in standard deviations of the largest axis, beyond which the
+# outage underflows float64 anyway (exp(-40^2 / 2) is 0): keeps inf out
+_OUTAGE_RADIUS = 40.0
+# eigenvalues up to this fraction of the largest are zero: dropping one
+# changes the outage by about its square root, and keeping a smaller one
+# would overflow its inverse in the quadrature
+_OUTAGE_ZERO = 1e-100
 
 
 def gaussian_outage(cov: Tensor, thresholds: Sequence[float]) -> Tensor:
-    r"""The outage :math:`\mathbb{P}(\|\mathbf{e}\| > e_{\mathrm{th}})`
-    :math:`(*, R)` of a zero-mean Gaussian error :math:`\mathbf{e} \sim
-    \mathcal{N}(\mathbf{0}, \boldsymbol{\Sigma})` for positive definite
+    r"""The outage :math:`\mathbb{P}(\|\mathbf{e}\| > r)` :math:`(*, R)` of
+    a zero-mean Gaussian error :math:`\mathbf{e} \sim \mathcal{N}(
+    \mathbf{0}, \boldsymbol{\Sigma})` for positive semi-definite
     covariances :math:`(*, D, D)`, :math:`D \leq 3`, and :math:`R`
-    thresholds: the outage of an efficient estimator whose error
-    covariance is a bound's.
+    thresholds :math:`r \geq 0`: the outage of an efficient estimator whose
+    error covariance is a bound's.
 
-    In polar coordinates the radial integral is an incomplete gamma
-    function, which leaves an average over directions :math:`\mathbf{u}`
-    of the unit sphere (in the eigenbasis, eigenvalues
-    :math:`\lambda_k`, :math:`a(\mathbf{u}) = \sum_k u_k^2 / \lambda_k`):
+    In the eigenbasis :math:`\|\mathbf{e}\|^2 = \sum_k \lambda_k X_k^2`
+    with :math:`X_k` independent standard normal and :math:`\lambda_1 \geq
+    \dots \geq \lambda_D > 0` (zero eigenvalues drop out; none left is
+    outage 0). Conditioning on the component of the smallest variance,
+    with :math:`a = r / \sqrt{\lambda_D}`, :math:`\phi` the standard
+    normal density and :math:`x = a \sin t` in :math:`\int_0^a \dots
+    \mathrm{d}x` (which removes the square-root kink at :math:`x = a`),
 
     .. math::
-        \mathbb{P}(\|\mathbf{e}\| > r) = \mathbb{E}_{\mathbf{u}} \left[
-        \frac{Q\big(\frac{D}{2}, \frac{r^2 a(\mathbf{u})}{2}\big)}
-        {\sqrt{\textstyle\prod_k \lambda_k} \; a(\mathbf{u})^{D/2}}
-        \right]
+        P_D(r) = \operatorname{erfc}\Big(\frac{a}{\sqrt{2}}\Big) +
+        2 \int_0^{\pi / 2} \phi(a \sin t) \, a \cos t \;
+        P_{D-1}(r \cos t) \, \mathrm{d}t, \qquad
+        P_1(r) = \operatorname{erfc}\Big(\frac{r}{\sqrt{2 \lambda_1}}
+        \Big)
 
-    with :math:`Q` the regularized upper incomplete gamma function. For
-    :math:`D = 1` it is :math:`\operatorname{erfc}(r / \sqrt{2
-    \lambda})`; for :math:`D = 2` the direction average is the midpoint
-    rule over a quarter circle (:obj:`OUTAGE_NODES_2D` nodes, spectrally
-    accurate for this smooth periodic integrand); for :math:`D = 3`
-    Gauss-Legendre in the cosine of the polar angle times the midpoint
-    rule in the azimuth over an octant (:obj:`OUTAGE_NODES_3D`). Computed
-    in float64: within :math:`10^{-9}` of the exact value for condition
-    numbers up to :math:`10^3` (tested against adaptive quadrature)."""
+    with :math:`P_{D-1}` the outage of :math:`\lambda_1, \dots,
+    \lambda_{D-1}`. Up to smooth factors the integrand is
+    :math:`\exp(-\frac{r^2}{2 \lambda_1} - c \sin^2 t)`, :math:`c =
+    \frac{r^2}{2} (\frac{1}{\lambda_D} - \frac{1}{\lambda_1})`: a peak at
+    :math:`t = 0` of width :math:`w = 1 / \sqrt{2 c} \geq 1 / a` in
+    :math:`\sin t`, however elongated the covariance. Each integral is
+    Gauss-Legendre with 32 nodes over :math:`\sin t \leq \min(1, 10 w)`
+    (beyond, the integrand is below :math:`10^{-21}` of its peak), nested
+    for :math:`D = 3`; :math:`\exp(-r^2 / (2 \lambda_1))` is taken out of
+    every term (:math:`\operatorname{erfcx}`) and put back last, so that
+    nothing underflows before the outage itself does.
+
+    Against mpmath at 30 digits (an independent formula) it is within
+    :math:`10^{-13}` relative for exact eigenvalues, with condition
+    numbers up to :math:`10^{16}` and outages down to :math:`10^{-300}`;
+    a rotated covariance adds the rounding of its eigenvalues (about
+    :math:`10^{-16}` of the largest), which moves the outage by up to
+    about :math:`10^{-16} \sqrt{\lambda_1 / \lambda_D}` (:math:`5 \cdot
+    10^{-11}` at condition number :math:`10^{12}`). It costs 32 (2-D) and
+    :math:`32^2` (3-D) evaluations of erfcx per covariance and threshold,
+    in float64 whatever the input's type: :math:`10^4` covariances and 3
+    thresholds take about 0.03 s (2-D) and 0.5 to 0.8 s (3-D) on one CPU
+    core.
+
+    :math:`r = 0` has outage 1 (0 for a zero covariance), :math:`r =
+    \infty` outage 0. A NaN entry makes that covariance's outages NaN; an
+    infinite variance (:math:`+\infty` on the diagonal, the limit of an
+    ever less informative estimate) makes them 1 at every finite
+    threshold. A non-symmetric covariance (beyond :math:`10^{-9}` of its
+    largest entry, or 16 rounding units of a float32 or coarser one), a
+    clearly indefinite one (an eigenvalue below :math:`-10^{-9}` of the
+    largest, likewise; a smaller negative one is rounding and counts as
+    zero) and any other infinite entry are a :class:`ValueError` that
+    names the first such covariance; within the tolerance, the outage is
+    that of the mean of both triangles."""
+    if not isinstance(cov, Tensor) or cov.is_complex() or \
+            cov.dtype == torch.bool:
+        raise TypeError(f"'cov' must be a real tensor, got "
+                        f"{_describe(cov)}")
     if cov.dim() < 2 or cov.size(-1) != cov.size(-2) or not 1 <= cov.size(
             -1) <= 3:
         raise ValueError(f"'cov' must hold D x D covariances with D in 1, "
                          f"2, 3, got shape {list(cov.shape)}")
+    radii = _outage_thresholds(thresholds, cov.device)
+    batch, dim = cov.shape[:-2], cov.size(-1)
+    tolerance = max(1e-9, 16 * torch.finfo(cov.dtype).eps) if \
+        cov.dtype.is_floating_point else 1e-9
+    flat = cov.reshape(-1, dim, dim).double()
+    unknown = torch.isnan(flat).flatten(1).any(1)
+    diagonal = flat.diagonal(dim1=-2, dim2=-1)
+    unbounded = ~unknown & (diagonal == math.inf).any(1) & \
+        ~(diagonal == -math.inf).any(1)
+    _refuse_first(~unknown & ~unbounded & torch.isinf(flat).flatten(1).any(
+        1), batch, 'has a -inf variance, or an infinite covariance of '
+        'finite variances')
+    # their outage is known: a zero matrix stands in for them
+    flat = flat.masked_fill((unknown | unbounded).view(-1, 1, 1), 0)
+    transposed = flat.transpose(-1, -2)
+    _refuse_first((flat - transposed).abs().amax((-1, -2)) >
+                  tolerance * flat.abs().amax((-1, -2)), batch,
+                  f'is not symmetric (beyond {tolerance:.0e} of its largest '
+                  f'entry)')
+    # the mean of both triangles, not the one eigvalsh reads
+    eigvals = torch.linalg.eigvalsh(0.5 * (flat + transposed)).flip(-1)
+    _refuse_first(eigvals[:, -1] < -tolerance * eigvals[:, 0].abs(), batch,
+                  f'is indefinite (an eigenvalue below -{tolerance:.0e} of '
+                  f'the largest)')
+    out = _centered_outage(eigvals, radii)
+    out[unknown] = math.nan
+    out[unbounded] = (radii < math.inf).double()
+    return out.view(batch + radii.shape)
+
+
+def _describe(value) -> str:
+    if isinstance(value, Tensor):
+        return f'a {value.dtype} tensor'
+    return type(value).__name__
+
+
+def _outage_thresholds(thresholds, device) -> Tensor:
+    # the thresholds [R] of gaussian_outage, in float64
+    if isinstance(thresholds, Tensor):
+        real = not (thresholds.is_complex() or thresholds.dtype == torch.bool)
+    elif isinstance(thresholds, (str, bytes)):
+        real = False
+    else:
+        try:
+            real = np.asarray(thresholds).dtype.kind in 'iuf'
+        except ValueError:  # ragged
+            real = False
+    if not real:
+        raise TypeError(f"'thresholds' must be a sequence of real numbers, "
+                        f"got {thresholds!r:.60}")
     radii = torch.as_tensor(thresholds, dtype=torch.float64,
-                            device=cov.device).reshape(-1)
-    if not bool((radii >= 0).all()):
+                            device=device).reshape(-1)
+    if not bool((radii >= 0).all()):  # also catches NaN
         raise ValueError(f"'thresholds' must be non-negative numbers, got "
                          f"{radii.tolist()}")
-    dim = cov.size(-1)
-    eigvals = torch.linalg.eigvalsh(cov.double().reshape(-1, dim, dim))
-    if not bool((eigvals[:, 0] > 0).all()):
-        raise ValueError("'cov' must be positive definite")
-    if dim == 1:
-        out = torch.special.erfc(radii / (2 * eigvals).sqrt())
-        return out.view(cov.shape[:-2] + radii.shape)
-    units, weights = _directions(dim, torch.float64, cov.device)
-    parts = []
-    for block in eigvals.split(_OUTAGE_BLOCK):
-        # a [B, U]: the quadratic form of every direction, in the eigenbasis
-        a = (units.square() / block.unsqueeze(1)).sum(-1)
-        scale = block.prod(-1).sqrt().unsqueeze(1) * a.pow(dim / 2)
-        tail = torch.special.gammaincc(
-            torch.full_like(a, dim / 2).unsqueeze(-1),
-            0.5 * a.unsqueeze(-1) * radii.square())
-        parts.append(torch.einsum('bur,u->br', tail / scale.unsqueeze(-1),
-                                  weights))
-    return torch.cat(parts).view(cov.shape[:-2] + radii.shape)
+    return radii
+
+
+def _refuse_first(bad: Tensor, batch: torch.Size, problem: str) -> None:
+    # a ValueError naming the first bad covariance [M] of a batch
+    if bool(bad.any()):
+        index = np.unravel_index(int(bad.nonzero()[0, 0]), tuple(batch))
+        where = f"[{', '.join(str(int(i)) for i in index)}]" if index else ''
+        raise ValueError(f"'cov{where}' {problem}")
+
+
+def _centered_outage(eigvals: Tensor, radii: Tensor) -> Tensor:
+    # the outage [M, R] of eigenvalues [M, D] in descending order, by rank
+    # (a zero covariance, rank 0, keeps 0)
+    out = eigvals.new_zeros(eigvals.size(0), radii.numel())
+    largest = eigvals[:, 0]
+    ratios = eigvals / torch.where(largest > 0, largest, 1).unsqueeze(-1)
+    rank = (ratios > _OUTAGE_ZERO).sum(-1)
+    nodes, weights = np.polynomial.legendre.leggauss(_OUTAGE_NODES)
+    nodes = torch.as_tensor(0.5 * (nodes + 1), device=eigvals.device)
+    weights = torch.as_tensor(0.5 * weights, device=eigvals.device)
+    for k in range(1, eigvals.size(-1) + 1):
+        rows = (rank == k).nonzero().squeeze(-1)
+        size = max(1, _OUTAGE_BLOCK // max(
+            1, radii.numel() * _OUTAGE_NODES**(k - 1)))
+        for block in rows.split(size):
+            # radii in standard deviations of the largest axis
+            rho = (radii / largest[block].sqrt().unsqueeze(-1)).clamp(
+                max=_OUTAGE_RADIUS)
+            scaled = _scaled_outage(rho, ratios[block, :k].unsqueeze(1),
+                                    nodes, weights)
+            out[block] = (scaled.log() - 0.5 * rho.square()).exp()
+    return out
+
+
+def _scaled_outage(rho: Tensor, ratios: Tensor, nodes: Tensor,
+                   weights: Tensor) -> Tensor:
+    # exp(rho^2 / 2) P(sum_k ratios_k X_k^2 > rho^2) for ratios [..., k]
+    # in descending order from 1, broadcast with rho [...]: gaussian_outage's
+    # recursion with exp(-rho^2 / 2) taken out of every term
+    if ratios.size(-1) == 1:
+        return torch.special.erfcx(rho * math.sqrt(0.5))
+    smallest = ratios[..., -1]
+    gap = 1 / smallest - 1  # >= 0
+    a = rho / smallest.sqrt()
+    c = 0.5 * rho.square() * gap
+    # the peak's window in sin t; 1 / 0 = inf (rho = 0, or the remaining
+    # eigenvalues all equal) is the whole quarter circle
+    end = torch.asin((_OUTAGE_WINDOW / (rho * gap.sqrt())).clamp(max=1))
+    t = end.unsqueeze(-1) * nodes
+    cos = t.cos()
+    inner = _scaled_outage(rho.unsqueeze(-1) * cos,
+                           ratios[..., :-1].unsqueeze(-2), nodes, weights)
+    # sin^2 t from sin, not 1 - cos^2: c sin^2 t matters where t is tiny
+    integrand = cos * torch.exp(-c.unsqueeze(-1) * t.sin().square()) * \
+        inner
+    integral = math.sqrt(2 / math.pi) * a * end * (integrand @ weights)
+    return torch.special.erfcx(a * math.sqrt(0.5)) * torch.exp(-c) + integral

@@ -1,6 +1,7 @@
 r"""Small tensor helpers shared by the layers and the trackers."""
 import contextlib
 import os
+import re
 from typing import Iterator, NamedTuple, Tuple
 
 import torch
@@ -22,6 +23,7 @@ __all__ = [
     'derive_seed',
     'process_group',
     'joined_process_group',
+    'check_device',
     'free_memory_bytes',
     'LinkFactors',
     'link_factors',
@@ -247,6 +249,28 @@ def joined_process_group(device: str = 'cpu') -> Iterator[str]:
     finally:
         if launched:
             dist.destroy_process_group()
+
+
+_DEVICE = re.compile(r'cpu|cuda(:\d+)?')
+
+
+def check_device(device) -> str:
+    r"""Returns :obj:`device` if it names a device of this machine:
+    :obj:`"cpu"`, or :obj:`"cuda"` or :obj:`"cuda:N"` where CUDA has that
+    GPU; anything else is a :class:`ValueError` naming :obj:`'device'`,
+    before any work, rather than an error of torch's midway."""
+    if not (isinstance(device, str) and _DEVICE.fullmatch(device)):
+        raise ValueError(f"'device' must be 'cpu', 'cuda' or 'cuda:N', got "
+                         f"{device!r}")
+    if device != 'cpu':
+        if not torch.cuda.is_available():
+            raise ValueError(f"'device' is '{device}', but CUDA is not "
+                             f"available here")
+        count = torch.cuda.device_count()
+        if int(device[5:] or 0) >= count:
+            raise ValueError(f"'device' is '{device}', but this machine has "
+                             f"{count} CUDA device(s)")
+    return device
 
 
 def free_memory_bytes(device: str = 'cpu') -> int:

@@ -567,3 +567,34 @@ def test_check_positive_int(value, error):
     with pytest.raises(error, match="'num_particles' must be"):
         check_positive_int(value, 'num_particles')
     assert check_positive_int(np.int64(7), 'num_particles') == 7
+
+
+# -- a singular prior: particles carry it, the Gaussian methods need the
+# motion model's noise to reach it --------------------------------------
+
+@pytest.mark.parametrize('entries', [[2, 3], [0, 1, 2, 3]])
+def test_a_singular_agent_prior_is_used_or_refused_by_name(entries):
+    # a velocity known at the start (zero variance) is filled by the
+    # motion's noise at the first prediction: used. A whole state known
+    # is not (the noise of a constant-velocity model has rank D): refused,
+    # naming the field and the node, by every Gaussian method
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.filters import CentralizedIEKF, GaussianBP
+    data = small_realization()
+    agent = int((~data.anchor).nonzero()[1, 0])
+    data.prior_cov[agent, entries, entries] = 0.0
+    check_realization(data)  # a valid covariance, positive semi-definite
+    out = ParticleBP(num_particles=16)(data, torch.Generator().manual_seed(1))
+    assert bool(torch.isfinite(out.mean).all())
+    for method, what in ((GaussianBP(), 'Gaussian BP'),
+                         (CentralizedIEKF(), 'the centralized IEKF'),
+                         (PosteriorCRB(), 'the posterior CRB')):
+        if len(entries) == 2:
+            out = method(data)
+            cov = out if isinstance(out, torch.Tensor) else out.cov
+            assert bool(torch.isfinite(cov).all()), what
+            continue
+        with pytest.raises(ValueError, match=re.escape(
+                f"'prior_cov[{agent}]' of agent {agent} is singular") +
+                f'.*{what} needs a positive predicted variance'):
+            method(data)

@@ -1,4 +1,6 @@
+import copy
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -7,8 +9,9 @@ from tg_nebp import NEBP
 from tg_nebp.cli import main
 from tg_nebp.datasets import CooperativeLocalizationDataset
 from tg_nebp.evaluation import summarize, track_dataset
-from tg_nebp.experiments.compare import (compare_methods, compare_table,
-                                         floor_ratios, run_compare)
+from tg_nebp.experiments.compare import (compare, compare_methods,
+                                         compare_table, floor_ratios,
+                                         run_compare)
 from tg_nebp.filters import CentralizedIEKF
 from tg_nebp.io import read_json, write_json
 from tg_nebp.models import NLOSRange, StudentTRange
@@ -86,6 +89,137 @@ def test_changed_scenario_under_the_same_name_is_refused(tmp_path):
     changed = scenario_files(tmp_path, num_agents=4)
     with pytest.raises(ValueError, match='holds a comparison made with'):
         run_compare(scenarios=changed, **common)
+
+
+def test_two_scenarios_of_one_name_are_refused_before_any_work(tmp_path):
+    # the second was skipped as done, its fingerprint over the first's rows
+    first = scenario_files(tmp_path)[0]
+    second = scenario_files(tmp_path / 'other', num_agents=4)[0]
+    with pytest.raises(ValueError, match=r"the scenarios '.*/tiny.json' and "
+                       r"'.*/other/tiny.json' are both named 'tiny'"):
+        run_compare(root=str(tmp_path / 'data'), scenarios=[first, second],
+                    realizations=1, out=tmp_path / 'out', methods=['pcrb'])
+    assert not (tmp_path / 'data').exists()
+    assert not (tmp_path / 'out').exists()
+
+
+def test_arguments_are_checked_before_any_work(tmp_path):
+    scenarios = scenario_files(tmp_path)
+    checkpoint = tmp_path / 'nebp.pt'
+    save_checkpoint(checkpoint, NEBP(num_particles=8))
+    common = dict(root=str(tmp_path / 'data'), scenarios=scenarios,
+                  realizations=1, out=tmp_path / 'out', methods=['pcrb'])
+    for changes, error, message in [
+            # one string where a list belongs was iterated letter by letter
+            (dict(methods='pcrb'), TypeError, "'methods' must be a list"),
+            (dict(scenarios=scenarios[0]), TypeError,
+             "'scenarios' must be a list"),
+            (dict(checkpoints=str(checkpoint)), TypeError,
+             "'checkpoints' must be a list"),
+            (dict(methods=['pcrb', 1]), TypeError,
+             r"'methods'\[1\] must be a str"),
+            (dict(scenarios=[scenarios[0], 7]), TypeError,
+             r"'scenarios'\[1\] must be a scenario name"),
+            (dict(scenarios=[]), ValueError, "'scenarios' is empty"),
+            (dict(methods=[]), ValueError, "'methods' is empty"),
+            (dict(batch_size=0), ValueError, "'batch_size' must be positive"),
+            (dict(realizations=0), ValueError,
+             "'realizations' must be positive"),
+            # without CUDA, or without a 100th GPU
+            (dict(device='cuda:99'), ValueError, "'device' is 'cuda:99', "
+             "but"),
+            (dict(seed=-1), ValueError, "'seed' must be non-negative"),
+            # these ran nothing, then failed in the figure
+            (dict(methods=['pcrb', 'pcrbb']), ValueError,
+             r"'methods'\[1\] = 'pcrbb' selects no row of any scenario; the "
+             r"rows start with pcrb, iekf, iekf-marginal, gbp, gbp-plain, "
+             r"bp-paper, bp-recommended \(and nebp, with a checkpoint\)"),
+            (dict(methods=['nebp']), ValueError, r"'methods'\[0\] = 'nebp' "
+             r"selects NEBP's rows, which need a checkpoint"),
+            (dict(checkpoints=[checkpoint]), ValueError, r"the checkpoint "
+             r"of the row 'nebp nebp.pt \w+' was given, but 'methods' does "
+             r"not select its row")]:
+        with pytest.raises(error, match=message):
+            run_compare(**{**common, **changes})
+        assert not (tmp_path / 'data').exists()
+        assert not (tmp_path / 'out').exists()
+
+
+def test_damaged_rows_are_refused_on_resume(tmp_path):
+    common = dict(root=str(tmp_path / 'data'),
+                  scenarios=scenario_files(tmp_path)[:1], realizations=2,
+                  out=tmp_path / 'out', methods=['pcrb', 'iekf g'],
+                  log=print)
+    good = copy.deepcopy(run_compare(**common))
+    path = tmp_path / 'out' / 'compare.json'
+
+    def damaged(where, value):
+        content = copy.deepcopy(good)
+        *inner, last = where
+        entry = content['results']['tiny']
+        for key in inner:
+            entry = entry[key]
+        entry[last] = value
+        write_json(path, content)
+        return content
+
+    realizations = ('spread', 'realizations')
+    for where, value, message in [
+            # both a ZeroDivisionError in floor_ratios before
+            (('iekf gaussian', *realizations), [], 'is a list of length 0, '
+             'not 2'),
+            (('pcrb', *realizations, 1, 2), 0.0, 'is 0.0, not a finite '
+             'number > 0'),
+            (('iekf gaussian', *realizations, 0), [0.1, 0.2],
+             'is a list of length 2, not 3'),
+            (('iekf gaussian', 'outage', '1.0'), 1.5,
+             'is 1.5, not a finite number in [0, 1]'),
+            (('iekf gaussian', 'rmse'), float('inf'),
+             'is inf, not a finite number >= 0')]:
+        damaged(where, value)
+        keys = ('tiny', *where)
+        entry = "'results'" + ''.join(f'[{key!r}]' for key in keys)
+        with pytest.raises(ValueError, match=re.escape(
+                f"compare.json' is damaged: {entry} {message}; remove the "
+                f"file")):
+            run_compare(**common)
+    # a tracker's RMSE divides nothing: zero is a value
+    kept = damaged(('iekf gaussian', *realizations, 0, 2), 0.0)
+    assert run_compare(**common) == kept
+
+
+def test_rows_stay_in_the_order_of_the_methods(tmp_path):
+    clean, nlos = scenario_files(tmp_path)
+    out = tmp_path / 'out'
+    # neither the scenarios nor the rows in alphabetical order
+    common = dict(root=str(tmp_path / 'data'), scenarios=[nlos, clean],
+                  realizations=1, out=out, log=print)
+    everything = ['pcrb', 'iekf-marginal g', 'gbp-plain g']
+    expected = ['pcrb', 'iekf-marginal gaussian', 'gbp-plain gaussian']
+
+    def check(result, file=True):
+        table = (out / 'compare.md').read_text()
+        assert re.findall(r'^### `(.*)`', table, re.M) == ['tiny_nlos',
+                                                           'tiny']
+        assert re.findall(r'^\| `([^`]*)`', table, re.M) == expected * 2
+        read = [result['results']]
+        if file:  # as written, when a row ran
+            read.append(read_json(out / 'compare.json')['results'])
+        for results in read:
+            assert list(results) == ['tiny_nlos', 'tiny']
+            assert all(list(rows) == expected for rows in results.values())
+
+    compare(methods=everything[1:], **common)
+    check(compare(methods=everything, **common))  # adds the bound's rows
+    # a rerun with nothing left to do rewrote the table alphabetically
+    check(compare(methods=everything, **common))
+    # rows this run does not select keep their places
+    check(compare(methods=['iekf-marginal g'], **common))
+    # a file with its keys sorted, as earlier versions wrote it
+    write_json(out / 'compare.json', read_json(out / 'compare.json'))
+    assert list(read_json(out / 'compare.json')['results']) == [
+        'tiny', 'tiny_nlos']
+    check(compare(methods=everything, **common), file=False)
 
 
 def test_cli_compare_writes_table_and_figure(tmp_path, capsys):

@@ -1,16 +1,20 @@
 r"""Tests of :mod:`tg_nebp.experiments.evaluate`: the tracker each method's
 options build, and one evaluation written as the command line writes it."""
+import inspect
 import json
 
 import pytest
 
+from tg_nebp import NEBP
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.cli import main
 from tg_nebp.datasets import Scenario
-from tg_nebp.experiments.evaluate import (METHODS, evaluate_scenario,
-                                          method_tracker)
-from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP
+from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
+                                          evaluate_scenario, method_tracker)
+from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF, GaussianBP,
+                             ParticleBP)
 from tg_nebp.models import StudentTRange
+from tg_nebp.training import save_checkpoint
 
 
 @pytest.fixture(scope='module')
@@ -51,6 +55,75 @@ def test_method_tracker_refusals(scenario):
         method_tracker('nebp', scenario)
     with pytest.raises(ValueError, match="one of bp, nebp"):
         method_tracker('ukf', scenario)
+    with pytest.raises(TypeError, match="'scenario' must be a Scenario"):
+        method_tracker('bp', 'paper_test')
+
+
+# a value of every option, for the methods that do not take it
+GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
+             resampler='systematic', regularize=0.2, ess_threshold=0.5,
+             measurement='student-t', iterations=2, ends='both',
+             marginal=True, inflation=1.2, tolerance=0.0)
+
+
+def test_an_option_is_refused_by_the_methods_that_do_not_take_it(scenario):
+    options = list(inspect.signature(method_tracker).parameters)[2:]
+    assert sorted(METHOD_OPTIONS) == sorted(options) == sorted(GIVEN)
+    for name, takers in METHOD_OPTIONS.items():
+        flag = '--' + name.replace('_', '-')
+        for method in set(METHODS) - set(takers):
+            with pytest.raises(ValueError, match=(
+                    f"'{name}' \\({flag}\\) is for method "
+                    f"{' or '.join(takers)}, not {method}")):
+                method_tracker(method, scenario, **{name: GIVEN[name]})
+
+
+def test_a_given_value_is_used_or_refused_never_replaced(scenario,
+                                                         tmp_path):
+    checkpoint = tmp_path / 'k8.pt'
+    save_checkpoint(checkpoint, NEBP(num_particles=8))
+    # 0 used to become the default (5 iterations, 1,000 particles, M = 1)
+    for method, name, value, error, message in [
+            ('iekf', 'iterations', 0, ValueError, 'must be positive'),
+            ('gbp', 'iterations', 0, ValueError, 'must be positive'),
+            ('bp', 'iterations', 0, ValueError, 'must be positive'),
+            ('bp', 'iterations', 'x', TypeError, 'must be an integer'),
+            ('bp', 'particles', 0, ValueError, 'must be positive'),
+            ('bp', 'samples', 0, ValueError, 'must be positive'),
+            # NEBP's loader blamed the checkpoint for these
+            ('nebp', 'particles', 2.5, TypeError, 'must be an integer'),
+            ('nebp', 'samples', 'x', TypeError, 'must be an integer')]:
+        extra = dict(checkpoint=checkpoint) if method == 'nebp' else {}
+        with pytest.raises(error, match=f"'{name}' {message}"):
+            method_tracker(method, scenario, **{name: value}, **extra)
+    iekf, _ = method_tracker('iekf', scenario, iterations=3)
+    assert iekf.num_iterations == 3
+    bp, _ = method_tracker('bp', scenario, samples=4,
+                           resampler='systematic')
+    assert (bp.num_samples, bp.resampler) == (4, RESAMPLERS['systematic'])
+    plain, _ = method_tracker('bp', scenario)
+    assert plain.resampler is RESAMPLERS['multinomial']
+    nebp, _ = method_tracker('nebp', scenario, checkpoint=checkpoint,
+                             samples=2)
+    assert nebp.num_samples == 2
+
+
+def test_evaluate_scenario_checks_before_any_data(tmp_path):
+    root = tmp_path / 'data'
+    common = dict(method='bp', scenario='paper_train', realizations=1,
+                  root=str(root), out=str(tmp_path / 'out'))
+    for changes, message in [
+            (dict(realizations=0), "'realizations' must be positive"),
+            (dict(batch_size=0), "'batch_size' must be positive"),
+            # without CUDA, or without a 100th GPU
+            (dict(device='cuda:99'), "'device' is 'cuda:99', but"),
+            (dict(device='tpu'), "'device' must be 'cpu', 'cuda'"),
+            (dict(seed=-1), "'seed' must be non-negative"),
+            (dict(method='iekf', resampler='systematic'),
+             "'resampler' .* not iekf")]:
+        with pytest.raises(ValueError, match=message):
+            evaluate_scenario(**{**common, **changes})
+        assert not root.exists() and not (tmp_path / 'out').exists()
 
 
 def test_evaluate_scenario_equals_the_command_line(tmp_path):
@@ -66,3 +139,21 @@ def test_evaluate_scenario_equals_the_command_line(tmp_path):
     assert api['key'] == 'bp' and written['bp'] == api['entry']
     for field in ('rmse', 'outage', 'accept'):
         assert cli[field] == api['entry'][field]
+
+
+@pytest.mark.parametrize('driver', ['frontier', 'train', 'reproduce'])
+def test_every_driver_refuses_a_device_it_lacks_before_any_data(tmp_path,
+                                                                driver):
+    from tg_nebp.experiments.frontier import frontier
+    from tg_nebp.experiments.reproduce import reproduce
+    from tg_nebp.experiments.train import train_scenario
+    root, out = str(tmp_path / 'data'), str(tmp_path / 'out')
+    run = dict(
+        frontier=lambda: frontier([10], [1], realizations=1, root=root,
+                                  out=out, device='cuda:99'),
+        train=lambda: train_scenario('paper_train', out, realizations=1,
+                                     root=root, device='cuda:99'),
+        reproduce=lambda: reproduce('quick', 'cuda:99', out, root))[driver]
+    with pytest.raises(ValueError, match="'device' is 'cuda:99', but"):
+        run()
+    assert list(tmp_path.iterdir()) == []

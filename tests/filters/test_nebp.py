@@ -379,7 +379,12 @@ def test_sampled_nebp_trains_and_is_stored():
 # NEBP's means from a checkpoint of a model initialized with seed 0 (K =
 # 200), on realization seed 3 of paper_test (4 steps, seed 1, one thread),
 # as the code before positions of any dimension gave them: the sum over the
-# first 100 nodes and node 5's state at the last step
+# first 100 nodes and node 5's state at the last step. The equivariant
+# layer's float32 sums round by the CPU's kernels (its sum moved by 4e-5
+# relative and node 5's velocity by 1e-4 m/s on another CPU and under
+# another kernel dispatch, ATEN_CPU_CAPABILITY), so the sums are compared
+# to 1e-4 relative and velocities to 1 mm/s; a change of the 2-D path
+# moves them by far more
 NEBP_BEFORE_3D = {
     'paper': (38986.010226692015, [25.900571823120117, 56.372344970703125,
                                    0.16250517964363098,
@@ -410,9 +415,9 @@ def test_two_dimensional_nebp_is_unchanged(variant, tmp_path):
         torch.set_num_threads(threads)
     total, state = NEBP_BEFORE_3D[variant]
     assert float(mean[:100].double().sum()) == pytest.approx(total,
-                                                             rel=1e-7)
+                                                             rel=1e-4)
     torch.testing.assert_close(mean[5, 3], torch.tensor(state), rtol=1e-4,
-                               atol=1e-5)
+                               atol=1e-3)
 
 
 @pytest.mark.parametrize('variant', ['paper', 'equivariant'])

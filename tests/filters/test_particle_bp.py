@@ -866,3 +866,16 @@ def test_particles_that_cannot_fit_are_refused_before_any_work():
     # float64 doubles it
     with pytest.raises(ValueError):
         bp.check_memory(113, 4, torch.float64, free=needed)
+
+
+def test_settings_name_the_resampler():
+    # metrics.json entries of runs with other resamplers must differ
+    from tg_nebp.filters import systematic_resample
+
+    def own(log_weights, count, generator):
+        return systematic_resample(log_weights, count, generator)
+
+    assert ParticleBP(8).settings()['resampler'] == 'multinomial'
+    assert ParticleBP(8, resampler='systematic').settings()[
+        'resampler'] == 'systematic'
+    assert ParticleBP(8, resampler=own).settings()['resampler'] == 'own'

@@ -1,14 +1,13 @@
-from typing import Iterator, List, NamedTuple, Optional
+from typing import Iterator, NamedTuple, Optional
 
 import torch
 from torch import Tensor
-from torch_geometric.data import Batch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_realization
-from tg_nebp.filters.tracker import check_state_dim
-from tg_nebp.gaussian import (add_link_information, block_diagonal,
-                              check_dense_joint, marginal_blocks,
+from tg_nebp.data.validation import check_realization, check_state_dim
+from tg_nebp.gaussian import (GraphLayout, add_link_information,
+                              block_diagonal, check_dense_joint,
+                              check_predicted_prior, marginal_blocks,
                               predict_joint, symmetric_inverse)
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
@@ -21,32 +20,6 @@ class BoundStep(NamedTuple):
     known)."""
     t: int
     cov: Tensor
-
-
-class GraphLayout(NamedTuple):
-    r"""Where the agents of each graph of a (batched) realization are:
-    their node indices per graph, and every node's index among its graph's
-    agents (:math:`-1` for anchors)."""
-    agents: List[Tensor]
-    agent_index: Tensor
-    graph_of: Tensor
-
-    @classmethod
-    def of(cls, data: Realization) -> 'GraphLayout':
-        r"""The layout of :obj:`data`, a single or batched realization."""
-        num_nodes = data.num_nodes
-        graph_of = (data.batch if isinstance(data, Batch) else
-                    torch.zeros(num_nodes, dtype=torch.long,
-                                device=data.anchor.device))
-        agents, agent_index = [], torch.full((num_nodes, ), -1,
-                                             dtype=torch.long,
-                                             device=data.anchor.device)
-        for g in range(int(graph_of.max()) + 1 if num_nodes else 0):
-            nodes = ((graph_of == g) & ~data.anchor).nonzero().view(-1)
-            agent_index[nodes] = torch.arange(nodes.numel(),
-                                              device=nodes.device)
-            agents.append(nodes)
-        return cls(agents, agent_index, graph_of)
 
 
 class PosteriorCRB(torch.nn.Module):
@@ -131,6 +104,7 @@ class PosteriorCRB(torch.nn.Module):
                              "the realization")
         size = states.size(-1)
         check_state_dim(size, self.motion)
+        check_predicted_prior(data, self.motion, 'the posterior CRB')
         layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the posterior CRB', states.device)

@@ -1,6 +1,7 @@
 from .realization import Realization, num_steps_of
 from .validation import (check_graph, check_link_features, check_particles,
-                         check_prior, check_realization, check_anchor)
+                         check_prior, check_realization, check_anchor,
+                         check_state_dim)
 
 __all__ = [
     'Realization',
@@ -11,4 +12,5 @@ __all__ = [
     'check_prior',
     'check_realization',
     'check_anchor',
+    'check_state_dim',
 ]

@@ -6,7 +6,7 @@ field and the offending index instead of producing NaNs far downstream.
 """
 import math
 import numbers
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -14,6 +14,9 @@ from torch_geometric import EdgeIndex
 
 from tg_nebp.data.realization import num_steps_of
 from tg_nebp.utils import compute_dtype
+
+if TYPE_CHECKING:  # the models import this module
+    from tg_nebp.models import MotionModel
 
 __all__ = [
     'check_graph',
@@ -25,9 +28,12 @@ __all__ = [
     'magnitude_limit',
     'check_positive_int',
     'check_number',
+    'check_links',
     'check_layer_inputs',
+    'check_gaussian_belief',
     'check_edge_log_weights',
     'is_integer',
+    'check_state_dim',
 ]
 
 
@@ -272,17 +278,34 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
     bad = ~torch.isfinite(prior_cov).flatten(1).all(-1)
     if bool(bad.any()):
         raise ValueError(f"'prior_cov[{_first(bad)}]' is not finite")
-    asym = (prior_cov - prior_cov.transpose(-1, -2)).abs().amax((-1, -2))
-    scale = prior_cov.abs().amax((-1, -2)).clamp_min(1.0)
+    _check_symmetric_psd(prior_cov, 'prior_cov', atol)
+
+
+def _check_symmetric_psd(matrices: Tensor, name: str, atol: float) -> None:
+    # symmetric and positive semi-definite up to 'atol' relative to the
+    # largest entry (at least 1): covariances and information matrices
+    matrices = matrices.double()
+    scale = matrices.abs().amax((-1, -2)).clamp_min(1.0)
+    asym = (matrices - matrices.transpose(-1, -2)).abs().amax((-1, -2))
     bad = asym > atol * scale
     if bool(bad.any()):
-        raise ValueError(f"'prior_cov[{_first(bad)}]' is not symmetric")
-    min_eig = torch.linalg.eigvalsh(prior_cov.double()).amin(-1)
-    bad = min_eig < -atol * scale.double()
+        raise ValueError(f"'{name}[{_first(bad)}]' is not symmetric")
+    min_eig = torch.linalg.eigvalsh(matrices).amin(-1)
+    bad = min_eig < -atol * scale
     if bool(bad.any()):
         i = _first(bad)
-        raise ValueError(f"'prior_cov[{i}]' is not positive semi-definite "
+        raise ValueError(f"'{name}[{i}]' is not positive semi-definite "
                          f"(smallest eigenvalue {float(min_eig[i]):.3g})")
+
+
+def check_state_dim(size: int, motion: 'MotionModel') -> None:
+    r"""A :class:`ValueError` if states of size :obj:`size` are not what the
+    motion model is for (a model that states its
+    :attr:`~tg_nebp.models.MotionModel.state_dim`)."""
+    if motion.state_dim is not None and size != motion.state_dim:
+        raise ValueError(f"'prior_mean' holds states of size {size} but the "
+                         f"motion model {motion} has state dimension "
+                         f"{motion.state_dim}")
 
 
 def check_realization(data, features: Sequence[str] = ('range', )
@@ -348,25 +371,68 @@ def check_realization(data, features: Sequence[str] = ('range', )
                              f"value")
 
 
+def check_links(edge_index: Tensor, edge_attr: Tensor,
+                features: Sequence[str], num_nodes: int,
+                anchor: Optional[Tensor] = None) -> None:
+    r"""The checks of one message passing step's links, shared by every
+    convolution: the graph (:func:`check_graph`: indices in range, no
+    self-loop), the link :obj:`features` that the measurement model reads
+    (:func:`check_link_features`: finite, non-negative ranges) and the
+    anchor mask (:func:`check_anchor`)."""
+    check_graph(edge_index, num_nodes)
+    check_link_features(edge_attr, edge_index.size(1), features)
+    if anchor is not None:
+        check_anchor(anchor, num_nodes)
+
+
 def check_layer_inputs(particles: Tensor, log_weights: Tensor,
                        edge_index: Tensor, edge_attr: Tensor,
                        features: Sequence[str],
                        anchor: Optional[Tensor] = None,
                        sender_log_weights: Optional[Tensor] = None,
                        state_dim: Optional[int] = None) -> None:
-    r"""The checks of one message passing step's inputs, shared by the
-    convolutions and the trackers' :meth:`update`: particles and
-    (sender) log-weights, the graph, the link :obj:`features` that the
-    measurement model reads, and the anchor mask."""
+    r"""The checks of one particle message passing step's inputs, shared by
+    the particle convolutions and the trackers' :meth:`update`: particles
+    and (sender) log-weights, and the links (:func:`check_links`)."""
     num_nodes = particles.size(0) if isinstance(particles, Tensor) else None
     check_particles(particles, log_weights, state_dim=state_dim)
     if sender_log_weights is not None:
         check_particles(particles, sender_log_weights,
                         weights_name='sender_log_weights')
-    check_graph(edge_index, num_nodes)
-    check_link_features(edge_attr, edge_index.size(1), features)
-    if anchor is not None:
-        check_anchor(anchor, num_nodes)
+    check_links(edge_index, edge_attr, features, num_nodes, anchor)
+
+
+def check_gaussian_belief(mean: Tensor, info: Tensor, name: str,
+                          num_nodes: Optional[int] = None,
+                          atol: float = 1e-6) -> None:
+    r"""Checks Gaussian beliefs in information form (:obj:`name` names
+    them in errors, e.g. :obj:`"belief"`): means :obj:`[N, S]` and
+    information :obj:`[N, S, S]`, floating point, finite, symmetric and
+    positive semi-definite (an anchor's zero information included)."""
+    for field, value, dim in (('mean', mean, 2), ('info', info, 3)):
+        if not (isinstance(value, Tensor) and value.dim() == dim
+                and value.is_floating_point()):
+            raise ValueError(f"'{name}.{field}' must be a floating point "
+                             f"tensor of {dim} dimensions, got "
+                             f"{getattr(value, 'dtype', type(value))} "
+                             f"{list(getattr(value, 'shape', []))}")
+    n, size = mean.shape
+    if num_nodes is not None and n != num_nodes:
+        raise ValueError(f"'{name}.mean' holds {n} nodes but the graph has "
+                         f"{num_nodes}")
+    if info.shape != (n, size, size):
+        raise ValueError(f"'{name}.info' must have shape [{n}, {size}, "
+                         f"{size}], got {list(info.shape)}")
+    for field, value in (('mean', mean), ('info', info)):
+        bad = ~torch.isfinite(value).reshape(n, -1).all(-1)
+        if bool(bad.any()):
+            raise ValueError(f"'{name}.{field}[{_first(bad)}]' holds a "
+                             f"non-finite value")
+    big = _too_large(mean).any(-1)
+    if bool(big.any()):
+        raise ValueError(f"'{name}.mean[{_first(big)}]' holds a value "
+                         f"beyond {magnitude_limit(mean.dtype):.3g}")
+    _check_symmetric_psd(info, f'{name}.info', atol)
 
 
 def check_edge_log_weights(weights: Tensor, num_edges: int,

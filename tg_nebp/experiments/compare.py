@@ -13,18 +13,20 @@ import hashlib
 import os
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import (Callable, Dict, Iterable, List, Optional, Sequence,
+                    Tuple, Union)
 
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
+from tg_nebp.experiments.evaluate import check_run, scenario_of
 from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
-from tg_nebp.io import NUMBER, read_resumable, write_json, write_text
+from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
 __all__ = ['compare_methods', 'run_compare', 'compare', 'compare_table',
-           'compare_points', 'floor_ratios', 'COMPARE_VERSION',
+           'compare_points', 'floor_ratios', 'row_schema', 'COMPARE_VERSION',
            'COMPARE_SCENARIOS', 'BOUND']
 
 #: The format version of :obj:`compare.json`.
@@ -109,13 +111,29 @@ def compare_methods(scenario: Scenario,
     return methods
 
 
-# what every row of compare.json holds, as the table and figure read it
-_SUMMARY = dict(mean=NUMBER, std=NUMBER)
-ROW_SCHEMA = dict(method=str, rmse=NUMBER, seconds_per_realization=NUMBER,
-                  outage={'0.5': NUMBER, '1.0': NUMBER, '2.0': NUMBER},
-                  accept={'0.95': NUMBER},
-                  spread=dict(realizations=list, outage_1m=_SUMMARY,
-                              rmse=_SUMMARY, **{'accept_0.95': _SUMMARY}))
+_PROBABILITY, _NON_NEGATIVE = Number(0.0, 1.0), Number(0.0)
+
+
+def row_schema(realizations: int, bound: bool = False) -> dict:
+    r"""What every row of :obj:`compare.json` made with :obj:`realizations`
+    realizations holds, as the table and the figure read it, values
+    included (:func:`~tg_nebp.io.read_resumable`): probabilities in
+    :math:`[0, 1]`, finite non-negative RMSEs, deviations and seconds, and
+    one :obj:`[P_out(1 m), P(accept 0.95), RMSE]` per realization
+    (:func:`~tg_nebp.evaluation.spread`). The :obj:`bound`'s RMSEs per
+    realization are the floors that divide the others'
+    (:func:`floor_ratios`): positive."""
+    probabilities = dict(mean=_PROBABILITY, std=_NON_NEGATIVE)
+    realization = [_PROBABILITY, _PROBABILITY, Number(0.0, positive=bound)]
+    return dict(method=str, rmse=_NON_NEGATIVE,
+                seconds_per_realization=_NON_NEGATIVE,
+                outage={'0.5': _PROBABILITY, '1.0': _PROBABILITY,
+                        '2.0': _PROBABILITY},
+                accept={'0.95': _PROBABILITY},
+                spread={'realizations': [realization] * realizations,
+                        'outage_1m': probabilities,
+                        'accept_0.95': probabilities,
+                        'rmse': dict(mean=_NON_NEGATIVE, std=_NON_NEGATIVE)})
 
 
 def _settings(datasets, seed: int, device: str) -> dict:
@@ -167,15 +185,26 @@ def run_compare(root: str = 'datasets',
     realizations, seed, device and scenarios (compared by their
     :meth:`~tg_nebp.datasets.Scenario.fingerprint`, so a scenario file
     changed under the same name is not mixed in); another file is an
-    error. Each row holds the accuracy
+    error, and so is a damaged one (every row is checked against
+    :func:`row_schema`). Each row holds the accuracy
     (:func:`~tg_nebp.evaluation.summarize_result`), its spread over the
     realizations (:func:`~tg_nebp.evaluation.spread`), the seconds per
-    realization and the load average when it started.
+    realization and the load average when it started. The scenarios and
+    their rows are in the order of :obj:`scenarios` and
+    :func:`compare_methods`, in the result and in the file, also after a
+    resume; rows of checkpoints not given this time follow.
+
+    Before any work, the arguments are checked: two scenarios of one
+    name (the file's rows are keyed by name), a prefix of :obj:`methods`
+    that selects no row, a checkpoint whose row it leaves out, one value
+    where a list belongs (a string is not a list of its letters) and the
+    arguments of :func:`~tg_nebp.experiments.evaluate.check_run` are
+    errors.
 
     Args:
         root (str, optional): Dataset root. (default: :obj:`"datasets"`)
         scenarios (sequence, optional): Scenario names, files or
-            :class:`~tg_nebp.datasets.Scenario` objects.
+            :class:`~tg_nebp.datasets.Scenario` objects, of distinct names.
             (default: :obj:`COMPARE_SCENARIOS`)
         realizations (int, optional): Realizations per scenario.
             (default: :obj:`20`)
@@ -196,34 +225,51 @@ def run_compare(root: str = 'datasets',
         log (callable, optional): Receives one line per row.
             (default: :obj:`print`)
     """
+    scenarios = _listed(scenarios, 'scenarios', (str, os.PathLike, Scenario),
+                        'a scenario name, a JSON file or a Scenario')
+    checkpoints = _listed(checkpoints, 'checkpoints', (str, os.PathLike),
+                          'a path')
+    if methods is not None:
+        methods = _listed(methods, 'methods', (str, ), 'a str')
+    check_run(realizations, batch_size, device)
+    if not scenarios:
+        raise ValueError("'scenarios' is empty: name at least one")
+    if methods == []:
+        raise ValueError("'methods' is empty: give the prefixes of the rows "
+                         "to run, or None for all")
+    loaded = [scenario_of(spec) for spec in scenarios]
+    _check_names(scenarios, loaded)
+    # every row of every scenario, in order; the selected ones are built
+    # (their options and checkpoints checked) before the first one runs
+    rows = {s.name: compare_methods(s, checkpoints) for s in loaded}
+    if methods is not None:
+        _check_methods(methods, rows, checkpoints)
+    plan = [(name, key, what, build()) for name, table in rows.items()
+            for key, (what, build) in table.items()
+            if methods is None or any(key.startswith(m) for m in methods)]
+    order = {name: list(table) for name, table in rows.items()}
     datasets = load_datasets(root, *((s, realizations, seed)
-                                     for s in scenarios))
+                                     for s in loaded))
     path = Path(out) / 'compare.json'
     settings = _settings(datasets, seed, device)
-    result = read_resumable(path, settings, 'results', 'a comparison',
-                            ROW_SCHEMA, depth=2)
-    # every row is built (its options and checkpoints checked) before the
-    # first one runs
-    plan = []
-    for dataset in datasets:
-        rows = compare_methods(dataset.scenario, checkpoints)
-        for key, (what, build) in rows.items():
-            if methods is None or any(key.startswith(m) for m in methods):
-                plan.append((dataset, key, what, build()))
-    order = [(d.scenario.name, key) for d, key, _, _ in plan]
-    for dataset, key, what, method in plan:
-        name = dataset.scenario.name
+    result = read_resumable(
+        path, settings, 'results', 'a comparison',
+        lambda key: row_schema(realizations, bound=key == BOUND), depth=2)
+    result['results'] = _in_order(result['results'], order)
+    by_name = {d.scenario.name: d for d in datasets}
+    for name, key, what, method in plan:
+        dataset = by_name[name]
         steps = len(dataset) * dataset.scenario.num_steps
-        table = result['results'].setdefault(name, {})
-        if key in table:
+        if key in result['results'].get(name, {}):
             if progress is not None:
                 progress(steps)
             continue
         entry = _run_one(method, dataset, seed, device, batch_size, progress)
         entry['method'] = what
-        table[key] = entry
-        _in_plan_order(result['results'], order)
-        write_json(path, result)
+        result['results'].setdefault(name, {})[key] = entry
+        result['results'] = _in_order(result['results'], order)
+        # the keys in the table's order: JSON readers keep it
+        write_json(path, result, sort_keys=False)
         log(f"{name}: {key}: P_out(1 m) {entry['outage']['1.0']:.4f}, "
             f"P(accept 0.95) {entry['accept']['0.95']:.3f}, RMSE "
             f"{entry['rmse']:.3f} m, {entry['seconds_per_realization']:.2f} "
@@ -231,16 +277,75 @@ def run_compare(root: str = 'datasets',
     return result
 
 
-def _in_plan_order(results: Dict[str, dict],
-                   order: List[Tuple[str, str]]) -> None:
-    # the rows of every scenario in the order of compare_methods (a resumed
-    # file gets its new rows where they belong, not at its end); rows the
-    # plan does not name stay, after them
-    for name, rows in results.items():
-        planned = [key for scenario, key in order
-                   if scenario == name and key in rows]
-        rest = [key for key in rows if key not in planned]
-        results[name] = {key: rows[key] for key in planned + rest}
+def _listed(value, name: str, kinds: tuple, what: str) -> list:
+    # one value where a list belongs would be iterated item by item (a
+    # string letter by letter): refused, as is an item of another type
+    if (isinstance(value, (str, bytes, os.PathLike, Scenario))
+            or not isinstance(value, Iterable)):
+        raise TypeError(f"'{name}' must be a list, each item {what}, got "
+                        f"{value!r}")
+    items = list(value)
+    for i, item in enumerate(items):
+        if not isinstance(item, kinds):
+            raise TypeError(f"'{name}'[{i}] must be {what}, got {item!r}")
+    return items
+
+
+def _check_names(specs: list, scenarios: List[Scenario]) -> None:
+    # compare.json keys the rows by scenario name: a second scenario of a
+    # name would be skipped as done, under the first one's numbers
+    first = {}
+    for spec, scenario in zip(specs, scenarios):
+        given = 'a Scenario' if isinstance(spec, Scenario) else f"'{spec}'"
+        if scenario.name in first:
+            raise ValueError(
+                f"the scenarios {first[scenario.name]} and {given} are both "
+                f"named '{scenario.name}' (compare.json keys its rows by "
+                f"scenario name): give each scenario its own name")
+        first[scenario.name] = given
+
+
+def _check_methods(methods: List[str], rows: Dict[str, dict],
+                   checkpoints: list) -> None:
+    # every prefix selects a row of some scenario, and every checkpoint's
+    # row is selected: a value given is used or refused
+    keys = [key for table in rows.values() for key in table]
+    for i, prefix in enumerate(methods):
+        if any(key.startswith(prefix) for key in keys):
+            continue
+        if not checkpoints and ('nebp'.startswith(prefix)
+                                or prefix.startswith('nebp')):
+            raise ValueError(f"'methods'[{i}] = {prefix!r} selects NEBP's "
+                             f"rows, which need a checkpoint ('checkpoints',"
+                             f" --checkpoint PATH)")
+        known = list(dict.fromkeys(key.split(' ')[0] for key in keys))
+        raise ValueError(
+            f"'methods'[{i}] = {prefix!r} selects no row of any scenario; "
+            f"the rows start with {', '.join(known)}"
+            + ('' if checkpoints else ' (and nebp, with a checkpoint)'))
+    unused = next((key for key in keys if key.startswith('nebp ') and not
+                   any(key.startswith(m) for m in methods)), None)
+    if unused is not None:
+        raise ValueError(f"the checkpoint of the row '{unused}' was given, "
+                         f"but 'methods' does not select its row: add "
+                         f"'nebp' or leave the checkpoint out")
+
+
+def _in_order(results: Dict[str, dict],
+              order: Dict[str, List[str]]) -> Dict[str, dict]:
+    # the scenarios in their given order and the rows of each in that of
+    # compare_methods: a resumed file's new rows where they belong, not at
+    # its end, and a file of sorted keys (as earlier versions wrote it) in
+    # order again; rows the plan does not know (of checkpoints not given
+    # this time) stay, after them
+    ordered = {}
+    for name in [*order, *results]:
+        if name in results and name not in ordered:
+            rows = results[name]
+            known = [key for key in order.get(name, ()) if key in rows]
+            ordered[name] = {key: rows[key] for key in
+                             known + [k for k in rows if k not in known]}
+    return ordered
 
 
 def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:

@@ -4,24 +4,46 @@ bound) of a method from its options, :func:`evaluate_scenario` generates
 or loads the realizations, runs it and merges its entry into
 :obj:`metrics.json`."""
 import contextlib
+import os
 from pathlib import Path
 from typing import Callable, Optional, Tuple, Union
 
 from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
 from tg_nebp.models import model_like
 from tg_nebp.training import nebp_from_checkpoint
-from tg_nebp.utils import process_group
+from tg_nebp.utils import check_device, process_group
 
-__all__ = ['METHODS', 'method_tracker', 'tracker_measurement',
-           'evaluate_scenario']
+__all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
+           'tracker_measurement', 'evaluate_scenario', 'scenario_of',
+           'check_run']
 
 #: The methods of :func:`method_tracker`, by their :obj:`metrics.json` key
 #: stem: particle BP, NEBP from a checkpoint, Gaussian BP, the centralized
 #: IEKF and the posterior CRB.
 METHODS = ('bp', 'nebp', 'gbp', 'iekf', 'pcrb')
+
+#: Every option of :func:`method_tracker` (the flag of
+#: :obj:`tg-nebp evaluate` is :obj:`--` and the name with hyphens) and the
+#: methods that take it: another method refuses it rather than ignore it.
+METHOD_OPTIONS = {
+    'checkpoint': ('nebp', ),
+    'particles': ('bp', 'nebp'),
+    'samples': ('bp', 'nebp'),
+    'compile': ('bp', 'nebp'),
+    'resampler': ('bp', ),
+    'regularize': ('bp', ),
+    'ess_threshold': ('bp', ),
+    'measurement': ('bp', 'iekf', 'gbp'),
+    'iterations': ('bp', 'iekf', 'gbp'),
+    'ends': ('bp', 'gbp'),
+    'marginal': ('iekf', ),
+    'inflation': ('gbp', ),
+    'tolerance': ('gbp', ),
+}
 
 
 def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
@@ -34,12 +56,43 @@ def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
                       scenario.measurement_model)
 
 
+def scenario_of(spec: Union[str, os.PathLike, Scenario],
+                name: str = "'scenario'") -> Scenario:
+    r"""The :class:`~tg_nebp.datasets.Scenario` of a name, a JSON file or
+    a :class:`~tg_nebp.datasets.Scenario` (itself), loaded before any data
+    is made; another type is a :class:`TypeError` naming the argument
+    :obj:`name`."""
+    if isinstance(spec, Scenario):
+        return spec
+    if isinstance(spec, (str, os.PathLike)):
+        return Scenario.load(spec)
+    raise TypeError(f"{name} must be a scenario name, a JSON file or a "
+                    f"Scenario, got {spec!r}")
+
+
+def check_run(realizations: int, batch_size: int, device: str) -> None:
+    r"""Checks the arguments of a run over test realizations that the data
+    or torch would otherwise refuse only midway, or with an error that
+    names none of them: positive integers :obj:`realizations` and
+    :obj:`batch_size`, and a :obj:`device` of this machine
+    (:func:`~tg_nebp.utils.check_device`)."""
+    check_positive_int(realizations, 'realizations')
+    check_positive_int(batch_size, 'batch_size')
+    check_device(device)
+
+
+def _given(**options) -> dict:
+    # the options given, so that the others take the tracker's own default
+    return {name: value for name, value in options.items()
+            if value is not None}
+
+
 def method_tracker(method: str, scenario: Scenario,
                    measurement: Optional[str] = None,
                    particles: Optional[int] = None,
                    iterations: Optional[int] = None,
                    samples: Union[int, str, None] = None,
-                   resampler: str = 'multinomial',
+                   resampler: Optional[str] = None,
                    regularize: Union[float, str, None] = None,
                    ess_threshold: Optional[float] = None,
                    ends: Optional[str] = None, marginal: bool = False,
@@ -51,48 +104,72 @@ def method_tracker(method: str, scenario: Scenario,
     r"""The tracker of :obj:`method` (one of :data:`METHODS`) for the data
     of :obj:`scenario`, and its :obj:`metrics.json` key. The options left
     at :obj:`None` take each method's default: particle BP with 1,000
-    particles, one iteration and receiver-only messages; NEBP as its
-    checkpoint says; :meth:`GaussianBP.recommended()
-    <tg_nebp.filters.GaussianBP.recommended>` (a :obj:`tolerance` of 0
-    runs every iteration); the IEKF with 5 Gauss-Newton iterations.
-    Particle BP with more than one iteration and receiver-only messages is
-    refused: the senders' beliefs already hold the receivers' information,
-    and each iteration would count it again."""
+    particles, one iteration, receiver-only messages and the multinomial
+    resampler; NEBP as its checkpoint says;
+    :meth:`GaussianBP.recommended() <tg_nebp.filters.GaussianBP.recommended>`
+    (a :obj:`tolerance` of 0 runs every iteration); the IEKF with 5
+    Gauss-Newton iterations. A given value is used or refused, never
+    replaced: an option that :obj:`method` does not take
+    (:data:`METHOD_OPTIONS`) is a :class:`ValueError`, and so is a count
+    below one. Particle BP with more than one iteration and receiver-only
+    messages is refused: the senders' beliefs already hold the receivers'
+    information, and each iteration would count it again."""
+    # every option by name (all the arguments but the first two), before
+    # any other local exists
+    options = {name: value for name, value in locals().items()
+               if name in METHOD_OPTIONS}
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got "
-                         f"'{method}'")
+                         f"{method!r}")
+    if not isinstance(scenario, Scenario):
+        raise TypeError(f"'scenario' must be a Scenario, got {scenario!r}")
+    for name, value in options.items():
+        takers = METHOD_OPTIONS[name]
+        # None, and False for a switch, is an option left out
+        if value is not None and value is not False and method not in takers:
+            raise ValueError(f"'{name}' (--{name.replace('_', '-')}) is for "
+                             f"method {' or '.join(takers)}, not {method}")
+    # here, not in the trackers: NEBP's checkpoint loader reports a
+    # constructor's TypeError as a checkpoint that does not match
+    for name in ('particles', 'iterations'):
+        if options[name] is not None:
+            check_positive_int(options[name], name)
+    if samples is not None and samples != 'all':
+        check_positive_int(samples, 'samples')
     models = dict(motion=scenario.motion_model,
                   measurement=tracker_measurement(scenario, measurement))
     if method == 'pcrb':
         return PosteriorCRB(scenario.motion_model,
                             scenario.measurement_model), 'pcrb'
     if method == 'iekf':
-        tracker = CentralizedIEKF(iterations or 5, marginal=marginal,
-                                  **models)
+        tracker = CentralizedIEKF(**_given(num_iterations=iterations),
+                                  marginal=marginal, **models)
         return tracker, 'iekf-marginal' if marginal else 'iekf'
     if method == 'gbp':
-        given = dict(num_iterations=iterations, inflation=inflation,
-                     ends=ends, tolerance=tolerance)
-        options = {k: v for k, v in given.items() if v is not None}
-        if options.get('tolerance') == 0:  # every iteration
-            options['tolerance'] = None
-        return GaussianBP.recommended(**options, **models), 'gbp'
+        given = _given(num_iterations=iterations, inflation=inflation,
+                       ends=ends, tolerance=tolerance)
+        if given.get('tolerance') == 0:  # every iteration
+            given['tolerance'] = None
+        return GaussianBP.recommended(**given, **models), 'gbp'
     if method == 'nebp':
         if checkpoint is None:
-            raise ValueError("method 'nebp' needs a checkpoint")
+            raise ValueError("method 'nebp' needs a checkpoint (--checkpoint "
+                             "PATH)")
         return nebp_from_checkpoint(checkpoint, particles, compile=compile,
                                     num_samples=samples), 'nebp'
-    iterations, ends = iterations or 1, ends or 'receiver'
-    if iterations > 1 and ends == 'receiver':
+    # receiver-only messages are particle BP's default
+    if iterations is not None and iterations > 1 and ends in (None,
+                                                              'receiver'):
         raise ValueError(
             f"--iterations {iterations} with --ends receiver counts the "
             f"receivers' own information again at every iteration (the "
             f"senders' beliefs already hold it); use --ends both, whose "
             f"iterations send extrinsic messages")
-    return ParticleBP(particles or 1000, iterations, resampler=resampler,
-                      compile=compile, num_samples=samples or 1,
-                      regularize=regularize, ess_threshold=ess_threshold,
-                      ends=ends, **models), 'bp'
+    given = _given(num_particles=particles, num_iterations=iterations,
+                   resampler=resampler, num_samples=samples,
+                   regularize=regularize, ess_threshold=ess_threshold,
+                   ends=ends)
+    return ParticleBP(**given, compile=compile, **models), 'bp'
 
 
 def evaluate_scenario(method: str, scenario: Union[str, Scenario],
@@ -107,6 +184,8 @@ def evaluate_scenario(method: str, scenario: Union[str, Scenario],
     them and merges its entry into :obj:`out/metrics.json`
     (:func:`~tg_nebp.evaluation.evaluate_method`). Under :obj:`torchrun`
     the realizations are sharded over the processes and rank 0 writes.
+    The arguments and options are checked (:func:`check_run`,
+    :func:`method_tracker`) before any data is made.
 
     Args:
         progress_factory (callable, optional): :obj:`(total, description)`
@@ -119,9 +198,11 @@ def evaluate_scenario(method: str, scenario: Union[str, Scenario],
         :obj:`metrics.json` entry under :obj:`"entry"` and the method's
         key under :obj:`"key"`.
     """
+    check_run(realizations, batch_size, device)
+    scenario = scenario_of(scenario)
+    tracker, key = method_tracker(method, scenario, **options)
     world_size, rank = process_group()
     dataset, = load_datasets(root, (scenario, realizations, seed))
-    tracker, key = method_tracker(method, dataset.scenario, **options)
     share = len(range(rank, len(dataset), world_size))
     particles = getattr(tracker, 'num_particles', None)
     bar = (progress_factory(share * dataset.scenario.num_steps,

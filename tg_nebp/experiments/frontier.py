@@ -15,8 +15,9 @@ from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
 
 from tg_nebp.evaluation import (CONFIDENCE_KEY, OUTAGE_KEY, summarize_result,
                                 track_dataset)
-from tg_nebp.filters import ParticleBP
 from tg_nebp.datasets import Scenario, load_datasets
+from tg_nebp.experiments.evaluate import check_run
+from tg_nebp.filters import ParticleBP
 from tg_nebp.io import NUMBER, read_resumable, write_json, write_text
 
 __all__ = ['GridPoint', 'grid', 'pareto_front', 'run_frontier',
@@ -233,6 +234,7 @@ def frontier(particles: Sequence[int], samples: Sequence[Union[int, str]],
     """
     from tg_nebp.plot import plot_frontier
 
+    check_run(realizations, batch_size, device)
     points = grid(particles, samples, resamplers, regularize, ess_threshold)
     if not points:
         raise ValueError('the grid is empty: every --samples M exceeds '

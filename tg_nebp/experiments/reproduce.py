@@ -15,6 +15,7 @@ from tg_nebp.experiments.train import train_scenario
 from tg_nebp.filters import ParticleBP
 from tg_nebp.io import claim_folder, read_json, write_text
 from tg_nebp.reference import PAPER_TABLE
+from tg_nebp.utils import check_device
 
 __all__ = ['PRESETS', 'PRESET_NAMES', 'reproduce']
 
@@ -100,6 +101,7 @@ def reproduce(preset: str, device: str = 'cpu', out: str = 'results',
     if preset not in PRESET_NAMES:
         raise ValueError(f"'preset' must be one of {PRESET_NAMES}, got "
                          f"'{preset}'")
+    check_device(device)
     if preset == 'beyond':
         if compile or num_samples != 1:
             raise ValueError("the preset 'beyond' sets its own samples and "

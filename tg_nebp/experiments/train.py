@@ -13,7 +13,7 @@ from tg_nebp.experiments.evaluate import tracker_measurement
 from tg_nebp.filters import NEBP
 from tg_nebp.training import checkpoint_history, steps_per_epoch, train
 from tg_nebp.training_log import TrainingLog
-from tg_nebp.utils import process_group
+from tg_nebp.utils import check_device, process_group
 
 __all__ = ['train_scenario', 'TrainedScenario']
 
@@ -65,6 +65,7 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
     Returns:
         A :class:`TrainedScenario`.
     """
+    check_device(device)  # before any data is made
     rank = process_group()[1]
     train_set, val_set = load_datasets(
         root, (scenario, realizations, seed),

@@ -1,11 +1,12 @@
 from .resampling import (RESAMPLERS, effective_sample_size, multinomial_resample,
                          residual_resample, silverman_bandwidth,
                          stratified_resample, systematic_resample)
-from .tracker import StepOutput, Tracker, TrackOutput, check_state_dim
+from .tracker import StepOutput, Tracker, TrackOutput
 from .particle_bp import ParticleBP
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF
 from .gaussian_bp import GBP_RECOMMENDED, GaussianBP
+from tg_nebp.data.validation import check_state_dim
 from tg_nebp.utils import weighted_moments
 
 __all__ = [

@@ -3,12 +3,12 @@ from typing import Iterator, Optional
 import torch
 from torch import Tensor
 
-from tg_nebp.bounds.posterior_crb import GraphLayout
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
-from tg_nebp.gaussian import (add_link_information, block_diagonal,
-                              check_dense_joint, embed_scope,
+from tg_nebp.gaussian import (GraphLayout, add_link_information,
+                              block_diagonal, check_dense_joint,
+                              check_predicted_prior, embed_scope,
                               marginal_blocks, predict_joint,
                               symmetric_inverse)
 from tg_nebp.models import MeasurementModel, MotionModel
@@ -111,6 +111,7 @@ class CentralizedIEKF(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
+        check_predicted_prior(data, self.motion, 'the centralized IEKF')
         layout = GraphLayout.of(data)
         size = data.prior_mean.size(1)
         check_dense_joint(max(a.numel() for a in layout.agents), size,

@@ -6,6 +6,7 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
+from tg_nebp.gaussian import GraphLayout, check_predicted_prior
 from tg_nebp.models import MeasurementModel, MotionModel
 from tg_nebp.nn.conv.gaussian_bp_conv import (GaussianBelief, GaussianBPConv)
 
@@ -62,10 +63,12 @@ class GaussianBP(Tracker):
             (default: :obj:`"both"`)
         damping (float, optional): Message damping in :math:`[0, 1)`.
             (default: :obj:`0.0`)
-        tolerance (float, optional): Stop a step's iterations early once no
-            belief mean moved by more than this in an iteration (metres,
-            metres per second); :obj:`None` runs all
-            :obj:`num_iterations`. (default: :obj:`0.01`)
+        tolerance (float, optional): Stop a graph's iterations of a step
+            early once none of its belief means moved by more than this in
+            an iteration (metres, metres per second); every graph of a
+            batch stops on its own, so a batch gives what each graph gives
+            alone. :obj:`None` runs all :obj:`num_iterations`.
+            (default: :obj:`0.01`)
         inflation (float, optional): Every agent's belief covariance is
             multiplied by :math:`\kappa \geq 1` before the next prediction
             (not the prior's, before the first),
@@ -137,10 +140,12 @@ class GaussianBP(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
+        check_predicted_prior(data, self.motion, 'Gaussian BP')
         if isinstance(generator, (list, tuple)):
             generator = generator[0] if generator else None
         anchor = data.anchor
         agents = ~anchor
+        graph_of = GraphLayout.of(data).graph_of
         mean = data.prior_mean.double()
         cov = data.prior_cov.double()
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
@@ -154,19 +159,39 @@ class GaussianBP(Tracker):
             edge_attr = edge_attr.double()
             edge_index = edge_index.long()
             factors = self.conv.factors(edge_index, anchor, mean.size(-1))
+            moving = torch.ones(int(graph_of.max()) + 1, dtype=torch.bool,
+                                device=graph_of.device)
             for _ in range(self.num_iterations):
-                before = belief.mean
-                belief, messages = self.conv(prior, belief, edge_index,
-                                             edge_attr, anchor, messages,
-                                             generator, factors)
-                if self.tolerance is not None and bool(
-                        (belief.mean - before).abs().amax() <=
-                        self.tolerance):
+                new, messages = self.conv(prior, belief, edge_index,
+                                          edge_attr, anchor, messages,
+                                          generator, factors, validate=False)
+                if self.tolerance is None:
+                    belief = new
+                    continue
+                belief, moving = self._converge(belief, new, graph_of,
+                                                moving)
+                if not bool(moving.any()):
                     break
             mean = belief.mean
             cov = torch.zeros_like(belief.info)
             cov[agents] = _inverse(belief.info[agents])
             yield StepOutput(t, mean, cov)
+
+    def _converge(self, old: GaussianBelief, new: GaussianBelief,
+                  graph_of: Tensor, moving: Tensor):
+        # a graph whose means all moved by at most the tolerance has
+        # converged and keeps its beliefs for the rest of the step: each
+        # graph of a batch stops where it would stop alone (the graphs
+        # share no link, so the frozen ones do not change the others)
+        frozen = ~moving[graph_of]
+        belief = GaussianBelief(
+            torch.where(frozen.view(-1, 1), old.mean, new.mean),
+            torch.where(frozen.view(-1, 1, 1), old.info, new.info))
+        step = (belief.mean - old.mean).abs().amax(-1)
+        largest = torch.zeros_like(moving, dtype=step.dtype).scatter_reduce(
+            0, graph_of, step, 'amax')
+        # NaN compares false: a diverged graph is not converged
+        return belief, moving & ~(largest <= self.tolerance)
 
     def settings(self) -> dict:
         return dict(iterations=self.num_iterations,

@@ -517,11 +517,17 @@ class ParticleBP(Tracker):
         return jitter
 
     def settings(self) -> dict:
+        # the registry's name of the resampler, or a callable's own name
+        resampler = next((name for name, known in RESAMPLERS.items()
+                          if known is self.resampler),
+                         getattr(self.resampler, '__name__',
+                                 repr(self.resampler)))
         return dict(particles=self.num_particles,
                     iterations=self.num_iterations,
                     measurement=self.measurement.config(),
                     samples=self.num_samples, regularize=self.regularize,
-                    ess_threshold=self.ess_threshold, ends=self.ends)
+                    ess_threshold=self.ess_threshold, ends=self.ends,
+                    resampler=resampler)
 
     def __repr__(self) -> str:
         options = ''.join(

@@ -10,20 +10,10 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_realization
+from tg_nebp.data.validation import check_realization, check_state_dim
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
-__all__ = ['Tracker', 'StepOutput', 'TrackOutput', 'check_state_dim']
-
-
-def check_state_dim(size: int, motion: MotionModel) -> None:
-    r"""A :class:`ValueError` if states of size :obj:`size` are not what the
-    motion model is for (a model that states its
-    :attr:`~tg_nebp.models.MotionModel.state_dim`)."""
-    if motion.state_dim is not None and size != motion.state_dim:
-        raise ValueError(f"'prior_mean' holds states of size {size} but the "
-                         f"motion model {motion} has state dimension "
-                         f"{motion.state_dim}")
+__all__ = ['Tracker', 'StepOutput', 'TrackOutput']
 
 
 class StepOutput(NamedTuple):
@@ -70,7 +60,7 @@ class Tracker(torch.nn.Module):
         r"""Checks a realization (:func:`~tg_nebp.data.check_realization`
         with the link features the measurement model reads) and that its
         states have the motion model's dimension
-        (:func:`~tg_nebp.filters.check_state_dim`)."""
+        (:func:`~tg_nebp.data.check_state_dim`)."""
         check_realization(data, self.measurement.features)
         check_state_dim(data.prior_mean.size(1), self.motion)
 

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -5,7 +7,7 @@ import torch
 from tg_nebp.data import Realization
 from tg_nebp.filters import GaussianBP
 from tg_nebp.models import ConstantVelocity
-from tg_nebp.nn.conv import GaussianBPConv
+from tg_nebp.nn.conv import FactorMessages, GaussianBelief, GaussianBPConv
 
 from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
                      linear_offset_model, linear_scenario, tiny_scenario)
@@ -235,3 +237,118 @@ def test_a_plane_in_three_dimensions_gives_the_two_dimensional_beliefs():
     two, three = PosteriorCRB()(data), PosteriorCRB()(flat)
     torch.testing.assert_close(three[..., plane, :][..., plane], two,
                                rtol=1e-9, atol=1e-12)
+
+
+# -- the inputs are checked as the particle conv checks them ----------------
+
+def snapshot(seed=31, dtype=torch.float64):
+    r"""A random snapshot for both convs: particles, and Gaussian beliefs
+    of the same nodes (the particles' moments; anchors known)."""
+    from helpers import random_graph
+    from tg_nebp.filters import weighted_moments
+    particles, log_weights, edge_index, edge_attr, anchor = random_graph(
+        gen(seed), 4, 3, 16, dtype=dtype)
+    mean, cov = weighted_moments(particles, log_weights)
+    cov = cov + 0.1 * torch.eye(4, dtype=dtype)
+    info = torch.where(anchor.view(-1, 1, 1), torch.zeros_like(cov),
+                       torch.linalg.inv(cov))
+    belief = GaussianBelief(mean, info)
+    return particles, log_weights, edge_index, edge_attr, anchor, belief
+
+
+def corrupt(name, edge_index, edge_attr, anchor):
+    edge_index, edge_attr = edge_index.clone(), edge_attr.clone()
+    if name in ('nan', 'inf', 'negative'):
+        edge_attr[3, 0] = dict(nan=math.nan, inf=math.inf,
+                               negative=-0.5)[name]
+    elif name == 'self-loop':
+        edge_index[0, 2] = edge_index[1, 2]
+    elif name == 'out of range':
+        edge_index[0, 1] = anchor.numel() + 2
+    elif name == 'flat ranges':
+        edge_attr = edge_attr.view(-1)
+    elif name == 'short ranges':
+        edge_attr = edge_attr[1:]
+    elif name == 'float anchor':
+        anchor = anchor.double()
+    elif name == 'short anchor':
+        anchor = anchor[1:]
+    return edge_index, edge_attr, anchor
+
+
+BAD_LINKS = {
+    'nan': r"'edge_attr\[3\]' = nan is not finite",
+    'inf': r"'edge_attr\[3\]' = inf is not finite",
+    'negative': r"'edge_attr\[3\]' = -0.5 is a negative range",
+    'self-loop': r"'edge_index\[:, 2\]' is a self-loop",
+    'out of range': r"'edge_index\[0, 1\]' = 9 is out of range for 7 nodes",
+    'flat ranges': r"'edge_attr' must have shape \[\d+, F\]",
+    'short ranges': r"'edge_attr' must have shape \[\d+, F\]",
+    'float anchor': r"'anchor' must be a bool tensor of shape \[7\]",
+    'short anchor': r"'anchor' must be a bool tensor of shape \[7\]",
+}
+
+
+@pytest.mark.parametrize('name', sorted(BAD_LINKS))
+def test_both_convs_refuse_the_same_bad_links(name):
+    from tg_nebp.nn.conv import ParticleBPConv
+    particles, log_weights, edge_index, edge_attr, anchor, belief = (
+        snapshot())
+    edge_index, edge_attr, anchor = corrupt(name, edge_index, edge_attr,
+                                            anchor)
+    with pytest.raises(ValueError, match=BAD_LINKS[name]):
+        ParticleBPConv()(particles, log_weights, edge_index, edge_attr,
+                         anchor=anchor)
+    with pytest.raises(ValueError, match=BAD_LINKS[name]):
+        GaussianBPConv()(belief, belief, edge_index, edge_attr, anchor)
+
+
+def test_bad_beliefs_and_messages_are_named():
+    *_, edge_index, edge_attr, anchor, belief = snapshot()
+    conv = GaussianBPConv()
+    mean, info = belief
+
+    def refused(prior, current, message, messages=None):
+        with pytest.raises(ValueError, match=message):
+            conv(prior, current, edge_index, edge_attr, anchor, messages)
+
+    bad = mean.clone()
+    bad[2, 1] = math.nan
+    refused(belief, GaussianBelief(bad, info), r"'belief.mean\[2\]' holds "
+            r"a non-finite value")
+    skew = info.clone()
+    skew[1, 0, 1] += 1.0
+    refused(GaussianBelief(mean, skew), belief,
+            r"'prior.info\[1\]' is not symmetric")
+    refused(GaussianBelief(mean, -info), belief,
+            r"'prior.info\[0\]' is not positive semi-definite")
+    refused(belief, GaussianBelief(mean[1:], info[1:]),
+            r"'belief.mean' holds 6 nodes but the graph has 7")
+    refused(belief, GaussianBelief(mean, info[..., :2]),
+            r"'belief.info' must have shape \[7, 4, 4\]")
+    _, messages = conv(belief, belief, edge_index, edge_attr, anchor)
+    refused(belief, belief, r"'messages.info' must have shape",
+            FactorMessages(messages.info[1:], messages.eta))
+    nan = messages.eta.clone()
+    nan[4, 0] = math.nan
+    refused(belief, belief, r"'messages.eta\[4\]' holds a non-finite",
+            FactorMessages(messages.info, nan))
+    # no prior information and no message: a state nothing determines
+    flat = GaussianBelief(mean, torch.zeros_like(info))
+    lonely = edge_index[:, edge_index[1] != 0]
+    with pytest.raises(ValueError, match='the belief of node 0 has singular '
+                       'information'):
+        conv(flat, belief, lonely, edge_attr[edge_index[1] != 0], anchor)
+
+
+def test_half_precision_is_computed_in_float32():
+    *_, edge_index, edge_attr, anchor, belief = snapshot()
+    conv = GaussianBPConv()
+    half = GaussianBelief(*(t.half() for t in belief))
+    single = GaussianBelief(*(t.half().float() for t in belief))
+    got, _ = conv(half, half, edge_index, edge_attr.half(), anchor)
+    want, _ = conv(single, single, edge_index, edge_attr.half().float(),
+                   anchor)
+    assert got.mean.dtype == torch.float32
+    torch.testing.assert_close(got.mean, want.mean, rtol=0, atol=0)
+    torch.testing.assert_close(got.info, want.info, rtol=0, atol=0)

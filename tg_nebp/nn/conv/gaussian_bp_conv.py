@@ -4,9 +4,10 @@ import torch
 from torch import Tensor
 from torch_geometric.nn.conv import MessagePassing
 
-from tg_nebp.data.validation import check_number
+from tg_nebp.data.validation import (check_gaussian_belief, check_links,
+                                     check_number)
 from tg_nebp.models import GaussianRange, MeasurementModel
-from tg_nebp.utils import link_factors, long_edge_index
+from tg_nebp.utils import compute_dtype, link_factors, long_edge_index
 
 __all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages', 'Factors',
            'ENDS']
@@ -107,6 +108,26 @@ def _marginal_information(info: Tensor, mean: Tensor, width: int,
     info_rr = torch.where(anchor.view(-1, 1, 1), eye,
                           0.5 * (info_rr + info_rr.transpose(-1, -2)))
     return info_rr, eta_r.masked_fill(anchor.view(-1, 1), 0.0)
+
+
+def _check_messages(messages: FactorMessages, count: int,
+                    width: int) -> None:
+    # the previous iteration's messages, one per message edge of the
+    # factors: a message of another graph would be read at wrong slots
+    if not isinstance(messages, FactorMessages):
+        raise TypeError(f"'messages' must be FactorMessages, got "
+                        f"{type(messages).__name__}")
+    for field, shape in (('info', (count, width, width)),
+                         ('eta', (count, width))):
+        value = getattr(messages, field)
+        if not isinstance(value, Tensor) or value.shape != shape:
+            raise ValueError(f"'messages.{field}' must have shape "
+                             f"{list(shape)} (one per message edge), got "
+                             f"{list(getattr(value, 'shape', []))}")
+        bad = ~torch.isfinite(value).reshape(count, -1).all(-1)
+        if bool(bad.any()):
+            raise ValueError(f"'messages.{field}[{int(bad.nonzero()[0, 0])}]"
+                             f"' holds a non-finite value")
 
 
 class GaussianBPConv(MessagePassing):
@@ -236,7 +257,7 @@ class GaussianBPConv(MessagePassing):
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
                 messages: Optional[FactorMessages] = None,
                 generator: Optional[torch.Generator] = None,
-                factors: Optional[Factors] = None
+                factors: Optional[Factors] = None, validate: bool = True
                 ) -> Tuple[GaussianBelief, FactorMessages]:
         r"""Runs one iteration.
 
@@ -258,11 +279,39 @@ class GaussianBPConv(MessagePassing):
             factors (Factors, optional): :meth:`factors` of the links, which
                 the iterations of a time step share (computed if
                 :obj:`None`). (default: :obj:`None`)
+            validate (bool, optional): Check the inputs as
+                :class:`~tg_nebp.nn.conv.ParticleBPConv` does (the links,
+                the ranges, the anchor mask; the beliefs finite, symmetric
+                and positive semi-definite; the messages' shapes).
+                Trackers check their data once and pass :obj:`False`.
+                (default: :obj:`True`)
+
+        Half precision is computed in float32 (information matrices
+        overflow it): the outputs have the promoted dtype of the inputs and
+        float32.
         """
+        if validate:
+            check_gaussian_belief(*prior, 'prior')
+            check_gaussian_belief(*belief, 'belief', prior.mean.size(0))
+            if belief.mean.shape != prior.mean.shape:
+                raise ValueError(f"'belief.mean' {list(belief.mean.shape)} "
+                                 f"and 'prior.mean' "
+                                 f"{list(prior.mean.shape)} differ in shape")
+            check_links(edge_index, edge_attr, self.measurement.features,
+                        prior.mean.size(0), anchor)
+        dtype = compute_dtype(*prior, *belief, edge_attr)
+        prior = GaussianBelief(*(t.to(dtype) for t in prior))
+        belief = GaussianBelief(*(t.to(dtype) for t in belief))
+        edge_attr = edge_attr.to(dtype)
         num_nodes, size = belief.mean.shape
         edge_index = long_edge_index(edge_index, num_nodes)
         if factors is None:
             factors = self.factors(edge_index, anchor, size)
+        if validate and messages is not None:
+            _check_messages(messages, factors.index.size(1),
+                            len(self.measurement.scope(size)))
+        if messages is not None:
+            messages = FactorMessages(*(t.to(dtype) for t in messages))
         scope = self.measurement.scope(size)
         width = len(scope)
         # the scope is a slice of every state: the leading entries (a range
@@ -311,8 +360,14 @@ class GaussianBPConv(MessagePassing):
         # anchors keep their known state (an identity keeps the solve
         # finite)
         eye = torch.eye(size, dtype=info.dtype, device=info.device)
-        solved = torch.linalg.solve(torch.where(anchor.view(-1, 1, 1), eye,
-                                                info), total.unsqueeze(-1))
+        solved, singular = torch.linalg.solve_ex(
+            torch.where(anchor.view(-1, 1, 1), eye, info),
+            total.unsqueeze(-1))
+        if bool(singular.any()):
+            node = int(singular.nonzero()[0, 0])
+            raise ValueError(f"the belief of node {node} has singular "
+                             f"information: its prior and messages leave "
+                             f"a state entry undetermined")
         mean = torch.where(anchor.view(-1, 1), belief.mean,
                            solved.squeeze(-1))
         return GaussianBelief(mean, info), new
