@@ -121,3 +121,18 @@ def test_threads_in_force_sets_and_restores():
     with threads_in_force('auto') as governor:
         assert isinstance(governor, ThreadGovernor)
     assert torch.get_num_threads() == initial
+
+
+def test_counts_given_are_used_or_refused():
+    # 0 was taken as "not given" (the current count, all cores)
+    from tg_nebp.threads import threads_in_force
+    for options, message in ((dict(max_threads=0), "'max_threads' must be "
+                              "positive, got 0"),
+                             (dict(cores=0), "'cores' must be positive")):
+        with pytest.raises(ValueError, match=message):
+            ThreadGovernor(read=lambda: 0, **options)
+    for threads, error in ((0, ValueError), (True, TypeError),
+                           ('many', TypeError)):
+        with pytest.raises(error, match="'threads' must be"):
+            with threads_in_force(threads):
+                pass

@@ -17,6 +17,8 @@ from typing import Callable, Iterator, Optional, Union
 
 import torch
 
+from tg_nebp.data.validation import check_positive_int
+
 __all__ = ['ThreadGovernor', 'threads_in_force', 'runnable_elsewhere',
            'available_cores']
 
@@ -89,9 +91,12 @@ class ThreadGovernor:
         if patience < 1:
             raise ValueError(f"'patience' must be positive, got {patience}")
         self.initial = torch.get_num_threads()
-        self.max_threads = max(1, max_threads or self.initial)
+        # a count given is used or refused, never replaced
+        self.max_threads = (self.initial if max_threads is None else
+                            check_positive_int(max_threads, 'max_threads'))
         self.smoothing, self.patience, self.read = smoothing, patience, read
-        self.cores = cores or available_cores()
+        self.cores = (available_cores() if cores is None else
+                      check_positive_int(cores, 'cores'))
         self.mean: Optional[float] = None
         self.wanted, self.streak = None, 0
         self.threads = self.initial
@@ -145,6 +150,8 @@ def threads_in_force(threads: Union[int, str, None] = None,
     :meth:`~ThreadGovernor.update` after every time step) on a CPU
     :obj:`device`; :obj:`None` leaves torch's count. The count found at
     the start is restored at the end."""
+    if threads is not None and threads != 'auto':
+        check_positive_int(threads, 'threads')
     initial = torch.get_num_threads()
     governor = None
     if threads == 'auto' and not str(device).startswith('cuda'):

@@ -183,9 +183,27 @@ def test_damaged_rows_are_refused_on_resume(tmp_path):
                 f"compare.json' is damaged: {entry} {message}; remove the "
                 f"file")):
             run_compare(**common)
+    # a scenario the settings do not name would be shown as if run
+    content = copy.deepcopy(good)
+    content['results']['stranger'] = content['results']['tiny']
+    write_json(path, content)
+    with pytest.raises(ValueError, match=re.escape(
+            "compare.json' is damaged: 'results'['stranger'] is no scenario "
+            "of its settings")):
+        run_compare(**common)
     # a tracker's RMSE divides nothing: zero is a value
     kept = damaged(('iekf gaussian', *realizations, 0, 2), 0.0)
     assert run_compare(**common) == kept
+    # called directly, floor_ratios refuses what the file check refuses
+    rows = copy.deepcopy(good['results']['tiny'])
+    rows['pcrb']['spread']['realizations'][1][2] = 0.0
+    with pytest.raises(ValueError, match="needs a positive floor"):
+        floor_ratios(rows)
+    rows = copy.deepcopy(good['results']['tiny'])
+    rows['iekf gaussian']['spread']['realizations'].pop()
+    with pytest.raises(ValueError, match="'iekf gaussian' holds 1 "
+                       "realizations, the bound's 2"):
+        floor_ratios(rows)
 
 
 def test_rows_stay_in_the_order_of_the_methods(tmp_path):

@@ -796,7 +796,12 @@ def test_both_ends_batch_equals_each_graph_alone():
 
 # BP's means of realization seed 3 of paper_test (4 steps, K = 200, seed 1,
 # one thread), as the code before positions of any dimension gave them: the
-# sum over the first 100 nodes and node 5's state at the last step
+# sum over the first 100 nodes and node 5's state at the last step. Float32
+# sums round by the CPU's kernels, and resampling carries a rounding on: on
+# an AVX-512 CPU, and under another kernel dispatch (ATEN_CPU_CAPABILITY),
+# the sums moved by up to 1.2e-5 relative and node 5's state by up to 8 mm
+# (and mm/s). They are compared to 1e-4 relative and 2 cm: a change of the
+# 2-D path moves them by far more
 BEFORE_3D = {
     'paired': (39058.96476991568, [24.40610122680664, 59.562530517578125,
                                    0.09814085066318512,
@@ -822,9 +827,9 @@ def test_two_dimensional_results_are_unchanged(name):
         torch.set_num_threads(threads)
     total, state = BEFORE_3D[name]
     assert float(mean[:100].double().sum()) == pytest.approx(total,
-                                                             rel=1e-9)
-    np.testing.assert_allclose(mean[5, 3].tolist(), state, rtol=1e-5,
-                               atol=1e-6)
+                                                             rel=1e-4)
+    np.testing.assert_allclose(mean[5, 3].tolist(), state, rtol=0,
+                               atol=0.02)
 
 
 def three_d_scenario(steps=3, agents=4):

@@ -26,7 +26,10 @@ def models():
         st.builds(StudentTRange, sigma=sigma, nu=log_uniform(*NU_RANGE)),
         sigma.flatmap(lambda s: st.builds(
             NLOSRange, sigma=st.just(s),
-            bias_mean=log_uniform(*BIAS_RATIO).map(lambda r: r * s),
+            # inside the bounds by more than the rounding of r * s
+            bias_mean=log_uniform(BIAS_RATIO[0] * (1 + 1e-12),
+                                  BIAS_RATIO[1] * (1 - 1e-12)).map(
+                                      lambda r: r * s),
             p_nlos=st.floats(0.0, 1.0))))
 
 

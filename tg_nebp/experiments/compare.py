@@ -255,6 +255,12 @@ def run_compare(root: str = 'datasets',
     result = read_resumable(
         path, settings, 'results', 'a comparison',
         lambda key: row_schema(realizations, bound=key == BOUND), depth=2)
+    stranger = next((name for name in result['results']
+                     if name not in settings['scenarios']), None)
+    if stranger is not None:
+        raise ValueError(f"'{path}' is damaged: 'results'[{stranger!r}] is "
+                         f"no scenario of its settings; remove the file to "
+                         f"start again")
     result['results'] = _in_order(result['results'], order)
     by_name = {d.scenario.name: d for d in datasets}
     for name, key, what, method in plan:
@@ -352,14 +358,23 @@ def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:
     r"""Each row's RMSE as a multiple of the bound's floor on the same
     realizations: the mean and sample standard deviation over the
     realizations of RMSE / floor (the rows of one scenario of
-    :obj:`compare.json`; empty without the bound's row)."""
+    :obj:`compare.json`; empty without the bound's row). Rows of other
+    realization counts than the bound's, or a floor that is not positive,
+    are a :class:`ValueError` naming the row (a ratio of other
+    realizations would be silently wrong)."""
     if BOUND not in rows:
         return {}
     floors = [r[2] for r in rows[BOUND]['spread']['realizations']]
+    if not floors or not all(f > 0 for f in floors):
+        raise ValueError(f"the bound's row ('{BOUND}') needs a positive "
+                         f"floor for every realization, got {floors}")
     ratios = {}
     for key, entry in rows.items():
-        per = [r[2] / f for r, f in zip(entry['spread']['realizations'],
-                                        floors)]
+        realizations = entry['spread']['realizations']
+        if len(realizations) != len(floors):
+            raise ValueError(f"the row '{key}' holds {len(realizations)} "
+                             f"realizations, the bound's {len(floors)}")
+        per = [r[2] / f for r, f in zip(realizations, floors)]
         mean = sum(per) / len(per)
         var = (sum((p - mean)**2 for p in per) / (len(per) - 1)
                if len(per) > 1 else 0.0)
