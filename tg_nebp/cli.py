@@ -195,7 +195,9 @@ def _bars(args) -> Callable:
     # the progress_factory of the library's commands: rank 0's bar, unless
     # --quiet
     def bar(total, desc):
-        made = _Bar(total=total, desc=desc, unit='step',
+        # shown after a second: a run refused at its start (a checked
+        # argument) prints its one error line and no empty bar
+        made = _Bar(total=total, desc=desc, unit='step', delay=1.0,
                     disable=args.quiet or process_group()[1] > 0)
         made.governor = args.governor
         return made

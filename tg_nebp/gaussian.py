@@ -6,7 +6,7 @@ through a per-agent motion model, the information of measured links added
 into a joint information matrix, the agents' marginals, and the memory
 check that refuses a joint too large for the machine before any work
 starts. Neither the bound nor a tracker imports the other: what they share
-lives here and in :mod:`tg_nebp.data.validation`.
+lives here and in the checks of :mod:`tg_nebp.data`.
 
 A joint over :math:`A` agents with states of size :math:`S` is an
 :math:`(AS, AS)` matrix whose block :math:`(a, b)` belongs to agents
