@@ -278,6 +278,26 @@ def test_nlos_scenarios_are_the_paper_networks_with_nlos_links(name):
         assert state.setdefault((min(i, j), max(i, j)), flag) == flag
 
 
+@pytest.mark.parametrize('split', ['train', 'test'])
+def test_sparse_and_wide_prior_scenarios_change_one_thing(split):
+    # the regimes of the learned correction: the paper's networks with a
+    # 12 m range (fewer links) or a 10 m prior standard deviation
+    clean = Scenario.load(f'paper_{split}')
+    sparse = Scenario.load(f'paper_{split}_sparse')
+    wide = Scenario.load(f'paper_{split}_wide_prior')
+    assert sparse.measurement_model.max_range == 12.0
+    assert sparse.replace(name=clean.name, description=clean.description,
+                          measurement=clean.measurement) == clean
+    assert tuple(wide.prior_var) == (100.0, 100.0, 0.01, 0.01)
+    assert wide.replace(name=clean.name, description=clean.description,
+                        prior_var=clean.prior_var) == clean
+    gen = torch.Generator().manual_seed(0)
+    short = [s.replace(num_steps=2).generate(gen) for s in (clean, sparse)]
+    check_realization(short[1])
+    # fewer links than the paper's 20 m at the same positions (same seed)
+    assert short[1].edge_index.size(1) < 0.6 * short[0].edge_index.size(1)
+
+
 # -- 3-D scenarios -----------------------------------------------------------
 
 def test_three_dimensional_scenario_pair():
