@@ -222,3 +222,14 @@ def test_joined_process_group_outside_torchrun(monkeypatch):
     monkeypatch.delenv('WORLD_SIZE', raising=False)
     with joined_process_group('cpu') as device:
         assert device == 'cpu' and process_group() == (1, 0)
+
+
+def test_check_device_names_what_this_machine_lacks():
+    from tg_nebp.utils import check_device
+    assert check_device('cpu') == 'cpu'
+    assert check_device(torch.device('cpu')) == 'cpu'  # the API's callers
+    for bad, message in (('tpu', "'device' must be 'cpu', 'cuda' or"),
+                         (3, "'device' must be 'cpu', 'cuda' or"),
+                         ('cuda:99', "'device' is 'cuda:99', but")):
+        with pytest.raises(ValueError, match=message):
+            check_device(bad)

@@ -11,9 +11,9 @@ from torch_geometric.data import Batch
 
 from tg_nebp import metrics
 from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.data.validation import check_positive_int
 from tg_nebp.filters import Tracker
 from tg_nebp.io import read_json, write_json
-from tg_nebp.data.validation import check_positive_int
 from tg_nebp.utils import check_device, derive_seed, process_group
 
 __all__ = ['track_dataset', 'bound_dataset', 'summarize', 'summarize_bound',

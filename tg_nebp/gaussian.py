@@ -19,7 +19,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp.utils import free_memory_bytes
 
-__all__ = ['GraphLayout', 'check_dense_joint', 'check_predicted_prior',
+__all__ = ['GraphLayout', 'graph_index', 'check_dense_joint', 'check_predicted_prior',
            'predict_joint', 'range_blocks', 'embed_scope',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
            'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
@@ -28,6 +28,15 @@ __all__ = ['GraphLayout', 'check_dense_joint', 'check_predicted_prior',
 #: recursion (covariance, information, factor, temporaries), for the
 #: memory estimate of :func:`check_dense_joint`.
 JOINT_COPIES = 6
+
+
+def graph_index(data) -> Tensor:
+    r"""The graph of every node :math:`(N)` of a single (all zero) or
+    batched realization."""
+    if isinstance(data, Batch):
+        return data.batch
+    return torch.zeros(data.num_nodes, dtype=torch.long,
+                       device=data.anchor.device)
 
 
 class GraphLayout(NamedTuple):
@@ -42,9 +51,7 @@ class GraphLayout(NamedTuple):
     def of(cls, data) -> 'GraphLayout':
         r"""The layout of :obj:`data`, a single or batched realization."""
         num_nodes = data.num_nodes
-        graph_of = (data.batch if isinstance(data, Batch) else
-                    torch.zeros(num_nodes, dtype=torch.long,
-                                device=data.anchor.device))
+        graph_of = graph_index(data)
         agents, agent_index = [], torch.full((num_nodes, ), -1,
                                              dtype=torch.long,
                                              device=data.anchor.device)

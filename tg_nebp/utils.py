@@ -257,8 +257,11 @@ _DEVICE = re.compile(r'cpu|cuda(:\d+)?')
 def check_device(device) -> str:
     r"""Returns :obj:`device` if it names a device of this machine:
     :obj:`"cpu"`, or :obj:`"cuda"` or :obj:`"cuda:N"` where CUDA has that
-    GPU; anything else is a :class:`ValueError` naming :obj:`'device'`,
-    before any work, rather than an error of torch's midway."""
+    GPU (a :class:`torch.device` of these too, returned as its name);
+    anything else is a :class:`ValueError` naming :obj:`'device'`, before
+    any work, rather than an error of torch's midway."""
+    if isinstance(device, torch.device):
+        device = str(device)
     if not (isinstance(device, str) and _DEVICE.fullmatch(device)):
         raise ValueError(f"'device' must be 'cpu', 'cuda' or 'cuda:N', got "
                          f"{device!r}")

@@ -6,7 +6,7 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
-from tg_nebp.gaussian import GraphLayout, check_predicted_prior
+from tg_nebp.gaussian import check_predicted_prior, graph_index
 from tg_nebp.models import MeasurementModel, MotionModel
 from tg_nebp.nn.conv.gaussian_bp_conv import (GaussianBelief, GaussianBPConv)
 
@@ -145,7 +145,8 @@ class GaussianBP(Tracker):
             generator = generator[0] if generator else None
         anchor = data.anchor
         agents = ~anchor
-        graph_of = GraphLayout.of(data).graph_of
+        graph_of = graph_index(data)
+        num_graphs = int(graph_of.max()) + 1
         mean = data.prior_mean.double()
         cov = data.prior_cov.double()
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
@@ -159,7 +160,7 @@ class GaussianBP(Tracker):
             edge_attr = edge_attr.double()
             edge_index = edge_index.long()
             factors = self.conv.factors(edge_index, anchor, mean.size(-1))
-            moving = torch.ones(int(graph_of.max()) + 1, dtype=torch.bool,
+            moving = torch.ones(num_graphs, dtype=torch.bool,
                                 device=graph_of.device)
             for _ in range(self.num_iterations):
                 new, messages = self.conv(prior, belief, edge_index,

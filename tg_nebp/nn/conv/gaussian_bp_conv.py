@@ -307,13 +307,12 @@ class GaussianBPConv(MessagePassing):
         edge_index = long_edge_index(edge_index, num_nodes)
         if factors is None:
             factors = self.factors(edge_index, anchor, size)
-        if validate and messages is not None:
-            _check_messages(messages, factors.index.size(1),
-                            len(self.measurement.scope(size)))
-        if messages is not None:
-            messages = FactorMessages(*(t.to(dtype) for t in messages))
         scope = self.measurement.scope(size)
         width = len(scope)
+        if validate and messages is not None:
+            _check_messages(messages, factors.index.size(1), width)
+        if messages is not None:
+            messages = FactorMessages(*(t.to(dtype) for t in messages))
         # the scope is a slice of every state: the leading entries (a range
         # model's positions, or the whole state)
         if tuple(scope) != tuple(range(width)):
