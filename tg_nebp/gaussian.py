@@ -19,8 +19,9 @@ from torch_geometric.data import Batch
 
 from tg_nebp.utils import free_memory_bytes
 
-__all__ = ['GraphLayout', 'graph_index', 'check_dense_joint', 'check_predicted_prior',
-           'predict_joint', 'range_blocks', 'embed_scope',
+__all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
+           'check_predicted_prior', 'predict_joint', 'range_blocks',
+           'embed_scope',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
            'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
 
