@@ -1,9 +1,11 @@
-r"""Seconds per time step and peak memory of Gaussian BP and particle BP on
-the paper's test network grown to many agents (Scenario.grown, the same
-density), each measurement in a fresh process: the figures of the docs'
-page on Gaussian BP.
+r"""Seconds per time step and peak memory of Gaussian BP, its learned
+correction and particle BP on the paper's test network grown to many agents
+(Scenario.grown, the same density), each measurement in a fresh process:
+the figures of the docs' pages on Gaussian BP and Gaussian NEBP.
 
     python benchmarks/gbp_scaling.py --agents 10000 --methods gbp bp
+    python benchmarks/gbp_scaling.py --agents 100 10000 --methods gbp \
+        gnebp:paper     # a Gaussian NEBP checkpoint: a path or shipped name
 """
 import argparse
 import json
@@ -17,6 +19,7 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
 
     from tg_nebp.datasets import Scenario
     from tg_nebp.filters import GaussianBP, ParticleBP
+    from tg_nebp.training import gaussian_nebp_from_checkpoint
 
     scenario = Scenario.load('paper_test').grown(agents).replace(
         num_steps=steps)
@@ -31,7 +34,9 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
                                                     **models),
         'bp': lambda: ParticleBP(1000, **models),
         'bp-recommended': lambda: ParticleBP.recommended(**models),
-    }[method]()
+        'gnebp': lambda: gaussian_nebp_from_checkpoint(
+            method.partition(':')[2]),
+    }[method.partition(':')[0]]()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times, start = [], time.perf_counter()
     with torch.no_grad():

@@ -1,6 +1,6 @@
 r"""Helpers shared by the tests (on the path through pytest's
-:obj:`pythonpath` setting): generators, small networks, random snapshots and
-stand-ins for the NEBP MLPs."""
+:obj:`pythonpath` setting): generators, small networks, random snapshots,
+stand-ins for the NEBP MLPs and randomized learned corrections."""
 import math
 import os
 import subprocess
@@ -269,3 +269,29 @@ def embed_in_3d(data, height_var=4.0):
                        anchor=data.anchor, prior_mean=lift(data.prior_mean),
                        prior_cov=cov, num_steps=int(data.num_steps),
                        num_nodes=data.num_nodes)
+
+
+def randomize(module, seed=0, scale=1.0):
+    r"""Every parameter of :obj:`module` drawn at random (the output layers
+    included, so the correction is far from the identity)."""
+    g = gen(seed)
+    with torch.no_grad():
+        for parameter in module.parameters():
+            parameter.copy_(scale * torch.randn(parameter.shape, generator=g,
+                                                dtype=parameter.dtype))
+    return module
+
+
+def first_step(data, motion):
+    r"""The predicted prior of the first step (a Gaussian belief) and its
+    links, as the Gaussian BP tracker hands them to its conv."""
+    from tg_nebp.filters import GaussianBP
+    from tg_nebp.nn.conv import GaussianBelief
+    tracker = GaussianBP(motion=motion)
+    mean, cov = tracker.predict(data.prior_mean.double(),
+                                data.prior_cov.double(), data.anchor)
+    info = torch.zeros_like(cov)
+    agents = ~data.anchor
+    info[agents] = torch.linalg.inv(cov[agents])
+    edge_index, edge_attr = next(iter(data.edges_by_step()))
+    return GaussianBelief(mean, info), edge_index, edge_attr.double()

@@ -6,7 +6,8 @@ import pytest
 
 from tg_nebp.cli import main
 from tg_nebp.models import NLOSRange
-from tg_nebp.training import nebp_from_checkpoint
+from tg_nebp.training import (gaussian_nebp_from_checkpoint,
+                              nebp_from_checkpoint)
 
 from helpers import tiny_scenario
 
@@ -150,3 +151,31 @@ def test_evaluate_gaussian_bp_and_particle_bp_with_both_ends(tmp_path,
     assert (written['bp']['ends'], written['bp']['iterations']) == ('both',
                                                                     2)
     assert 'gbp: RMSE' in capsys.readouterr().out
+
+
+def test_train_gaussian_nebp_on_a_mix_of_scenarios(tmp_path, capsys):
+    # an NLOS scenario (range and NLOS flag) mixed with a clean one (range
+    # only): the tracker reads the ranges alone, so they batch together
+    nlos = nlos_scenario_file(tmp_path)
+    clean = tmp_path / 'tiny_clean.json'
+    scenario = tiny_scenario(steps=3).replace(name='tiny-clean')
+    clean.write_text(json.dumps(dict(vars(scenario))))
+    out = tmp_path / 'out'
+    common = ['--realizations', '2', '--val-realizations', '1', '--epochs',
+              '1', '--batch-size', '2', '--root', str(tmp_path / 'data'),
+              '--quiet']
+    assert main(['train', '--base', 'gaussian', '--scenario', str(clean),
+                 str(nlos), '--measurement', 'gaussian', '--iterations', '4',
+                 '--hidden-dim', '8', '--out', str(out), *common]) == 0
+    assert 'negative log-likelihood' in capsys.readouterr().out
+    model = gaussian_nebp_from_checkpoint(out / 'nebp.pt')
+    assert (model.num_iterations, model.conv.hidden_dim) == (4, 8)
+    assert model.measurement.config()['name'] == 'gaussian'
+    # the particle options are the particle base's
+    assert main(['train', '--base', 'gaussian', '--scenario', str(clean),
+                 '--particles', '8', '--out', str(tmp_path / 'o2'),
+                 *common]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: 'particles' (--particles) is for the "
+                          "particle base") and err.count('\n') == 1
+    assert not (tmp_path / 'o2' / 'nebp.pt').exists()

@@ -7,17 +7,23 @@ import os
 import pickle
 import shlex
 
+from pathlib import Path
+
 import pytest
 import torch
+from torch_geometric.data import Batch
 
 from tg_nebp.datasets import Scenario
-from tg_nebp.filters import NEBP
-from tg_nebp.training import (CHECKPOINT_VERSION, adam, load_checkpoint,
+from tg_nebp.filters import NEBP, GaussianNEBP, StepOutput
+from tg_nebp.training import (CHECKPOINT_VERSION, PRETRAINED, adam,
+                              checkpoint_path, gaussian_nebp_from_checkpoint,
+                              gaussian_step_loss, load_checkpoint,
                               nebp_from_checkpoint, position_loss,
-                              save_checkpoint, step_loss, train)
+                              save_checkpoint, step_loss,
+                              tracker_from_checkpoint, train)
 from tg_nebp.utils import weighted_moments
 
-from helpers import gen, mixed_k_checkpoint, tiny_scenario
+from helpers import embed_in_3d, gen, mixed_k_checkpoint, tiny_scenario
 
 SMALL = dict(message_dim=8, hidden_dim=16)
 
@@ -506,3 +512,113 @@ def test_a_checkpoint_without_optimizer_state_is_not_resumed(tmp_path):
     with pytest.raises(ValueError, match='can be evaluated, not resumed'):
         train(make_model(6), data, epochs=1, batch_size=2, lr=1e-2,
               checkpoint=path, resume=True)
+
+
+# --------------------------------------------------------------------------
+# Gaussian NEBP: its loss, checkpoints of either base, resume
+# --------------------------------------------------------------------------
+
+def make_gaussian(seed=0, **kwargs):
+    torch.manual_seed(seed)
+    return GaussianNEBP(**{'hidden_dim': 8, 'num_iterations': 5, **kwargs})
+
+
+def test_gaussian_step_loss_is_the_negative_log_likelihood_plus_error():
+    g = gen(3)
+    count = 5
+    mean = torch.randn(count, 4, generator=g, dtype=torch.float64)
+    root = torch.randn(count, 4, 4, generator=g, dtype=torch.float64)
+    cov = root @ root.transpose(-1, -2) + 0.1 * torch.eye(4)
+    states = torch.randn(count, 3, 4, generator=g, dtype=torch.float64)
+    anchor = torch.tensor([False, True, False, False, True])
+    batch = Batch(anchor=anchor, states=states)
+    expected = 0.0
+    for i in range(count):
+        if bool(anchor[i]):
+            continue
+        normal = torch.distributions.MultivariateNormal(mean[i, :2],
+                                                        cov[i, :2, :2])
+        # log N without its constant log(2 pi)
+        expected += -float(normal.log_prob(states[i, 1, :2])) - math.log(
+            2 * math.pi)
+        expected += float((mean[i, :2] - states[i, 1, :2]).square().sum())
+    step = StepOutput(1, mean, cov)
+    assert math.isclose(float(gaussian_step_loss(step, batch)), expected,
+                        rel_tol=1e-12)
+
+
+def test_gaussian_training_lowers_the_loss_and_resumes_exactly(tmp_path):
+    data = tiny_data(4, steps=3)
+    val = tiny_data(2, steps=3, offset=50)
+    kwargs = dict(batch_size=2, lr=3e-3, seed=2, loss=gaussian_step_loss)
+    full = make_gaussian(1)
+    initial = copy.deepcopy(full.state_dict())
+    history = train(full, data, val, epochs=3, checkpoint=tmp_path / 'a.pt',
+                    **kwargs)
+    assert history[-1]['val_loss'] < history[0]['val_loss']
+    first = make_gaussian(9)
+    first.load_state_dict(initial)
+    train(first, data, val, epochs=1, checkpoint=tmp_path / 'b.pt', **kwargs)
+    resumed = make_gaussian(17)
+    resumed_history = train(resumed, data, val, epochs=3,
+                            checkpoint=tmp_path / 'b.pt', resume=True,
+                            **kwargs)
+    assert states_equal(resumed.state_dict(), full.state_dict())
+    assert resumed_history == history
+    assert not states_equal(initial, full.state_dict())
+    # a checkpoint of another configuration does not resume
+    with pytest.raises(ValueError, match='configuration'):
+        train(make_gaussian(1, hidden_dim=4), data, val, epochs=4,
+              checkpoint=tmp_path / 'b.pt', resume=True, **kwargs)
+
+
+def test_gaussian_checkpoint_round_trip_and_refusals(tmp_path):
+    model = make_gaussian(2)
+    train(model, tiny_data(1), epochs=1, batch_size=1, lr=1e-2,
+          loss=gaussian_step_loss)
+    path = tmp_path / 'gaussian.pt'
+    save_checkpoint(path, model)
+    rebuilt = gaussian_nebp_from_checkpoint(path)
+    assert rebuilt.config() == model.config()
+    assert states_equal(rebuilt.state_dict(), model.state_dict())
+    assert isinstance(tracker_from_checkpoint(path), GaussianNEBP)
+    data = tiny_data(1, steps=3, offset=10)[0]
+    with torch.no_grad():
+        assert torch.equal(model(data).mean, rebuilt(data).mean)
+    # run-time options replace the iterations and the tolerance only
+    assert gaussian_nebp_from_checkpoint(path, tolerance=None).tolerance \
+        is None
+    # the other base is refused by name, both ways
+    with pytest.raises(ValueError, match=r"holds a gaussian NEBP, not a "
+                       r"particle one: evaluate it with --method gnebp"):
+        nebp_from_checkpoint(path)
+    particle = tmp_path / 'particle.pt'
+    save_checkpoint(particle, make_model())
+    with pytest.raises(ValueError, match=r"holds a particle NEBP, not a "
+                       r"gaussian one: evaluate it with --method nebp"):
+        gaussian_nebp_from_checkpoint(particle)
+    assert isinstance(tracker_from_checkpoint(particle), NEBP)
+    # and so is a realization of another dimension
+    with pytest.raises(ValueError, match=r'built for 2-D positions'):
+        rebuilt(embed_in_3d(data))
+    # an unknown base is named
+    state = load_checkpoint(path)
+    state['config']['base'] = 'kalman'
+    torch.save(state, tmp_path / 'unknown.pt')
+    with pytest.raises(ValueError, match=r"unknown base 'kalman'"):
+        tracker_from_checkpoint(tmp_path / 'unknown.pt')
+
+
+@pytest.mark.parametrize('name', PRETRAINED)
+def test_pretrained_checkpoints_load_by_name_with_their_command(name):
+    path = checkpoint_path(name)
+    assert path.is_file() and path.parent.name == 'pretrained'
+    tracker = gaussian_nebp_from_checkpoint(name)
+    assert isinstance(tracker, GaussianNEBP)
+    # trained: not the identity correction of an untrained one
+    assert float(tracker.conv.weight_head.weight.detach().abs().sum()) > 0
+    readme = (path.parent / 'README.md').read_text()
+    assert f'`{name}.pt`' in readme and 'tg-nebp train --base gaussian' \
+        in readme
+    # a file path is a path, not a name
+    assert checkpoint_path(f'./{name}') == Path(f'./{name}')

@@ -17,7 +17,7 @@ import torch.distributed as dist
 from tg_nebp import training
 from tg_nebp.cli import main
 from tg_nebp.datasets import Scenario
-from tg_nebp.filters import NEBP
+from tg_nebp.filters import NEBP, GaussianNEBP
 from tg_nebp.training import (_check_global_batches, _local_batches,
                               load_checkpoint, train, validation_loss)
 
@@ -232,6 +232,31 @@ def test_torchrun_cli_trains_as_one_process(tmp_path, capsys):
                          a['progress']['history']):
         for loss in ('train_loss', 'val_loss'):
             assert math.isclose(got[loss], want[loss], rel_tol=1e-5)
+
+
+def test_torchrun_trains_gaussian_nebp_as_one_process(tmp_path, capsys):
+    # the Gaussian base draws nothing: two gloo processes give the single
+    # process's parameters up to the rounding of the gradient sums
+    args = ['train', '--base', 'gaussian', '--iterations', '3',
+            '--hidden-dim', '8', '--realizations', '4',
+            '--val-realizations', '1', '--epochs', '1', '--batch-size', '2',
+            '--lr', '1e-3', '--seed', '1', '--root', tmp_path / 'data',
+            '--quiet']
+    stdout = torchrun('-m', 'tg_nebp', *args, '--out', tmp_path / 'ddp')
+    assert stdout.count('epoch 0:') == 1
+    assert main([*map(str, args), '--out', str(tmp_path / 'single')]) == 0
+    capsys.readouterr()
+    a = load_checkpoint(tmp_path / 'single' / 'nebp.pt')
+    b = load_checkpoint(tmp_path / 'ddp' / 'nebp.pt')
+    assert a['config'] == b['config'] and a['config']['base'] == 'gaussian'
+    torch.manual_seed(1)  # the CLI's initial weights
+    initial = GaussianNEBP(3, hidden_dim=8).state_dict()
+    assert_moved_and_equal(a['model'], b['model'], initial, rtol=1e-4,
+                           atol=1e-5)
+    for got, want in zip(b['progress']['history'],
+                         a['progress']['history']):
+        for loss in ('train_loss', 'val_loss'):
+            assert math.isclose(got[loss], want[loss], rel_tol=1e-4)
 
 
 def test_a_bad_scenario_under_torchrun_is_one_line_on_every_rank(tmp_path):

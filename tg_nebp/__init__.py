@@ -3,12 +3,13 @@ cooperative localization, as PyTorch Geometric layers."""
 from tg_nebp import metrics
 from tg_nebp.data import Realization
 from tg_nebp.datasets import CooperativeLocalizationDataset, Scenario
-from tg_nebp.filters import (NEBP, ParticleBP, multinomial_resample,
-                             systematic_resample)
+from tg_nebp.filters import (NEBP, GaussianBP, GaussianNEBP, ParticleBP,
+                             multinomial_resample, systematic_resample)
 from tg_nebp.models import (ConstantVelocity, ConstantVelocityDrag,
                             GaussianRange, MeasurementModel, MotionModel,
                             NLOSRange, RangeModel, StudentTRange)
-from tg_nebp.nn import EquivariantNEBPConv, NEBPConv, ParticleBPConv
+from tg_nebp.nn import (EquivariantNEBPConv, GaussianBPConv,
+                        GaussianNEBPConv, NEBPConv, ParticleBPConv)
 from tg_nebp.utils import weighted_moments
 
 __version__ = '0.1.0'
@@ -17,8 +18,12 @@ __all__ = [
     'ParticleBPConv',
     'NEBPConv',
     'EquivariantNEBPConv',
+    'GaussianBPConv',
+    'GaussianNEBPConv',
     'ParticleBP',
     'NEBP',
+    'GaussianBP',
+    'GaussianNEBP',
     'CooperativeLocalizationDataset',
     'Scenario',
     'Realization',

@@ -11,7 +11,8 @@ from tqdm import tqdm
 
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
-from tg_nebp.experiments.evaluate import METHOD_OPTIONS, evaluate_scenario
+from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
+                                          evaluate_scenario)
 from tg_nebp.experiments.frontier import frontier
 from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.experiments.train import train_scenario
@@ -21,7 +22,7 @@ from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
 from tg_nebp.models import MODELS
 from tg_nebp.threads import threads_in_force
-from tg_nebp.training import MAX_LR
+from tg_nebp.training import MAX_LR, PRETRAINED
 from tg_nebp.utils import check_device, joined_process_group, process_group
 
 __all__ = ['main']
@@ -225,18 +226,23 @@ def _evaluate(args) -> int:
 
 def _train(args) -> int:
     with joined_process_group(args.device) as device:
+        scenario = (args.scenario[0] if len(args.scenario) == 1 else
+                    args.scenario)
         trained = train_scenario(
-            args.scenario, args.out, args.variant, args.particles,
+            scenario, args.out, args.variant, args.particles,
             args.iterations, args.realizations, args.val_realizations,
             args.epochs, args.batch_size, args.lr, args.seed,
             args.measurement, args.samples, args.regularize,
             args.ess_threshold, args.resume, args.log_dir, args.root,
-            device, args.compile, _bars(args))
+            device, args.compile, _bars(args), base=args.base,
+            hidden_dim=args.hidden_dim)
         if process_group()[1] > 0:
             return 0
     for h in trained.history:
+        unit = ('m^2 per agent-step' if args.base == 'particle' else
+                'negative log-likelihood plus m^2, per agent-step')
         print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
-              f"validation loss {h['val_loss']:.4f} (m^2 per agent-step)")
+              f"validation loss {h['val_loss']:.4f} ({unit})")
     print(f'checkpoint -> {trained.checkpoint}')
     if trained.log is not None:
         events = ', TensorBoard events' if trained.log.tensorboard else ''
@@ -292,7 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
         'evaluate', help='run a tracker (or the bound) on the test network '
         'and write DIR/metrics.json', description='Runs a method on the test '
         'realizations and merges its entry into DIR/metrics.json: particle '
-        'BP (bp), NEBP from a checkpoint (nebp), Gaussian BP (gbp), the '
+        'BP (bp), NEBP from a checkpoint (nebp), Gaussian BP (gbp), '
+        'Gaussian NEBP from a checkpoint (gnebp; shipped ones by name: '
+        'paper, nlos, mix), the '
         'centralized iterated EKF (iekf; iekf-marginal with --marginal) or '
         'the posterior Cramer-Rao bound of the same realizations (pcrb: its '
         'RMSE is the floor, its outage that of an efficient estimator); an '
@@ -302,10 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
         'CPU; NCCL with --device cuda, one GPU per process): rank r tracks '
         'realizations r, r + N, ..., rank 0 gathers the errors, prints and '
         'writes; the metrics equal one process\'s.')
-    ev.add_argument('--method', choices=['bp', 'nebp', 'iekf', 'gbp',
-                                         'pcrb'],
-                    default='bp', help="bp (default), nebp, iekf, gbp or "
-                    "pcrb")
+    ev.add_argument('--method', choices=list(METHODS), default='bp',
+                    help=f"{', '.join(METHODS)} (default: bp)")
     ev.add_argument('--marginal', action='store_true',
                     help='iekf: keep only every agent\'s marginal between '
                     'steps (the ideal of a distributed filter)')
@@ -314,7 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
                     'covariance by K before the next prediction (default: '
                     '1.5; 1 is plain Gaussian BP)')
     ev.add_argument('--tolerance', type=_at_least(0, _number), default=None,
-                    metavar='T', help='gbp: stop a step\'s iterations once '
+                    metavar='T', help='gbp, gnebp: stop a step\'s iterations '
+                    'once '
                     'no belief mean moves by more than T (default: 0.01; 0 '
                     'runs every iteration)')
     ev.add_argument('--ends', choices=['both', 'receiver'], default=None,
@@ -324,7 +331,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "paper's convention) (default: receiver for bp, both "
                     "for gbp)")
     ev.add_argument('--checkpoint', default=None,
-                    help='NEBP checkpoint (with --method nebp)')
+                    help='NEBP checkpoint (with --method nebp), Gaussian '
+                    'NEBP checkpoint (with --method gnebp): a path, or '
+                    f"one shipped: {', '.join(PRETRAINED)}")
     ev.add_argument('--particles', type=_positive, default=None,
                     help='particles K per agent (default: 1000 for BP, the '
                     "checkpoint's K for NEBP; any K for an equivariant "
@@ -356,15 +365,25 @@ def build_parser() -> argparse.ArgumentParser:
         'CPU; NCCL with --device cuda, one GPU per process); the same result '
         'as one process up to float rounding. Rank 0 generates the data, '
         'writes the checkpoint and prints; the others are quiet.')
-    tr.add_argument('--particles', type=_positive, default=1000,
+    tr.add_argument('--base', choices=('particle', 'gaussian'),
+                    default='particle',
+                    help="what the GNN corrects: 'particle' (NEBP, the "
+                    "paper's) or 'gaussian' (GaussianNEBP: Gaussian BP's "
+                    "messages and inflation, trained on the negative "
+                    "log-likelihood plus the squared error) (default: "
+                    "particle)")
+    tr.add_argument('--hidden-dim', type=_positive, default=32,
+                    help='embedding size of the Gaussian base (default: 32)')
+    tr.add_argument('--particles', type=_positive, default=None,
                     help='particles K (default: 1000; the paper: 50000)')
     tr.add_argument('--variant', choices=sorted(VARIANTS), default='paper',
                     help="the NEBP layer: 'paper' (NEBPConv, sized by K) or "
                     "'equivariant' (EquivariantNEBPConv: evaluate it at any "
                     "K) (default: paper)")
-    tr.add_argument('--scenario', default='paper_train',
+    tr.add_argument('--scenario', nargs='+', default=['paper_train'],
                     help='scenario name or JSON file of the training and '
-                    'validation data (default: paper_train)')
+                    'validation data; several: a mix, --realizations of '
+                    'each (default: paper_train)')
     _add_measurement(tr, 'NEBP')
     tr.add_argument('--realizations', type=_positive, default=100,
                     help='training realizations (default: 100)')
@@ -378,8 +397,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument('--lr', type=_learning_rate, default=1e-4,
                     help=f'Adam learning rate, in (0, {MAX_LR:g}] '
                     f'(default: 1e-4)')
-    tr.add_argument('--iterations', type=_positive, default=1,
-                    help='NEBP iterations per step (default: 1)')
+    tr.add_argument('--iterations', type=_positive, default=None,
+                    help='NEBP iterations per step (default: 1; the '
+                    'Gaussian base: 20, at most)')
     tr.add_argument('--seed', type=_non_negative, default=1,
                     help='seed of data (validation: seed + 1), shuffling '
                     'and particles (default: 1)')

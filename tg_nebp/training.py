@@ -1,4 +1,4 @@
-r"""Training NEBP and its checkpoints.
+r"""Training NEBP (particle or Gaussian) and its checkpoints.
 
 A checkpoint is a plain dictionary of tensors and Python primitives: the
 model's :obj:`state_dict`, the tracker configuration, the optimizer state,
@@ -21,15 +21,17 @@ from torch import Tensor
 from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
-from tg_nebp.filters import NEBP
+from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
 from tg_nebp.data.validation import check_number
 from tg_nebp.io import atomic_write, first_line, one_line
 from tg_nebp.utils import derive_seed, process_group
 
 __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
            'position_loss', 'save_checkpoint', 'load_checkpoint',
-           'nebp_from_checkpoint', 'checkpoint_history', 'CHECKPOINT_VERSION',
-           'MAX_LR']
+           'nebp_from_checkpoint', 'gaussian_nebp_from_checkpoint',
+           'tracker_from_checkpoint', 'checkpoint_path', 'gaussian_step_loss',
+           'checkpoint_history', 'CHECKPOINT_VERSION', 'MAX_LR', 'BASES',
+           'PRETRAINED']
 
 #: The largest learning rate :func:`train` accepts.
 MAX_LR = 1.0
@@ -41,6 +43,35 @@ CHECKPOINT_VERSION = 3
 # version 2 differs only in lacking the NEBP variant (the paper's)
 READABLE_VERSIONS = (2, 3)
 
+#: The trackers a checkpoint holds, by the :obj:`base` of its
+#: configuration (none: a particle NEBP, as every checkpoint before the
+#: Gaussian one).
+BASES = {'particle': NEBP, 'gaussian': GaussianNEBP}
+#: The evaluation method of each base (:obj:`tg-nebp evaluate --method`).
+_METHOD_OF_BASE = {'particle': 'nebp', 'gaussian': 'gnebp'}
+
+#: The names of the checkpoints that ship with the package, Gaussian NEBP
+#: trained on the paper's training network (:obj:`"paper"`), on its NLOS
+#: variant with the Gaussian likelihood inside (:obj:`"nlos"`), on a mix of
+#: the 2-D regimes (:obj:`"mix"`) and on the 3-D training network
+#: (:obj:`"box3d"`). The commands that made them are in
+#: :obj:`tg_nebp/pretrained/README.md`.
+PRETRAINED = ('paper', 'nlos', 'mix', 'box3d')
+
+
+def checkpoint_path(checkpoint: Union[str, Path]) -> Path:
+    r"""The file of :obj:`checkpoint`: a name of :data:`PRETRAINED` (a
+    string without a path separator or suffix) is the checkpoint shipped
+    with the package; anything else is a path."""
+    if isinstance(checkpoint, str) and checkpoint in PRETRAINED:
+        return Path(__file__).parent / 'pretrained' / f'{checkpoint}.pt'
+    return Path(checkpoint)
+
+
+def base_of(config: dict) -> str:
+    r"""The base of a checkpoint's configuration (:data:`BASES`)."""
+    return config.get('base', 'particle')
+
 
 def position_loss(mean, states, t, anchor):
     r"""The paper's loss :math:`\sum_i \|\hat{\mathbf{p}}_i -
@@ -50,7 +81,35 @@ def position_loss(mean, states, t, anchor):
     return (mean[agents, :dim] - states[agents, t, :dim]).square().sum()
 
 
-def save_checkpoint(path: Union[str, Path], model: NEBP,
+def gaussian_step_loss(step, batch: Batch) -> Tensor:
+    r"""The loss of one time step that rewards accuracy and calibrated
+    covariances together, the default of Gaussian NEBP's training: the
+    negative log-likelihood of every agent's true position under its
+    Gaussian belief (constant dropped) plus the squared error,
+
+    .. math::
+        \sum_i \tfrac{1}{2} \big(\mathbf{e}_i^\top
+        \boldsymbol{\Sigma}_i^{-1} \mathbf{e}_i + \log |
+        \boldsymbol{\Sigma}_i|\big) + \|\mathbf{e}_i\|^2, \quad
+        \mathbf{e}_i = \hat{\mathbf{p}}_i - \mathbf{p}_i,
+
+    with :math:`\boldsymbol{\Sigma}_i` the position block of the step's
+    covariance. The negative log-likelihood alone rewards a wide
+    covariance around a lost agent as much as finding it; the squared
+    error keeps the estimate honest."""
+    agents = ~batch.anchor
+    dim = batch.states.size(-1) // 2
+    error = step.mean[agents, :dim] - batch.states[agents, step.t, :dim]
+    cov = step.cov[agents, :dim, :dim]
+    factor = torch.linalg.cholesky(cov)
+    whitened = torch.linalg.solve_triangular(factor, error.unsqueeze(-1),
+                                             upper=False)
+    log_det = 2 * factor.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    nll = 0.5 * (whitened.square().sum((-1, -2)) + log_det)
+    return (nll + error.square().sum(-1)).sum()
+
+
+def save_checkpoint(path: Union[str, Path], model: Tracker,
                     optimizer: Optional[torch.optim.Optimizer] = None,
                     progress: Optional[dict] = None):
     r"""Writes a checkpoint atomically (temporary file, then rename)."""
@@ -93,6 +152,32 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
     return state
 
 
+def _load_base(path: Union[str, Path], base: str) -> dict:
+    # a checkpoint of 'base', or a ValueError that names what it holds
+    state = load_checkpoint(path)
+    held = base_of(state['config'])
+    if held not in BASES:
+        raise ValueError(f"checkpoint '{path}' holds an NEBP of unknown base "
+                         f"{held!r} (known: {', '.join(BASES)})")
+    if held != base:
+        raise ValueError(f"checkpoint '{path}' holds a {held} NEBP, not a "
+                         f"{base} one: evaluate it with --method "
+                         f"{_METHOD_OF_BASE[held]}")
+    return state
+
+
+def _rebuilt(path, state: dict, options: dict) -> Tracker:
+    # the tracker of a checkpoint's base, with its weights
+    tracker = BASES[base_of(state['config'])]
+    try:
+        model = tracker.from_config(state['config'], **options)
+        model.load_state_dict(state['model'])
+    except (TypeError, RuntimeError, KeyError) as e:
+        raise ValueError(f"checkpoint '{path}' does not match the "
+                         f"{tracker.__name__} model: {one_line(e)}") from None
+    return model
+
+
 def nebp_from_checkpoint(path: Union[str, Path],
                          num_particles: Optional[int] = None,
                          compile: bool = False,
@@ -102,8 +187,10 @@ def nebp_from_checkpoint(path: Union[str, Path],
     checkpoint (with :obj:`compile`, see :class:`~tg_nebp.filters.NEBP`).
     The paper variant's :math:`g_e` and :math:`g_v` are sized by :math:`K`,
     so a different :obj:`num_particles` is an error; the equivariant
-    variant runs at any :math:`K`."""
-    state = load_checkpoint(path)
+    variant runs at any :math:`K`. A Gaussian NEBP's checkpoint is refused
+    by name."""
+    path = checkpoint_path(path)
+    state = _load_base(path, 'particle')
     trained = state['config'].get('num_particles')
     variant = state['config'].get('variant', 'paper')
     if (num_particles is not None and num_particles != trained
@@ -112,18 +199,31 @@ def nebp_from_checkpoint(path: Union[str, Path],
                          f"checkpoint '{path}', trained with K = {trained} "
                          f"(the paper variant's g_e and g_v are sized by K; "
                          f"train --variant equivariant for any K)")
-    try:
-        options = dict(compile=compile)
-        if num_particles is not None:
-            options['num_particles'] = num_particles
-        if num_samples is not None:  # else the checkpoint's
-            options['num_samples'] = num_samples
-        model = NEBP.from_config(state['config'], **options)
-        model.load_state_dict(state['model'])
-    except (TypeError, RuntimeError, KeyError) as e:
-        raise ValueError(f"checkpoint '{path}' does not match the NEBP "
-                         f"model: {one_line(e)}") from None
-    return model
+    options = dict(compile=compile)
+    if num_particles is not None:
+        options['num_particles'] = num_particles
+    if num_samples is not None:  # else the checkpoint's
+        options['num_samples'] = num_samples
+    return _rebuilt(path, state, options)
+
+
+def gaussian_nebp_from_checkpoint(path: Union[str, Path],
+                                  **options) -> GaussianNEBP:
+    r"""Rebuilds a :class:`~tg_nebp.filters.GaussianNEBP` tracker from a
+    checkpoint: a path or a name of :data:`PRETRAINED`
+    (:func:`checkpoint_path`). :obj:`options` replace entries that do not
+    size the network (:obj:`num_iterations`, :obj:`tolerance`). A particle
+    NEBP's checkpoint is refused by name."""
+    path = checkpoint_path(path)
+    return _rebuilt(path, _load_base(path, 'gaussian'), options)
+
+
+def tracker_from_checkpoint(path: Union[str, Path]) -> Tracker:
+    r"""The tracker of a checkpoint of either base (:data:`BASES`), as it
+    was trained; a name of :data:`PRETRAINED` is the shipped one."""
+    path = checkpoint_path(path)
+    state = load_checkpoint(path)
+    return _rebuilt(path, _load_base(path, base_of(state['config'])), {})
 
 
 def _sum_over_ranks(values: Sequence[float], device: str) -> List[float]:
@@ -194,9 +294,11 @@ def _batch(dataset, indices: List[int], device: str, seed: int,
                    for i in indices]
 
 
-def validation_loss(model: NEBP, dataset, batch_size: int, device: str,
-                    seed: int) -> float:
-    r"""Mean per-agent, per-step loss on :obj:`dataset` (no gradient). In
+def validation_loss(model: Tracker, dataset, batch_size: int, device: str,
+                    seed: int, loss: Optional[Callable] = None) -> float:
+    r"""Mean per-agent, per-step :obj:`loss` (of a step, as :func:`train`
+    takes it; :func:`step_loss` if :obj:`None`) on :obj:`dataset` (no
+    gradient). In
     distributed training, rank :math:`r` of :math:`W` tracks the
     realizations :math:`r, r + W, \dots` in batches of
     :obj:`batch_size // W` and the sums are all-reduced, so every rank
@@ -210,8 +312,7 @@ def validation_loss(model: NEBP, dataset, batch_size: int, device: str,
             batch, generators = _batch(dataset, shard[start:start + local],
                                        device, seed, -1)
             for step in model.steps(batch, generators):
-                total += float(position_loss(step.mean, batch.states, step.t,
-                                             batch.anchor))
+                total += float((loss or step_loss)(step, batch))
                 count += int((~batch.anchor).sum())
     total, count = _sum_over_ranks([total, count], device)
     return total / max(count, 1)
@@ -241,7 +342,7 @@ def step_loss(step, batch: Batch) -> Tensor:
     return position_loss(step.mean, batch.states, step.t, batch.anchor)
 
 
-def _resume(checkpoint, model: NEBP, optimizer, settings: dict
+def _resume(checkpoint, model: Tracker, optimizer, settings: dict
             ) -> List[Dict]:
     # the history so far; the model and optimizer continue where they were
     if checkpoint is None or not Path(checkpoint).exists():
@@ -250,7 +351,7 @@ def _resume(checkpoint, model: NEBP, optimizer, settings: dict
     state = load_checkpoint(checkpoint)
     # an older checkpoint resumes as what it meant (version 2: the paper
     # variant; before 3-D: positions in 2-D)
-    if NEBP.upgraded_config(state['config']) != model.config():
+    if type(model).upgraded_config(state['config']) != model.config():
         raise ValueError(f"checkpoint '{checkpoint}' was written for "
                          f"another configuration: {state['config']}")
     history = checkpoint_history(state, checkpoint)
@@ -306,7 +407,7 @@ def steps_per_epoch(num_realizations: int, batch_size: int,
     return -(-num_realizations // batch_size) * num_steps
 
 
-def train_epoch(model: NEBP, train_set, optimizer: torch.optim.Optimizer,
+def train_epoch(model: Tracker, train_set, optimizer: torch.optim.Optimizer,
                 epoch: int, batch_size: int, seed: int, device: str,
                 loss: Callable = step_loss,
                 progress: Optional[Callable[[dict], None]] = None) -> float:
@@ -337,7 +438,7 @@ def train_epoch(model: NEBP, train_set, optimizer: torch.optim.Optimizer,
     return total / max(count, 1)
 
 
-def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
+def train(model: Tracker, train_set, val_set=None, epochs: int = 10,
           batch_size: int = 2, lr: float = 1e-4, seed: int = 0,
           device: str = 'cpu', checkpoint: Optional[Union[str, Path]] = None,
           resume: bool = False,
@@ -432,7 +533,7 @@ def train(model: NEBP, train_set, val_set=None, epochs: int = 10,
         history.append(dict(
             epoch=epoch, train_loss=train_loss,
             val_loss=(validation_loss(model, val_set, batch_size, device,
-                                      seed)
+                                      seed, loss)
                       if val_set is not None else math.nan)))
         if checkpoint is not None:
             if rank == 0:

@@ -12,7 +12,7 @@ from tg_nebp.evaluation import summarize, track_dataset
 from tg_nebp.experiments.compare import (compare, compare_methods,
                                          compare_table, floor_ratios,
                                          run_compare)
-from tg_nebp.filters import CentralizedIEKF
+from tg_nebp.filters import CentralizedIEKF, GaussianNEBP
 from tg_nebp.io import read_json, write_json
 from tg_nebp.models import NLOSRange, StudentTRange
 from tg_nebp.training import save_checkpoint
@@ -133,7 +133,8 @@ def test_arguments_are_checked_before_any_work(tmp_path):
             (dict(methods=['pcrb', 'pcrbb']), ValueError,
              r"'methods'\[1\] = 'pcrbb' selects no row of any scenario; the "
              r"rows start with pcrb, iekf, iekf-marginal, gbp, gbp-plain, "
-             r"bp-paper, bp-recommended \(and nebp, with a checkpoint\)"),
+             r"bp-paper, bp-recommended \(and nebp or gnebp, with a "
+             r"checkpoint\)"),
             (dict(methods=['nebp']), ValueError, r"'methods'\[0\] = 'nebp' "
              r"selects NEBP's rows, which need a checkpoint"),
             (dict(checkpoints=[checkpoint]), ValueError, r"the checkpoint "
@@ -257,3 +258,28 @@ def test_cli_compare_writes_table_and_figure(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith('error: the NEBP checkpoint') and err.count(
         '\n') == 1
+
+
+def test_a_gaussian_nebp_checkpoint_gets_its_own_row(tmp_path):
+    # the row of a Gaussian NEBP checkpoint is 'gnebp <file> <hash>', built
+    # from the checkpoint of its base; 'methods' must select it by 'gnebp'
+    scenarios = scenario_files(tmp_path)[:1]
+    checkpoint = tmp_path / 'g.pt'
+    torch.manual_seed(0)
+    save_checkpoint(checkpoint, GaussianNEBP(hidden_dim=4))
+    rows = compare_methods(tiny_scenario(), [checkpoint])
+    key = [k for k in rows if k.startswith('gnebp ')]
+    assert len(key) == 1 and key[0].split(' ')[1] == 'g.pt'
+    assert isinstance(rows[key[0]][1](), GaussianNEBP)
+    common = dict(root=str(tmp_path / 'data'), scenarios=scenarios,
+                  realizations=1, out=tmp_path / 'out', log=lambda _: None)
+    with pytest.raises(ValueError, match=r"add 'gnebp' or leave the "
+                       r"checkpoint out"):
+        run_compare(methods=['pcrb'], checkpoints=[checkpoint], **common)
+    result = run_compare(methods=['gbp-plain gaussian', 'gnebp'],
+                         checkpoints=[checkpoint], **common)
+    table = result['results']['tiny']
+    # untrained, the correction is plain Gaussian BP: the same numbers
+    plain, learned = table['gbp-plain gaussian'], table[key[0]]
+    assert plain['outage'] == learned['outage']
+    assert plain['rmse'] == learned['rmse']

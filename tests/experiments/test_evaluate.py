@@ -12,7 +12,7 @@ from tg_nebp.datasets import Scenario
 from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
                                           evaluate_scenario, method_tracker)
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF, GaussianBP,
-                             ParticleBP)
+                             GaussianNEBP, ParticleBP)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
 
@@ -23,7 +23,8 @@ def scenario():
 
 
 def test_method_tracker_builds_each_method(scenario):
-    made = {m: method_tracker(m, scenario) for m in METHODS if m != 'nebp'}
+    made = {m: method_tracker(m, scenario) for m in METHODS
+            if m not in ('nebp', 'gnebp')}
     assert isinstance(made['bp'][0], ParticleBP)
     assert made['bp'][0].num_particles == 1000 and made['bp'][1] == 'bp'
     assert isinstance(made['gbp'][0], GaussianBP)
@@ -53,6 +54,9 @@ def test_method_tracker_refusals(scenario):
         method_tracker('bp', scenario, iterations=2)
     with pytest.raises(ValueError, match='needs a checkpoint'):
         method_tracker('nebp', scenario)
+    with pytest.raises(ValueError, match=r"method 'gnebp' needs a "
+                       r"checkpoint .*one shipped: paper, nlos, mix"):
+        method_tracker('gnebp', scenario)
     with pytest.raises(ValueError, match="one of bp, nebp"):
         method_tracker('ukf', scenario)
     with pytest.raises(TypeError, match="'scenario' must be a Scenario"):
@@ -157,3 +161,39 @@ def test_every_driver_refuses_a_device_it_lacks_before_any_data(tmp_path,
     with pytest.raises(ValueError, match="'device' is 'cuda:99', but"):
         run()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_gnebp_loads_a_checkpoint_with_its_run_time_options(scenario,
+                                                            tmp_path):
+    checkpoint = tmp_path / 'g.pt'
+    save_checkpoint(checkpoint, GaussianNEBP(num_iterations=7,
+                                             hidden_dim=4))
+    tracker, key = method_tracker('gnebp', scenario, checkpoint=checkpoint)
+    assert key == 'gnebp' and isinstance(tracker, GaussianNEBP)
+    assert (tracker.num_iterations, tracker.tolerance) == (7, 0.01)
+    tracker, _ = method_tracker('gnebp', scenario, checkpoint=checkpoint,
+                                iterations=3, tolerance=0)
+    assert (tracker.num_iterations, tracker.tolerance) == (3, None)
+    # a particle checkpoint is refused by name, and the other way round
+    particle = tmp_path / 'p.pt'
+    save_checkpoint(particle, NEBP(num_particles=8))
+    with pytest.raises(ValueError, match='with --method nebp'):
+        method_tracker('gnebp', scenario, checkpoint=particle)
+    with pytest.raises(ValueError, match='with --method gnebp'):
+        method_tracker('nebp', scenario, checkpoint=checkpoint)
+
+
+def test_cli_evaluates_a_shipped_gaussian_nebp_by_name(tmp_path, capsys):
+    assert main(['evaluate', '--method', 'gnebp', '--checkpoint', 'paper',
+                 '--scenario', 'paper_train', '--realizations', '1',
+                 '--root', str(tmp_path / 'data'), '--out',
+                 str(tmp_path / 'out'), '--quiet']) == 0
+    written = json.loads((tmp_path / 'out' / 'metrics.json').read_text())
+    assert written['gnebp']['hidden_dim'] == 32
+    assert main(['evaluate', '--method', 'gnebp', '--checkpoint',
+                 str(tmp_path / 'absent.pt'), '--scenario', 'paper_train',
+                 '--realizations', '1', '--root', str(tmp_path / 'data'),
+                 '--out', str(tmp_path / 'out'), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('error: ') and err.count('\n') == 1
+    assert 'absent.pt' in err

@@ -20,6 +20,7 @@ if TYPE_CHECKING:  # the models import this module
 
 __all__ = [
     'check_graph',
+    'check_position_dim',
     'check_link_features',
     'check_particles',
     'check_prior',
@@ -306,6 +307,21 @@ def check_state_dim(size: int, motion: 'MotionModel') -> None:
         raise ValueError(f"'prior_mean' holds states of size {size} but the "
                          f"motion model {motion} has state dimension "
                          f"{motion.state_dim}")
+
+
+def check_position_dim(position_dim: int, state_size: Optional[int] = None,
+                       what: str = 'the tracker') -> int:
+    r"""The positions' dimension :obj:`position_dim` (2 or 3), and, with
+    :obj:`state_size`, a :class:`ValueError` naming both if states of that
+    size are not :obj:`what` was built for (:math:`2D`)."""
+    if isinstance(position_dim, bool) or position_dim not in (2, 3):
+        raise ValueError(f"'position_dim' must be 2 or 3, got "
+                         f"{position_dim!r}")
+    if state_size is not None and state_size != 2 * position_dim:
+        raise ValueError(f"{what} was built for {position_dim}-D positions "
+                         f"(states of size {2 * position_dim}), but the "
+                         f"realization holds states of size {state_size}")
+    return position_dim
 
 
 def check_realization(data, features: Sequence[str] = ('range', )

@@ -27,7 +27,7 @@ from tg_nebp.models import model_like
 
 __all__ = ['compare_methods', 'run_compare', 'compare', 'compare_table',
            'compare_points', 'floor_ratios', 'row_schema', 'COMPARE_VERSION',
-           'COMPARE_SCENARIOS', 'BOUND']
+           'COMPARE_SCENARIOS', 'BOUND', 'CHECKPOINT_ROWS']
 
 #: The format version of :obj:`compare.json`.
 COMPARE_VERSION = 1
@@ -36,6 +36,8 @@ COMPARE_VERSION = 1
 COMPARE_SCENARIOS = ('paper_test', 'paper_test_nlos')
 #: The key of the bound's row.
 BOUND = 'pcrb'
+#: The first word of a checkpoint's row, by the checkpoint's base.
+CHECKPOINT_ROWS = {'particle': 'nebp', 'gaussian': 'gnebp'}
 
 Method = Union[Tracker, PosteriorCRB]
 
@@ -63,10 +65,13 @@ def compare_methods(scenario: Scenario,
     (:obj:`"bp-paper ..."`) and the recommended one
     (:obj:`"bp-recommended ..."`, :meth:`ParticleBP.recommended
     <tg_nebp.filters.ParticleBP.recommended>`), both with the scenario's
-    likelihood, and NEBP from every checkpoint
-    (:obj:`"nebp <file> <hash>"`: the file's hash is part of the key, so
-    a changed checkpoint is a new row)."""
-    from tg_nebp.training import nebp_from_checkpoint
+    likelihood, and NEBP from every checkpoint, particle
+    (:obj:`"nebp <file> <hash>"`) or Gaussian (:obj:`"gnebp <file>
+    <hash>"`; a name of :data:`~tg_nebp.training.PRETRAINED` is the
+    shipped checkpoint): the file's hash is part of the key, so a changed
+    checkpoint is a new row."""
+    from tg_nebp.training import (base_of, checkpoint_path, load_checkpoint,
+                                  tracker_from_checkpoint)
 
     motion, own = scenario.motion_model, scenario.measurement_model
     methods = {BOUND: ('the posterior CRB: the floor, and an efficient '
@@ -102,12 +107,14 @@ def compare_methods(scenario: Scenario,
         'particle BP, recommended (K = 500, M = 32, regularized)',
         lambda: ParticleBP.recommended(motion=motion, measurement=own))
     for path in checkpoints:
-        path = Path(path)
+        path = checkpoint_path(path)
         if not path.is_file():
             raise ValueError(f"the NEBP checkpoint '{path}' does not exist")
-        methods[f'nebp {path.name} {_file_hash(path)}'] = (
-            f'NEBP from {path}',
-            lambda path=path: nebp_from_checkpoint(path))
+        base = base_of(load_checkpoint(path)['config'])
+        kind = CHECKPOINT_ROWS[base]
+        methods[f'{kind} {path.name} {_file_hash(path)}'] = (
+            f'{"Gaussian " if base == "gaussian" else ""}NEBP from {path}',
+            lambda path=path: tracker_from_checkpoint(path))
     return methods
 
 
@@ -319,8 +326,9 @@ def _check_methods(methods: List[str], rows: Dict[str, dict],
     for i, prefix in enumerate(methods):
         if any(key.startswith(prefix) for key in keys):
             continue
-        if not checkpoints and ('nebp'.startswith(prefix)
-                                or prefix.startswith('nebp')):
+        if not checkpoints and any(kind.startswith(prefix)
+                                   or prefix.startswith(kind)
+                                   for kind in CHECKPOINT_ROWS.values()):
             raise ValueError(f"'methods'[{i}] = {prefix!r} selects NEBP's "
                              f"rows, which need a checkpoint ('checkpoints',"
                              f" --checkpoint PATH)")
@@ -328,13 +336,16 @@ def _check_methods(methods: List[str], rows: Dict[str, dict],
         raise ValueError(
             f"'methods'[{i}] = {prefix!r} selects no row of any scenario; "
             f"the rows start with {', '.join(known)}"
-            + ('' if checkpoints else ' (and nebp, with a checkpoint)'))
-    unused = next((key for key in keys if key.startswith('nebp ') and not
-                   any(key.startswith(m) for m in methods)), None)
+            + ('' if checkpoints else ' (and nebp or gnebp, with a '
+                                      'checkpoint)'))
+    unused = next((key for key in keys
+                   if key.split(' ')[0] in CHECKPOINT_ROWS.values()
+                   and not any(key.startswith(m) for m in methods)), None)
     if unused is not None:
         raise ValueError(f"the checkpoint of the row '{unused}' was given, "
                          f"but 'methods' does not select its row: add "
-                         f"'nebp' or leave the checkpoint out")
+                         f"'{unused.split(' ')[0]}' or leave the checkpoint "
+                         f"out")
 
 
 def _in_order(results: Dict[str, dict],

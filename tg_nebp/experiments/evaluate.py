@@ -14,7 +14,8 @@ from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
 from tg_nebp.models import model_like
-from tg_nebp.training import nebp_from_checkpoint
+from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
+                              nebp_from_checkpoint)
 from tg_nebp.utils import check_device, process_group
 
 __all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
@@ -22,15 +23,15 @@ __all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
            'check_run']
 
 #: The methods of :func:`method_tracker`, by their :obj:`metrics.json` key
-#: stem: particle BP, NEBP from a checkpoint, Gaussian BP, the centralized
-#: IEKF and the posterior CRB.
-METHODS = ('bp', 'nebp', 'gbp', 'iekf', 'pcrb')
+#: stem: particle BP, NEBP from a checkpoint, Gaussian BP, Gaussian NEBP
+#: from a checkpoint, the centralized IEKF and the posterior CRB.
+METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'iekf', 'pcrb')
 
 #: Every option of :func:`method_tracker` (the flag of
 #: :obj:`tg-nebp evaluate` is :obj:`--` and the name with hyphens) and the
 #: methods that take it: another method refuses it rather than ignore it.
 METHOD_OPTIONS = {
-    'checkpoint': ('nebp', ),
+    'checkpoint': ('nebp', 'gnebp'),
     'particles': ('bp', 'nebp'),
     'samples': ('bp', 'nebp'),
     'compile': ('bp', 'nebp'),
@@ -38,11 +39,11 @@ METHOD_OPTIONS = {
     'regularize': ('bp', ),
     'ess_threshold': ('bp', ),
     'measurement': ('bp', 'iekf', 'gbp'),
-    'iterations': ('bp', 'iekf', 'gbp'),
+    'iterations': ('bp', 'iekf', 'gbp', 'gnebp'),
     'ends': ('bp', 'gbp'),
     'marginal': ('iekf', ),
     'inflation': ('gbp', ),
-    'tolerance': ('gbp', ),
+    'tolerance': ('gbp', 'gnebp'),
 }
 
 
@@ -105,7 +106,10 @@ def method_tracker(method: str, scenario: Scenario,
     of :obj:`scenario`, and its :obj:`metrics.json` key. The options left
     at :obj:`None` take each method's default: particle BP with 1,000
     particles, one iteration, receiver-only messages and the multinomial
-    resampler; NEBP as its checkpoint says;
+    resampler; NEBP and Gaussian NEBP as their checkpoints say (for
+    Gaussian NEBP a name of :data:`~tg_nebp.training.PRETRAINED` is the
+    shipped checkpoint; :obj:`iterations` and :obj:`tolerance` replace its
+    own);
     :meth:`GaussianBP.recommended() <tg_nebp.filters.GaussianBP.recommended>`
     (a :obj:`tolerance` of 0 runs every iteration); the IEKF with 5
     Gauss-Newton iterations. A given value is used or refused, never
@@ -151,6 +155,15 @@ def method_tracker(method: str, scenario: Scenario,
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
         return GaussianBP.recommended(**given, **models), 'gbp'
+    if method == 'gnebp':
+        if checkpoint is None:
+            raise ValueError(f"method 'gnebp' needs a checkpoint "
+                             f"(--checkpoint PATH, or one shipped: "
+                             f"{', '.join(PRETRAINED)})")
+        given = _given(num_iterations=iterations, tolerance=tolerance)
+        if given.get('tolerance') == 0:  # every iteration
+            given['tolerance'] = None
+        return gaussian_nebp_from_checkpoint(checkpoint, **given), 'gnebp'
     if method == 'nebp':
         if checkpoint is None:
             raise ValueError("method 'nebp' needs a checkpoint (--checkpoint "

@@ -1,21 +1,73 @@
 r"""NEBP trained on a scenario's realizations: behind :obj:`tg-nebp train`.
 :func:`train_scenario` generates (or loads) the training and validation
-realizations, builds the NEBP tracker, trains it with a checkpoint after
-every epoch and, optionally, a training log."""
+realizations (of one scenario, or a mix of several), builds the NEBP
+tracker (particle or Gaussian), trains it with a checkpoint after every
+epoch and, optionally, a training log."""
 import contextlib
 from pathlib import Path
-from typing import Callable, List, NamedTuple, Optional, Union
+from typing import Callable, List, NamedTuple, Optional, Sequence, Union
 
 import torch
 
 from tg_nebp.datasets import Scenario, load_datasets
-from tg_nebp.experiments.evaluate import tracker_measurement
-from tg_nebp.filters import NEBP
-from tg_nebp.training import checkpoint_history, steps_per_epoch, train
+from tg_nebp.experiments.evaluate import scenario_of, tracker_measurement
+from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
+from tg_nebp.training import (BASES, checkpoint_history, gaussian_step_loss,
+                              step_loss, steps_per_epoch, train)
 from tg_nebp.training_log import TrainingLog
 from tg_nebp.utils import check_device, process_group
 
-__all__ = ['train_scenario', 'TrainedScenario']
+__all__ = ['train_scenario', 'TrainedScenario', 'MixedRealizations']
+
+# the options of particle NEBP alone, at their defaults
+_PARTICLE_OPTIONS = dict(variant='paper', particles=None, samples=1,
+                         regularize=None, ess_threshold=None, compile=False)
+
+
+class MixedRealizations(torch.utils.data.Dataset):
+    r"""The realizations of several datasets (of scenarios with the same
+    motion model and position dimension) as one, each with the link
+    features :obj:`features` only (the leading columns the tracker's
+    measurement model reads), so that realizations of different scenarios
+    (an NLOS one carries its true NLOS flags) batch together."""
+    def __init__(self, datasets: Sequence, features: int):
+        self.datasets = list(datasets)
+        self.features = features
+        self.index = [(d, i) for d, dataset in enumerate(self.datasets)
+                      for i in range(len(dataset))]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, index: int):
+        which, item = self.index[index]
+        data = self.datasets[which][item].clone()
+        data.edge_attr = data.edge_attr[:, :self.features]
+        return data
+
+
+def _mixed(datasets: List, features: int):
+    # one dataset as it is; several mixed, after checking what they share
+    first = datasets[0].scenario
+    for dataset in datasets[1:]:
+        other = dataset.scenario
+        if other.motion_model != first.motion_model:
+            raise ValueError(f"the scenarios of a mix must share the motion "
+                             f"model: {first.name} has {first.motion_model}, "
+                             f"{other.name} {other.motion_model}")
+        if other.num_steps != first.num_steps:
+            raise ValueError(f"the scenarios of a mix must share the number "
+                             f"of steps (a batch has one): {first.name} has "
+                             f"{first.num_steps}, {other.name} "
+                             f"{other.num_steps}")
+        if other.position_dim != first.position_dim:
+            raise ValueError(f"the scenarios of a mix must share the "
+                             f"position dimension: {first.name} is "
+                             f"{first.position_dim}-D, {other.name} "
+                             f"{other.position_dim}-D")
+    if len(datasets) == 1:
+        return datasets[0]
+    return MixedRealizations(datasets, features)
 
 
 class TrainedScenario(NamedTuple):
@@ -23,15 +75,16 @@ class TrainedScenario(NamedTuple):
     :obj:`history` (one dict per epoch), the :obj:`checkpoint` path, and
     the :obj:`log` it wrote (:obj:`None` without a log folder, and on ranks
     other than 0)."""
-    model: NEBP
+    model: Tracker
     history: List[dict]
     checkpoint: Path
     log: Optional[TrainingLog]
 
 
-def train_scenario(scenario: Union[str, Scenario], out: str,
-                   variant: str = 'paper', particles: int = 1000,
-                   iterations: int = 1, realizations: int = 100,
+def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
+                   variant: str = 'paper', particles: Optional[int] = None,
+                   iterations: Optional[int] = None,
+                   realizations: int = 100,
                    val_realizations: int = 10, epochs: int = 10,
                    batch_size: int = 2, lr: float = 1e-4, seed: int = 1,
                    measurement: Optional[str] = None,
@@ -42,9 +95,9 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
                    root: str = 'datasets', device: str = 'cpu',
                    compile: bool = False,
                    progress_factory: Optional[Callable] = None,
-                   description: str = 'train') -> TrainedScenario:
-    r"""Trains NEBP (:obj:`variant` :obj:`'paper'` or
-    :obj:`'equivariant'`) on :obj:`realizations` realizations of
+                   description: str = 'train', base: str = 'particle',
+                   hidden_dim: int = 32) -> TrainedScenario:
+    r"""Trains NEBP on :obj:`realizations` realizations of
     :obj:`scenario` drawn from :obj:`seed`, validated on
     :obj:`val_realizations` drawn from :obj:`seed + 1`, and writes
     :obj:`out/nebp.pt` after every epoch (:func:`~tg_nebp.training.train`);
@@ -52,6 +105,18 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
     :class:`~tg_nebp.training_log.TrainingLog` (rank 0 writes it under
     :obj:`torchrun`). The GNN's initial weights are drawn from
     :obj:`seed`.
+
+    With :obj:`base="particle"` the tracker is
+    :class:`~tg_nebp.filters.NEBP` (:obj:`variant` :obj:`'paper'` or :obj:`'equivariant'`,
+    :obj:`particles` :math:`K`, default 1,000; :obj:`iterations` default
+    1), trained on the paper's squared error; with :obj:`base="gaussian"`
+    it is :class:`~tg_nebp.filters.GaussianNEBP` (embeddings of
+    :obj:`hidden_dim`; :obj:`iterations` default 20), trained on
+    :func:`~tg_nebp.training.gaussian_step_loss`, and the particle options
+    are refused. :obj:`scenario` may be a list: the realizations of every
+    scenario (:obj:`realizations` and :obj:`val_realizations` of each)
+    are mixed (:class:`MixedRealizations`), and the tracker takes the
+    first's models.
 
     Args:
         progress_factory (callable, optional): :obj:`(total, description)`
@@ -66,17 +131,44 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
         A :class:`TrainedScenario`.
     """
     check_device(device)  # before any data is made
-    rank = process_group()[1]
-    train_set, val_set = load_datasets(
-        root, (scenario, realizations, seed),
-        (scenario, val_realizations, seed + 1))
-    scenario = train_set.scenario
-    torch.manual_seed(seed)  # the GNN's initial weights
-    model = NEBP(particles, iterations, motion=scenario.motion_model,
-                 measurement=tracker_measurement(scenario, measurement),
-                 compile=compile, num_samples=samples,
+    if base not in BASES:
+        raise ValueError(f"'base' must be one of {', '.join(BASES)}, got "
+                         f"{base!r}")
+    given = dict(variant=variant, particles=particles, samples=samples,
                  regularize=regularize, ess_threshold=ess_threshold,
-                 variant=variant, position_dim=scenario.position_dim)
+                 compile=compile)
+    for name, value in given.items():
+        if base == 'gaussian' and value != _PARTICLE_OPTIONS[name]:
+            raise ValueError(f"'{name}' (--{name.replace('_', '-')}) is "
+                             f"for the particle base, not the gaussian one")
+    scenarios = ([scenario_of(s) for s in scenario]
+                 if isinstance(scenario, (list, tuple)) else
+                 [scenario_of(scenario)])
+    if not scenarios:
+        raise ValueError("'scenario' is an empty list")
+    rank = process_group()[1]
+    datasets = load_datasets(
+        root, *[(s, realizations, seed) for s in scenarios],
+        *[(s, val_realizations, seed + 1) for s in scenarios])
+    first = datasets[0].scenario
+    inside = tracker_measurement(first, measurement)
+    features = len(inside.features)
+    train_set = _mixed(datasets[:len(scenarios)], features)
+    val_set = _mixed(datasets[len(scenarios):], features)
+    scenario = first
+    torch.manual_seed(seed)  # the GNN's initial weights
+    if base == 'gaussian':
+        model = GaussianNEBP(iterations or 20, motion=first.motion_model,
+                             measurement=inside, hidden_dim=hidden_dim,
+                             position_dim=first.position_dim)
+        loss = gaussian_step_loss
+    else:
+        model = NEBP(particles or 1000, iterations or 1,
+                     motion=first.motion_model, measurement=inside,
+                     compile=compile, num_samples=samples,
+                     regularize=regularize, ess_threshold=ess_threshold,
+                     variant=variant, position_dim=first.position_dim)
+        loss = step_loss
     checkpoint = Path(out) / 'nebp.pt'
     steps = steps_per_epoch(len(train_set), batch_size, scenario.num_steps)
     done = (checkpoint_history(checkpoint)
@@ -100,5 +192,6 @@ def train_scenario(scenario: Union[str, Scenario], out: str,
             bar.update(min(len(done), epochs) * steps)
         history = train(model, train_set, val_set, epochs, batch_size, lr,
                         seed, device, checkpoint, resume, progress,
+                        loss=loss,
                         on_epoch=log.epoch if log is not None else None)
     return TrainedScenario(model, history, checkpoint, log)

@@ -6,6 +6,7 @@ from .particle_bp import ParticleBP
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF
 from .gaussian_bp import GBP_RECOMMENDED, GaussianBP
+from .gaussian_nebp import GaussianNEBP
 from tg_nebp.data.validation import check_state_dim
 from tg_nebp.utils import weighted_moments
 
@@ -15,6 +16,7 @@ __all__ = [
     'NEBP',
     'CentralizedIEKF',
     'GaussianBP',
+    'GaussianNEBP',
     'GBP_RECOMMENDED',
     'StepOutput',
     'TrackOutput',

@@ -149,10 +149,12 @@ class GaussianBP(Tracker):
         num_graphs = int(graph_of.max()) + 1
         mean = data.prior_mean.double()
         cov = data.prior_cov.double()
+        memory = self.initial_memory(data)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
             # the filter's own beliefs are inflated, not the given prior
             mean, cov = self.predict(mean, cov if t == 0 else
-                                     self.inflation * cov, anchor)
+                                     self.inflate(cov, memory, anchor),
+                                     anchor)
             info = torch.zeros_like(cov)
             info[agents] = _inverse(cov[agents])
             prior = belief = GaussianBelief(mean, info)
@@ -162,23 +164,53 @@ class GaussianBP(Tracker):
             factors = self.conv.factors(edge_index, anchor, mean.size(-1))
             moving = torch.ones(num_graphs, dtype=torch.bool,
                                 device=graph_of.device)
-            for _ in range(self.num_iterations):
-                new, messages = self.conv(prior, belief, edge_index,
-                                          edge_attr, anchor, messages,
-                                          generator, factors, validate=False)
+            for iteration in range(self.num_iterations):
+                new, messages, new_memory = self.iterate(
+                    prior, belief, edge_index, edge_attr, anchor, messages,
+                    generator, factors, memory, iteration)
                 if self.tolerance is None:
-                    belief = new
+                    belief, memory = new, new_memory
                     continue
-                belief, moving = self._converge(belief, new, graph_of,
-                                                moving)
+                belief, memory, moving = self._converge(
+                    belief, new, memory, new_memory, graph_of, moving)
                 if not bool(moving.any()):
                     break
             mean = belief.mean
             cov = torch.zeros_like(belief.info)
             cov[agents] = _inverse(belief.info[agents])
             yield StepOutput(t, mean, cov)
+            mean, cov, memory = self.carry(mean, cov, memory)
+
+    def initial_memory(self, data: Realization) -> Optional[Tensor]:
+        r"""What the iterations carry besides the beliefs, one row per
+        node, before the first step: nothing for Gaussian BP (a learned
+        correction keeps its node embeddings there)."""
+        return None
+
+    def inflate(self, cov: Tensor, memory: Optional[Tensor],
+                anchor: Tensor) -> Tensor:
+        r"""The beliefs' covariances :math:`(N, S, S)` inflated before the
+        prediction of every step after the first: by :obj:`inflation`."""
+        return self.inflation * cov
+
+    def iterate(self, prior: GaussianBelief, belief: GaussianBelief,
+                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                messages, generator, factors, memory: Optional[Tensor],
+                iteration: int):
+        r"""One iteration of the conv: the new beliefs, messages and
+        memory (:meth:`initial_memory`)."""
+        new, messages = self.conv(prior, belief, edge_index, edge_attr,
+                                  anchor, messages, generator, factors,
+                                  validate=False)
+        return new, messages, memory
+
+    def carry(self, mean: Tensor, cov: Tensor, memory: Optional[Tensor]):
+        r"""What a step hands to the next (after it was yielded): the
+        beliefs and the memory, unchanged here."""
+        return mean, cov, memory
 
     def _converge(self, old: GaussianBelief, new: GaussianBelief,
+                  old_memory: Optional[Tensor], new_memory: Optional[Tensor],
                   graph_of: Tensor, moving: Tensor):
         # a graph whose means all moved by at most the tolerance has
         # converged and keeps its beliefs for the rest of the step: each
@@ -188,11 +220,13 @@ class GaussianBP(Tracker):
         belief = GaussianBelief(
             torch.where(frozen.view(-1, 1), old.mean, new.mean),
             torch.where(frozen.view(-1, 1, 1), old.info, new.info))
+        memory = (new_memory if new_memory is None else torch.where(
+            frozen.view(-1, 1), old_memory, new_memory))
         step = (belief.mean - old.mean).abs().amax(-1)
         largest = torch.zeros_like(moving, dtype=step.dtype).scatter_reduce(
             0, graph_of, step, 'amax')
         # NaN compares false: a diverged graph is not converged
-        return belief, moving & ~(largest <= self.tolerance)
+        return belief, memory, moving & ~(largest <= self.tolerance)
 
     def settings(self) -> dict:
         return dict(iterations=self.num_iterations,

@@ -2,6 +2,7 @@ from typing import Callable, Optional, Union
 
 from torch import Tensor
 
+from tg_nebp.data.validation import check_position_dim
 from tg_nebp.filters.particle_bp import ParticleBP
 from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
 from tg_nebp.nn.conv import EquivariantNEBPConv, NEBPConv, ParticleBPConv
@@ -117,12 +118,8 @@ class NEBP(ParticleBP):
         r"""The realization checks of every tracker, and that its
         positions have the dimension this NEBP was built (trained) for."""
         super().check(data)
-        size = data.prior_mean.size(1)
-        if size != 2 * self.position_dim:
-            raise ValueError(f"this NEBP was built for {self.position_dim}-D "
-                             f"positions (states of size "
-                             f"{2 * self.position_dim}), but the realization "
-                             f"holds states of size {size}")
+        check_position_dim(self.position_dim, data.prior_mean.size(1),
+                           'this NEBP')
 
     def iterate(self, particles: Tensor, log_weights: Tensor,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,

@@ -1,5 +1,5 @@
-from .conv import (EquivariantNEBPConv, GaussianBPConv, NEBPConv,
-                   ParticleBPConv)
+from .conv import (EquivariantNEBPConv, GaussianBPConv, GaussianNEBPConv,
+                   NEBPConv, ParticleBPConv)
 
 __all__ = ['ParticleBPConv', 'NEBPConv', 'EquivariantNEBPConv',
-           'GaussianBPConv']
+           'GaussianBPConv', 'GaussianNEBPConv']

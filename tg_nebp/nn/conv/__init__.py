@@ -2,7 +2,11 @@ from .particle_bp_conv import ParticleBPConv
 from .nebp_conv import NEBPConv
 from .equivariant_nebp_conv import EquivariantNEBPConv
 from .gaussian_bp_conv import (FactorMessages, Factors, GaussianBelief,
-                               GaussianBPConv)
+                               GaussianBPConv, Linearization)
+from .gaussian_nebp_conv import (CorrectionFeatures, GaussianNEBPConv,
+                                 bounded_log, position_covariance)
 
 __all__ = ['ParticleBPConv', 'NEBPConv', 'EquivariantNEBPConv',
-           'GaussianBPConv', 'GaussianBelief', 'FactorMessages', 'Factors']
+           'GaussianBPConv', 'GaussianBelief', 'FactorMessages', 'Factors',
+           'Linearization', 'GaussianNEBPConv', 'CorrectionFeatures',
+           'bounded_log', 'position_covariance']

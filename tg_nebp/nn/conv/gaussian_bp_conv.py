@@ -10,7 +10,7 @@ from tg_nebp.models import GaussianRange, MeasurementModel
 from tg_nebp.utils import compute_dtype, link_factors, long_edge_index
 
 __all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages', 'Factors',
-           'ENDS']
+           'Linearization', 'ENDS']
 
 #: Which ends of a link its range informs: :obj:`"both"` (every measured
 #: range is shared with the neighbour it measured) or :obj:`"receiver"`
@@ -34,6 +34,18 @@ class FactorMessages(NamedTuple):
     the next iteration's extrinsic beliefs."""
     info: Tensor
     eta: Tensor
+
+
+class Linearization(NamedTuple):
+    r"""Every factor linearized at the current belief means, as each
+    message edge reads it (its target's half second): the factor's
+    information :obj:`info` :math:`(M, 2R, 2R)` and vector :obj:`eta`
+    :math:`(M, 2R)` on :math:`[\mathbf{x}_s; \mathbf{x}_t]`, and the
+    gradient :obj:`grad` :math:`(M, 2R)` of its log-likelihood there
+    (:meth:`GaussianBPConv.linearize`)."""
+    info: Tensor
+    eta: Tensor
+    grad: Tensor
 
 
 class Factors(NamedTuple):
@@ -290,6 +302,22 @@ class GaussianBPConv(MessagePassing):
         overflow it): the outputs have the promoted dtype of the inputs and
         float32.
         """
+        prior, belief, edge_index, edge_attr, messages, factors = (
+            self.prepare(prior, belief, edge_index, edge_attr, anchor,
+                         messages, factors, validate))
+        linearization = self.linearize(belief, edge_index, edge_attr,
+                                       factors, generator)
+        new = self.messages(belief, anchor, factors, linearization, messages)
+        return self.beliefs(prior, belief, new, factors, anchor), new
+
+    def prepare(self, prior: GaussianBelief, belief: GaussianBelief,
+                edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                messages: Optional[FactorMessages] = None,
+                factors: Optional[Factors] = None, validate: bool = True):
+        r"""The inputs of :meth:`forward` checked (with :obj:`validate`)
+        and in the compute dtype, with the :obj:`factors` of the links
+        (computed if :obj:`None`): :obj:`(prior, belief, edge_index,
+        edge_attr, messages, factors)`."""
         if validate:
             check_gaussian_belief(*prior, 'prior')
             check_gaussian_belief(*belief, 'belief', prior.mean.size(0))
@@ -319,6 +347,19 @@ class GaussianBPConv(MessagePassing):
             raise ValueError(f"Gaussian BP needs a measurement model that "
                              f"reads the leading state entries, but "
                              f"{self.measurement} reads {tuple(scope)}")
+        return prior, belief, edge_index, edge_attr, messages, factors
+
+    def linearize(self, belief: GaussianBelief, edge_index: Tensor,
+                  edge_attr: Tensor, factors: Factors,
+                  generator: Optional[torch.Generator] = None
+                  ) -> Linearization:
+        r"""Every factor linearized at the belief means, as each message
+        edge reads it (:class:`~tg_nebp.nn.conv.Linearization`): the
+        measurement model's :meth:`MeasurementModel.linearize
+        <tg_nebp.models.MeasurementModel.linearize>` of every link, the two
+        ranges of a pair summed into one factor. Inputs as :meth:`prepare`
+        gives them (checked, in the compute dtype)."""
+        width = len(self.measurement.scope(belief.mean.size(-1)))
         src, dst = edge_index
         grad, curvature = self.measurement.linearize(
             edge_attr, belief.mean[src], belief.mean[dst], generator)
@@ -335,22 +376,46 @@ class GaussianBPConv(MessagePassing):
         factor_eta = (factor_info.view(count, 2 * width, 2 * width) @
                       point.unsqueeze(-1)).squeeze(-1) + factor_grad.view(
                           count, 2 * width)
+        return Linearization(
+            factor_info[factors.message_slots].view(-1, 2 * width,
+                                                    2 * width),
+            factor_eta.view(-1)[factors.message_eta_slots].view(
+                -1, 2 * width),
+            factor_grad[factors.message_eta_slots].view(-1, 2 * width))
+
+    def messages(self, belief: GaussianBelief, anchor: Tensor,
+                 factors: Factors, linearization: Linearization,
+                 messages: Optional[FactorMessages] = None
+                 ) -> FactorMessages:
+        r"""The factor-to-variable messages of one iteration from the
+        factors' :obj:`linearization` (:meth:`linearize`) and the sources'
+        extrinsic beliefs (without the previous :obj:`messages`), damped
+        as configured."""
+        width = linearization.grad.size(-1) // 2
         marginal_info, marginal_eta = _marginal_information(
             belief.info, belief.mean, width, anchor)
         new = self.edge_updater(
             factors.index, info=marginal_info, eta=marginal_eta,
             point=belief.mean[:, :width], known=anchor,
-            factor_info=factor_info[factors.message_slots].view(
-                -1, 2 * width, 2 * width),
-            factor_eta=factor_eta.view(-1)[factors.message_eta_slots].view(
-                -1, 2 * width),
+            factor_info=linearization.info, factor_eta=linearization.eta,
             reverse=factors.reverse, messages=messages)
         if self.damping > 0 and messages is not None:
             new = FactorMessages(*(
                 torch.lerp(n, o, self.damping) for n, o in zip(new,
                                                                messages)))
-        sums = self.propagate(factors.index, info=new.info, eta=new.eta,
-                              size=(num_nodes, num_nodes))
+        return new
+
+    def beliefs(self, prior: GaussianBelief, belief: GaussianBelief,
+                messages: FactorMessages, factors: Factors,
+                anchor: Tensor) -> GaussianBelief:
+        r"""The beliefs of the nodes: every agent's :obj:`prior` plus its
+        incoming :obj:`messages` (on the message edges of
+        :obj:`factors`), solved for the mean; anchors keep
+        :obj:`belief`'s known states."""
+        num_nodes, size = belief.mean.shape
+        width = messages.eta.size(-1)
+        sums = self.propagate(factors.index, info=messages.info,
+                              eta=messages.eta, size=(num_nodes, num_nodes))
         info = prior.info.clone()
         info[:, :width, :width] += sums[:, :width * width].view(
             -1, width, width)
@@ -369,7 +434,7 @@ class GaussianBPConv(MessagePassing):
                              f"a state entry undetermined")
         mean = torch.where(anchor.view(-1, 1), belief.mean,
                            solved.squeeze(-1))
-        return GaussianBelief(mean, info), new
+        return GaussianBelief(mean, info)
 
     def edge_update(self, info_j: Tensor, eta_j: Tensor, point_j: Tensor,
                     known_j: Tensor, factor_info: Tensor,

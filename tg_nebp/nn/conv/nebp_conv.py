@@ -9,6 +9,7 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter, segment
 
 from tg_nebp.data.validation import (check_layer_inputs, check_number,
+                                     check_position_dim,
                                      check_positive_int)
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
@@ -170,10 +171,7 @@ class NEBPConv(MessagePassing):
                  chunk_size: Optional[int] = None, compile: bool = False,
                  num_samples: Union[int, str] = 1, position_dim: int = 2):
         super().__init__(aggr='add', node_dim=0)
-        if position_dim not in (2, 3):
-            raise ValueError(f"'position_dim' must be 2 or 3, got "
-                             f"{position_dim!r}")
-        self.position_dim = position_dim
+        self.position_dim = check_position_dim(position_dim)
         if num_particles is not None:  # None: a correction for any K
             num_particles = check_positive_int(num_particles,
                                                'num_particles')

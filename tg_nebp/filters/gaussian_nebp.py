@@ -1,0 +1,144 @@
+from typing import Optional
+
+from torch import Tensor
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_position_dim
+from tg_nebp.filters.gaussian_bp import GBP_RECOMMENDED, GaussianBP
+from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
+from tg_nebp.nn.conv import GaussianNEBPConv
+
+__all__ = ['GaussianNEBP']
+
+
+class GaussianNEBP(GaussianBP):
+    r"""Neural Enhanced Gaussian BP: the time loop of
+    :class:`~tg_nebp.filters.GaussianBP` (prediction, iterations, early
+    stop per graph, float64 beliefs; shared, not copied) with
+    :class:`~tg_nebp.nn.conv.GaussianNEBPConv` in place of
+    :class:`~tg_nebp.nn.conv.GaussianBPConv`: every message tempered by a
+    learned positive weight and every agent's covariance inflated by its
+    own learned factor before each prediction, in place of one global
+    inflation. Untrained (the output layers at zero) it is plain Gaussian
+    BP exactly.
+
+    The node embeddings are carried over iterations and steps (the
+    correction's memory of the agents' recent consistency). Training
+    (:func:`tg_nebp.training.train` with
+    :func:`~tg_nebp.training.gaussian_step_loss`) backpropagates through
+    the unrolled iterations of every step; between steps the beliefs and
+    memory are detached (truncated in time to one step, as the one
+    optimizer step per time step of :func:`~tg_nebp.training.train`
+    needs), so a step's loss reaches its own corrections and the
+    inflations applied before its prediction.
+
+    Args:
+        num_iterations (int, optional): Iterations per time step (at most,
+            with :obj:`tolerance`). (default: :obj:`20`)
+        motion (MotionModel, optional): Motion model.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (MeasurementModel, optional): Measurement model inside.
+            (default: :obj:`GaussianRange()`)
+        ends (str, optional): As in :class:`GaussianBP`.
+            (default: :obj:`"both"`)
+        damping (float, optional): As in :class:`GaussianBP`.
+            (default: :obj:`0.0`)
+        tolerance (float, optional): As in :class:`GaussianBP`.
+            (default: :obj:`0.01`)
+        hidden_dim (int, optional): Size of the correction's embeddings.
+            (default: :obj:`32`)
+        position_dim (int, optional): The positions' dimension :math:`D`
+            the correction is trained for: a tracker (and its checkpoint)
+            runs on realizations of that dimension only.
+            (default: :obj:`2`)
+
+    Shapes:
+        - **input:** a :class:`~tg_nebp.data.Realization`
+        - **output:** :class:`~tg_nebp.filters.TrackOutput` as
+          :class:`GaussianBP`'s
+    """
+    def __init__(self, num_iterations: int = GBP_RECOMMENDED[
+                     'num_iterations'],
+                 motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None,
+                 ends: str = 'both', damping: float = 0.0,
+                 tolerance: Optional[float] = GBP_RECOMMENDED['tolerance'],
+                 hidden_dim: int = 32, position_dim: int = 2):
+        super().__init__(num_iterations, motion, measurement, ends, damping,
+                         tolerance)
+        self.conv = GaussianNEBPConv(self.measurement, ends, damping,
+                                     hidden_dim, self.num_iterations)
+        self.position_dim = check_position_dim(position_dim)
+
+    def check(self, data: Realization) -> None:
+        r"""The realization checks of every tracker, and that its
+        positions have the dimension this correction was built (trained)
+        for."""
+        super().check(data)
+        check_position_dim(self.position_dim, data.prior_mean.size(1),
+                           'this Gaussian NEBP')
+
+    def initial_memory(self, data: Realization) -> Tensor:
+        return self.conv.initial_memory(data.num_nodes, data.anchor.device)
+
+    def inflate(self, cov: Tensor, memory: Tensor, anchor: Tensor) -> Tensor:
+        r"""Every agent's covariance inflated by its learned
+        :math:`\kappa_i` (:meth:`GaussianNEBPConv.inflation
+        <tg_nebp.nn.conv.GaussianNEBPConv.inflation>`)."""
+        kappa = self.conv.inflation(cov, memory, anchor)
+        return kappa.view(-1, 1, 1) * cov
+
+    def iterate(self, prior, belief, edge_index, edge_attr, anchor,
+                messages, generator, factors, memory, iteration):
+        return self.conv(prior, belief, edge_index, edge_attr, anchor,
+                         memory, messages, generator, factors, iteration,
+                         validate=False)
+
+    def carry(self, mean: Tensor, cov: Tensor, memory: Tensor):
+        r"""The beliefs and memory detached (training is truncated in time
+        to one step), the step's consistency added to the history."""
+        return (mean.detach(), cov.detach(),
+                self.conv.end_step(memory.detach()))
+
+    def settings(self) -> dict:
+        return dict(super().settings(), hidden_dim=self.conv.hidden_dim,
+                    position_dim=self.position_dim)
+
+    def config(self) -> dict:
+        r"""Everything needed to rebuild this tracker (saved in
+        checkpoints); :obj:`base` tells it from the particle
+        :class:`~tg_nebp.filters.NEBP`."""
+        return dict(base='gaussian', num_iterations=self.num_iterations,
+                    ends=self.conv.bp.ends, damping=self.conv.bp.damping,
+                    tolerance=self.tolerance,
+                    hidden_dim=self.conv.hidden_dim,
+                    position_dim=self.position_dim,
+                    motion=self.motion.config(),
+                    measurement=self.measurement.config())
+
+    @staticmethod
+    def upgraded_config(config: dict) -> dict:
+        r"""The configuration unchanged (no older format exists)."""
+        return dict(config)
+
+    @classmethod
+    def from_config(cls, config: dict, **options) -> 'GaussianNEBP':
+        r"""Rebuilds a tracker from :meth:`config`; :obj:`options` replace
+        entries that do not size the network (:obj:`tolerance`,
+        :obj:`num_iterations`)."""
+        config = {**config, **options}
+        if config.pop('base', None) != 'gaussian':
+            raise ValueError("not the configuration of a Gaussian NEBP")
+        motion = model_from_config(config.pop('motion', None), 'motion')
+        measurement = model_from_config(config.pop('measurement', None),
+                                        'measurement')
+        return cls(motion=motion, measurement=measurement, **config)
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(num_iterations='
+                f'{self.num_iterations}, motion={self.motion}, '
+                f'measurement={self.measurement}, ends={self.conv.bp.ends!r}, '
+                f'damping={self.conv.bp.damping}, '
+                f'tolerance={self.tolerance}, '
+                f'hidden_dim={self.conv.hidden_dim}, '
+                f'position_dim={self.position_dim})')
