@@ -240,6 +240,19 @@ def test_rounding_of_a_singular_covariance_is_singular_not_nan():
     assert value == float('inf')
 
 
+def test_a_subnormal_covariance_is_singular_not_indefinite():
+    # a float32 particle cloud collapsed onto one point (particle BP on
+    # the wide-prior network): eigenvalues -1.2e-45 and 8.2e-45, rounding
+    # noise of zero, made P(accept) NaN; a normal-sized indefinite
+    # covariance of float32 stays NaN
+    cov = torch.tensor([[[3.5e-45, 4.6e-45], [4.6e-45, 3.5e-45]],
+                        [[1.0, 2.0], [2.0, 1.0]]], dtype=torch.float32)
+    assert torch.linalg.eigvalsh(cov.double())[0, 0] < 0
+    est = torch.tensor([[1.0, 0.0], [1.0, 0.0]])
+    values = metrics.nees(est, cov, torch.zeros(2, 2))
+    assert values[0] == float('inf') and torch.isnan(values[1])
+
+
 def test_masked_out_nan_does_not_count():
     est, true = random_problem((3, ), 9)
     est[0] = float('nan')

@@ -111,7 +111,8 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     gives :math:`+\infty` (or :math:`0` for a zero error); a NaN estimate,
     truth or covariance, or a clearly indefinite covariance, gives NaN; a
     negative value from rounding of a numerically singular covariance
-    counts as singular."""
+    counts as singular, and so does a covariance whose eigenvalues are all
+    subnormal in its dtype (zero up to rounding)."""
     _check_positions(est_pos, true_pos)
     dim = est_pos.size(-1)
     if pos_cov.shape != est_pos.shape + (dim, ):
@@ -134,7 +135,13 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
         cov))
     # NaN in, or a covariance that is no covariance (clearly indefinite):
     # NaN out
-    indefinite = eig[..., 0] < -1e-6 * eig[..., -1].abs()
+    # a covariance whose largest eigenvalue is subnormal in its own dtype
+    # is zero up to rounding (a float32 cloud collapsed onto one point):
+    # singular, whatever the signs of its rounding noise
+    tiny = torch.finfo(pos_cov.dtype).tiny if pos_cov.is_floating_point() \
+        else 0.0
+    indefinite = ((eig[..., 0] < -1e-6 * eig[..., -1].abs())
+                  & (eig[..., -1].abs() >= tiny))
     unknown = torch.isnan(err).any(-1).any(-1) | nan_cov | indefinite
     return value.masked_fill(unknown, float('nan'))
 
