@@ -179,3 +179,8 @@ def test_train_gaussian_nebp_on_a_mix_of_scenarios(tmp_path, capsys):
     assert err.startswith("error: 'particles' (--particles) is for the "
                           "particle base") and err.count('\n') == 1
     assert not (tmp_path / 'o2' / 'nebp.pt').exists()
+    # and the embedding size is the gaussian base's
+    assert main(['train', '--scenario', str(clean), '--hidden-dim', '8',
+                 '--out', str(tmp_path / 'o3'), *common]) == 2
+    assert capsys.readouterr().err.startswith(
+        "error: 'hidden_dim' (--hidden-dim) is for the gaussian base")

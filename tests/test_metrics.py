@@ -251,6 +251,10 @@ def test_a_subnormal_covariance_is_singular_not_indefinite():
     est = torch.tensor([[1.0, 0.0], [1.0, 0.0]])
     values = metrics.nees(est, cov, torch.zeros(2, 2))
     assert values[0] == float('inf') and torch.isnan(values[1])
+    # whatever the error's direction, and zero for a zero error
+    other = metrics.nees(torch.tensor([[0.0, 1.0], [0.0, 0.0]]),
+                         cov[[0, 0]], torch.zeros(2, 2))
+    assert other[0] == float('inf') and other[1] == 0
 
 
 def test_masked_out_nan_does_not_count():

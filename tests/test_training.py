@@ -585,9 +585,21 @@ def test_gaussian_checkpoint_round_trip_and_refusals(tmp_path):
     data = tiny_data(1, steps=3, offset=10)[0]
     with torch.no_grad():
         assert torch.equal(model(data).mean, rebuilt(data).mean)
-    # run-time options replace the iterations and the tolerance only
-    assert gaussian_nebp_from_checkpoint(path, tolerance=None).tolerance \
-        is None
+    # run-time options replace the iterations and the tolerance only; the
+    # iteration feature keeps the scale the network was trained with
+    longer = gaussian_nebp_from_checkpoint(path, tolerance=None,
+                                           num_iterations=12)
+    assert (longer.tolerance, longer.num_iterations) == (None, 12)
+    assert longer.conv.num_iterations == model.num_iterations == 5
+    for option in (dict(position_dim=3), dict(hidden_dim=4)):
+        with pytest.raises(ValueError, match=f"'{next(iter(option))}' is "
+                           f"fixed by the checkpoint"):
+            gaussian_nebp_from_checkpoint(path, **option)
+    # a configuration from before the iteration scale was recorded means
+    # the iterations it was trained with
+    old = dict(model.config())
+    del old['iteration_scale']
+    assert GaussianNEBP.from_config(old).config() == model.config()
     # the other base is refused by name, both ways
     with pytest.raises(ValueError, match=r"holds a gaussian NEBP, not a "
                        r"particle one: evaluate it with --method gnebp"):

@@ -300,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
         'realizations and merges its entry into DIR/metrics.json: particle '
         'BP (bp), NEBP from a checkpoint (nebp), Gaussian BP (gbp), '
         'Gaussian NEBP from a checkpoint (gnebp; shipped ones by name: '
-        'paper, nlos, mix), the '
+        f"{', '.join(PRETRAINED)}), the "
         'centralized iterated EKF (iekf; iekf-marginal with --marginal) or '
         'the posterior Cramer-Rao bound of the same realizations (pcrb: its '
         'RMSE is the floor, its outage that of an efficient estimator); an '

@@ -140,8 +140,9 @@ def nees(est_pos: Tensor, pos_cov: Tensor, true_pos: Tensor) -> Tensor:
     # singular, whatever the signs of its rounding noise
     tiny = torch.finfo(pos_cov.dtype).tiny if pos_cov.is_floating_point() \
         else 0.0
-    indefinite = ((eig[..., 0] < -1e-6 * eig[..., -1].abs())
-                  & (eig[..., -1].abs() >= tiny))
+    subnormal = eig[..., -1].abs() < tiny
+    value = torch.where(subnormal, fallback, value)
+    indefinite = (eig[..., 0] < -1e-6 * eig[..., -1].abs()) & ~subnormal
     unknown = torch.isnan(err).any(-1).any(-1) | nan_cov | indefinite
     return value.masked_fill(unknown, float('nan'))
 

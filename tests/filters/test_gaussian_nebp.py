@@ -206,3 +206,12 @@ def test_gradients_of_the_unrolled_filter_match_finite_differences(case):
             assert float(grad.view(-1)[index]) == pytest.approx(
                 expected, rel=1e-5, abs=1e-7)
     assert any(float(grad.abs().max()) > 1e-6 for grad in grads)
+
+
+def test_recommended_and_settings_describe_the_correction():
+    tracker = GaussianNEBP.recommended()
+    assert (tracker.num_iterations, tracker.tolerance) == (20, 0.01)
+    settings = tracker.settings()
+    # its inflation is learned per agent, not Gaussian BP's global one
+    assert 'inflation' not in settings
+    assert settings['hidden_dim'] == 32 and settings['position_dim'] == 2

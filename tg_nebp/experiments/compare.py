@@ -111,6 +111,10 @@ def compare_methods(scenario: Scenario,
         if not path.is_file():
             raise ValueError(f"the NEBP checkpoint '{path}' does not exist")
         base = base_of(load_checkpoint(path)['config'])
+        if base not in CHECKPOINT_ROWS:
+            raise ValueError(f"checkpoint '{path}' holds an NEBP of unknown "
+                             f"base {base!r} (known: "
+                             f"{', '.join(CHECKPOINT_ROWS)})")
         kind = CHECKPOINT_ROWS[base]
         methods[f'{kind} {path.name} {_file_hash(path)}'] = (
             f'{"Gaussian " if base == "gaussian" else ""}NEBP from {path}',

@@ -9,6 +9,7 @@ from typing import Callable, List, NamedTuple, Optional, Sequence, Union
 
 import torch
 
+from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.experiments.evaluate import scenario_of, tracker_measurement
 from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
@@ -19,9 +20,11 @@ from tg_nebp.utils import check_device, process_group
 
 __all__ = ['train_scenario', 'TrainedScenario', 'MixedRealizations']
 
-# the options of particle NEBP alone, at their defaults
+# the options of particle NEBP alone, at their defaults, and Gaussian
+# NEBP's embedding size
 _PARTICLE_OPTIONS = dict(variant='paper', particles=None, samples=1,
                          regularize=None, ess_threshold=None, compile=False)
+_GAUSSIAN_HIDDEN_DIM = 32
 
 
 class MixedRealizations(torch.utils.data.Dataset):
@@ -49,6 +52,12 @@ class MixedRealizations(torch.utils.data.Dataset):
 def _mixed(datasets: List, features: int):
     # one dataset as it is; several mixed, after checking what they share
     first = datasets[0].scenario
+    for dataset in datasets:
+        width = dataset[0].edge_attr.size(1) if len(dataset) else features
+        if width < features:
+            raise ValueError(f"the realizations of {dataset.scenario.name} "
+                             f"hold {width} link features, but the "
+                             f"tracker's likelihood reads {features}")
     for dataset in datasets[1:]:
         other = dataset.scenario
         if other.motion_model != first.motion_model:
@@ -96,7 +105,8 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
                    compile: bool = False,
                    progress_factory: Optional[Callable] = None,
                    description: str = 'train', base: str = 'particle',
-                   hidden_dim: int = 32) -> TrainedScenario:
+                   hidden_dim: int = _GAUSSIAN_HIDDEN_DIM
+                   ) -> TrainedScenario:
     r"""Trains NEBP on :obj:`realizations` realizations of
     :obj:`scenario` drawn from :obj:`seed`, validated on
     :obj:`val_realizations` drawn from :obj:`seed + 1`, and writes
@@ -141,6 +151,13 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
         if base == 'gaussian' and value != _PARTICLE_OPTIONS[name]:
             raise ValueError(f"'{name}' (--{name.replace('_', '-')}) is "
                              f"for the particle base, not the gaussian one")
+    if base == 'particle' and hidden_dim != _GAUSSIAN_HIDDEN_DIM:
+        raise ValueError("'hidden_dim' (--hidden-dim) is for the gaussian "
+                         "base, not the particle one")
+    for name, value in (('particles', particles), ('iterations', iterations),
+                        ('hidden_dim', hidden_dim)):
+        if value is not None:
+            check_positive_int(value, name)
     scenarios = ([scenario_of(s) for s in scenario]
                  if isinstance(scenario, (list, tuple)) else
                  [scenario_of(scenario)])
@@ -158,12 +175,14 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
     scenario = first
     torch.manual_seed(seed)  # the GNN's initial weights
     if base == 'gaussian':
-        model = GaussianNEBP(iterations or 20, motion=first.motion_model,
+        model = GaussianNEBP(20 if iterations is None else iterations,
+                             motion=first.motion_model,
                              measurement=inside, hidden_dim=hidden_dim,
                              position_dim=first.position_dim)
         loss = gaussian_step_loss
     else:
-        model = NEBP(particles or 1000, iterations or 1,
+        model = NEBP(1000 if particles is None else particles,
+                     1 if iterations is None else iterations,
                      motion=first.motion_model, measurement=inside,
                      compile=compile, num_samples=samples,
                      regularize=regularize, ess_threshold=ess_threshold,

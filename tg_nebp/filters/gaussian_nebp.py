@@ -51,6 +51,10 @@ class GaussianNEBP(GaussianBP):
             the correction is trained for: a tracker (and its checkpoint)
             runs on realizations of that dimension only.
             (default: :obj:`2`)
+        iteration_scale (int, optional): What the iteration feature is
+            divided by (the iterations the correction was trained with),
+            so that running more or fewer iterations than in training shows
+            the network the same feature. (default: :obj:`num_iterations`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -63,11 +67,14 @@ class GaussianNEBP(GaussianBP):
                  measurement: Optional[MeasurementModel] = None,
                  ends: str = 'both', damping: float = 0.0,
                  tolerance: Optional[float] = GBP_RECOMMENDED['tolerance'],
-                 hidden_dim: int = 32, position_dim: int = 2):
+                 hidden_dim: int = 32, position_dim: int = 2,
+                 iteration_scale: Optional[int] = None):
         super().__init__(num_iterations, motion, measurement, ends, damping,
                          tolerance)
-        self.conv = GaussianNEBPConv(self.measurement, ends, damping,
-                                     hidden_dim, self.num_iterations)
+        self.conv = GaussianNEBPConv(
+            self.measurement, ends, damping, hidden_dim,
+            self.num_iterations if iteration_scale is None else
+            iteration_scale)
         self.position_dim = check_position_dim(position_dim)
 
     def check(self, data: Realization) -> None:
@@ -100,15 +107,30 @@ class GaussianNEBP(GaussianBP):
         return (mean.detach(), cov.detach(),
                 self.conv.end_step(memory.detach()))
 
+    @classmethod
+    def recommended(cls, **overrides) -> 'GaussianNEBP':
+        r"""An untrained correction (Gaussian BP without inflation) with
+        Gaussian BP's recommended iterations and tolerance; a trained one
+        comes from a checkpoint
+        (:func:`~tg_nebp.training.gaussian_nebp_from_checkpoint`)."""
+        return cls(**{**{key: GBP_RECOMMENDED[key]
+                         for key in ('num_iterations', 'tolerance')},
+                      **overrides})
+
     def settings(self) -> dict:
-        return dict(super().settings(), hidden_dim=self.conv.hidden_dim,
-                    position_dim=self.position_dim)
+        # the inflation is learned per agent: Gaussian BP's global one
+        # (1) is not this tracker's
+        settings = dict(super().settings(), hidden_dim=self.conv.hidden_dim,
+                        position_dim=self.position_dim)
+        del settings['inflation']
+        return settings
 
     def config(self) -> dict:
         r"""Everything needed to rebuild this tracker (saved in
         checkpoints); :obj:`base` tells it from the particle
         :class:`~tg_nebp.filters.NEBP`."""
         return dict(base='gaussian', num_iterations=self.num_iterations,
+                    iteration_scale=self.conv.num_iterations,
                     ends=self.conv.bp.ends, damping=self.conv.bp.damping,
                     tolerance=self.tolerance,
                     hidden_dim=self.conv.hidden_dim,
@@ -116,17 +138,29 @@ class GaussianNEBP(GaussianBP):
                     motion=self.motion.config(),
                     measurement=self.measurement.config())
 
+    #: The entries of :meth:`config` that :meth:`from_config` may replace:
+    #: they do not size or feed the network.
+    RUN_TIME_OPTIONS = ('num_iterations', 'tolerance')
+
     @staticmethod
     def upgraded_config(config: dict) -> dict:
-        r"""The configuration unchanged (no older format exists)."""
-        return dict(config)
+        r"""A configuration written before :obj:`iteration_scale` existed
+        with it at the value it meant (the iterations it was trained
+        with); a current one unchanged."""
+        return {'iteration_scale': config.get('num_iterations'), **config}
 
     @classmethod
     def from_config(cls, config: dict, **options) -> 'GaussianNEBP':
         r"""Rebuilds a tracker from :meth:`config`; :obj:`options` replace
-        entries that do not size the network (:obj:`tolerance`,
-        :obj:`num_iterations`)."""
-        config = {**config, **options}
+        the entries of :data:`RUN_TIME_OPTIONS` (:obj:`num_iterations`,
+        :obj:`tolerance`), which do not size or feed the network; another
+        option is a :class:`ValueError` naming it."""
+        for name in options:
+            if name not in cls.RUN_TIME_OPTIONS:
+                raise ValueError(f"'{name}' is fixed by the checkpoint; only "
+                                 f"{', '.join(cls.RUN_TIME_OPTIONS)} can be "
+                                 f"replaced")
+        config = {**cls.upgraded_config(config), **options}
         if config.pop('base', None) != 'gaussian':
             raise ValueError("not the configuration of a Gaussian NEBP")
         motion = model_from_config(config.pop('motion', None), 'motion')

@@ -98,5 +98,10 @@ def test_options_and_memory_are_checked():
     with pytest.raises(ValueError, match="'memory' must have shape"):
         conv(prior, prior, edge_index, edge_attr, data.anchor,
              torch.zeros(data.num_nodes, 3))
+    with pytest.raises(ValueError, match="'memory' must be torch.float32"):
+        conv(prior, prior, edge_index, edge_attr, data.anchor,
+             conv.initial_memory(data.num_nodes).double())
+    with pytest.raises(ValueError, match="'weight_range' must be"):
+        GaussianNEBPConv(weight_range=(0.5, ))
     with pytest.raises(ValueError, match='built for 2-D positions'):
         GaussianNEBP()(embed_in_3d(data))

@@ -58,6 +58,8 @@ class CorrectionFeatures(NamedTuple):
 
 def _check_range(bounds, name: str) -> Tuple[float, float]:
     # a positive (low, high) around 1
+    if len(tuple(bounds)) != 2:
+        raise ValueError(f"'{name}' must be (low, high), got {bounds!r}")
     low, high = (float(b) for b in bounds)
     if not 0 < low < 1 < high < math.inf:
         raise ValueError(f"'{name}' must be (low, high) with 0 < low < 1 < "
@@ -254,10 +256,12 @@ class GaussianNEBPConv(MessagePassing):
     def initial_memory(self, num_nodes: int,
                        device=None) -> Tensor:
         r"""The memory of :obj:`num_nodes` nodes before the first step:
-        zero embeddings and consistency."""
-        return torch.zeros(num_nodes, self.hidden_dim + 2,
-                           dtype=self.weight_head.weight.dtype,
-                           device=device)
+        zero embeddings and consistency, in the parameters' dtype, on
+        :obj:`device` (the parameters' by default)."""
+        weight = self.weight_head.weight
+        return torch.zeros(num_nodes, self.hidden_dim + 2, dtype=weight.dtype,
+                           device=weight.device if device is None else
+                           device)
 
     def features(self, belief: GaussianBelief, anchor: Tensor,
                  factors: Factors, linearization: Linearization,
@@ -344,11 +348,8 @@ class GaussianNEBPConv(MessagePassing):
         inputs = self.bp.prepare(prior, belief, edge_index, edge_attr,
                                  anchor, messages, factors, validate)
         prior, belief, edge_index, edge_attr, messages, factors = inputs
-        if validate and memory.shape != (belief.mean.size(0),
-                                         self.hidden_dim + 2):
-            raise ValueError(f"'memory' must have shape "
-                             f"{[belief.mean.size(0), self.hidden_dim + 2]}"
-                             f", got {list(memory.shape)}")
+        if validate:
+            self._check_memory(memory, belief.mean.size(0))
         linearization = self.bp.linearize(belief, edge_index, edge_attr,
                                           factors, generator)
         new = self.bp.messages(belief, anchor, factors, linearization,
@@ -374,6 +375,21 @@ class GaussianNEBPConv(MessagePassing):
             -1, 1), memory[:, _HISTORY:]], -1)
         return (self.bp.beliefs(prior, belief, tempered, factors, anchor),
                 tempered, memory)
+
+    def _check_memory(self, memory: Tensor, num_nodes: int) -> None:
+        # one row per node, in the parameters' dtype and on their device
+        weight = self.weight_head.weight
+        if not isinstance(memory, Tensor):
+            raise TypeError(f"'memory' must be a tensor, got "
+                            f"{type(memory).__name__}")
+        if memory.shape != (num_nodes, self.hidden_dim + 2):
+            raise ValueError(f"'memory' must have shape "
+                             f"{[num_nodes, self.hidden_dim + 2]}, got "
+                             f"{list(memory.shape)}")
+        if memory.dtype != weight.dtype or memory.device != weight.device:
+            raise ValueError(f"'memory' must be {weight.dtype} on "
+                             f"{weight.device} (the parameters'), got "
+                             f"{memory.dtype} on {memory.device}")
 
     def message(self, edge: Tensor) -> Tensor:
         return edge
