@@ -117,8 +117,9 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
     :obj:`seed`.
 
     With :obj:`base="particle"` the tracker is
-    :class:`~tg_nebp.filters.NEBP` (:obj:`variant` :obj:`'paper'` or :obj:`'equivariant'`,
-    :obj:`particles` :math:`K`, default 1,000; :obj:`iterations` default
+    :class:`~tg_nebp.filters.NEBP` (:obj:`variant` :obj:`'paper'` or
+    :obj:`'equivariant'`, :obj:`particles` :math:`K`, default 1,000;
+    :obj:`iterations` default
     1), trained on the paper's squared error; with :obj:`base="gaussian"`
     it is :class:`~tg_nebp.filters.GaussianNEBP` (embeddings of
     :obj:`hidden_dim`; :obj:`iterations` default 20), trained on

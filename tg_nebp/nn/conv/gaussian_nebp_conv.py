@@ -121,8 +121,9 @@ class GaussianNEBPConv(MessagePassing):
     \mathbf{n}_i); \log \kappa_\mathrm{min}, \log
     \kappa_\mathrm{max})\big)` (:meth:`inflation`), in place of one
     global inflation; :math:`b` maps onto its bounds smoothly and is 0 at
-    0 (:func:`~tg_nebp.nn.conv.bounded_log`). Both are positive, so information stays
-    symmetric positive definite for any weights of the network. The
+    0 (:func:`~tg_nebp.nn.conv.bounded_log`). Both are positive, so
+    information stays symmetric positive definite for any weights of the
+    network. The
     weights stay at most slightly above one: a Gaussian BP message is
     never worth more than its factor's information (the loops already
     count some twice), and larger weights let training buy a small
@@ -268,8 +269,9 @@ class GaussianNEBPConv(MessagePassing):
                  messages: FactorMessages, iteration: int,
                  memory: Tensor) -> CorrectionFeatures:
         r"""The invariant inputs of the correction in one iteration
-        (:class:`~tg_nebp.nn.conv.CorrectionFeatures`), from the beliefs (the linearization
-        point), the factors' linearization and Gaussian BP's messages."""
+        (:class:`~tg_nebp.nn.conv.CorrectionFeatures`), from the beliefs
+        (the linearization point), the factors' linearization and Gaussian
+        BP's messages."""
         width = linearization.grad.size(-1) // 2
         cov = position_covariance(belief, width, anchor)
         source, target = factors.index
