@@ -111,6 +111,37 @@ def test_connect_matches_double_loop(max_range, block_size):
     assert set(got) == ref
 
 
+def dense_connect(pos, receiver, max_range):
+    # every pair's distance as cdist computes it without its matmul
+    # shortcut, in one dense matrix: the search the cell list replaced
+    within = torch.cdist(pos, pos, compute_mode='donot_use_mm_for_euclid_dist'
+                         ) <= max_range
+    within &= receiver.view(1, -1)
+    within.fill_diagonal_(False)
+    return torch.stack(within.nonzero(as_tuple=True))
+
+
+@pytest.mark.parametrize('seed', range(8))
+def test_cell_search_gives_the_dense_search_exactly(seed):
+    # 2-D and 3-D, float32 and float64, a quarter of the nodes on a lattice
+    # of spacing max_range (pairs exactly at the boundary), any block size:
+    # the same links in the same order, bit for bit
+    g = torch.Generator().manual_seed(seed)
+    dim, dtype = 2 + seed % 2, (torch.float32, torch.float64)[seed // 2 % 2]
+    n = int(torch.randint(30, 300, (1, ), generator=g))
+    max_range = float(1 + 29 * torch.rand(1, generator=g))
+    pos = 200 * torch.rand(n, dim, generator=g, dtype=torch.float64) - 50
+    lattice = n // 4
+    pos[:lattice] = max_range * torch.randint(0, 5, (lattice, dim),
+                                              generator=g)
+    pos = pos.to(dtype)
+    receiver = torch.rand(n, generator=g) < 0.8
+    block = int(torch.randint(1, 64, (1, ), generator=g))
+    edges = GaussianRange(max_range=max_range).connect(pos, receiver, block)
+    expected = dense_connect(pos, receiver, max_range)
+    assert expected.size(1) > 0 and torch.equal(edges, expected)
+
+
 def test_connect_includes_pairs_exactly_at_max_range():
     # a chain with spacing exactly max_range along the x axis (exactly
     # representable differences) plus random clutter: > 25 nodes

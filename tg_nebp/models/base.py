@@ -568,31 +568,72 @@ class RangeModel(MeasurementModel):
         raise NotImplementedError
 
     def connect(self, pos: Tensor, receiver: Tensor,
-                block_size: int = 2048) -> Tensor:
+                block_size: int = 65536) -> Tensor:
         r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
         from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
         j` within :obj:`max_range` of it, for positions :obj:`pos`
-        :math:`(N, D)`, ordered by sender, then receiver. Senders are handled
-        :obj:`block_size` at a time, so memory stays :math:`O(N)` per
-        block."""
-        num_nodes = pos.size(0)
+        :math:`(N, D)`, ordered by sender, then receiver.
+
+        A cell list: the nodes are binned into cells a little wider than
+        :obj:`max_range`, so that a pair within range lies in the same or
+        adjacent cells, and only those pairs are measured: time and memory
+        grow linearly with :math:`N` at a fixed density (a dense distance
+        matrix grows quadratically). Receivers are handled
+        :obj:`block_size` at a time. Every candidate pair's distance is
+        computed as :func:`torch.cdist` computes it without its
+        matrix-multiplication shortcut (which cancels catastrophically, so
+        that pairs at the boundary would flip), so the links are those of
+        the dense search exactly."""
+        num_nodes, dim = pos.shape
+        device = pos.device
+        receivers = receiver.nonzero().view(-1)
+        if num_nodes == 0 or receivers.numel() == 0:
+            return torch.empty(2, 0, dtype=torch.long, device=device)
+        # the cell of every node, in float64 with 1 % to spare: rounding
+        # never puts a pair within range two cells apart
+        width = self.max_range * 1.01
+        scaled = pos.double() - pos.double().min(0).values
+        if math.isfinite(width):
+            scaled = scaled / width
+        else:  # one cell holds every node
+            scaled = torch.zeros_like(scaled)
+        cell = torch.floor(scaled).long() + 1  # +1: room for offset -1
+        extent = cell.max(0).values + 2
+        strides = torch.cumprod(torch.cat([extent.new_ones(1),
+                                           extent[:-1]]), 0)
+        key = (cell * strides).sum(-1)
+        order = torch.argsort(key, stable=True)
+        cells, counts = torch.unique_consecutive(key[order],
+                                                 return_counts=True)
+        starts = torch.cumsum(counts, 0) - counts
+        offsets = torch.cartesian_prod(*[torch.tensor(
+            [-1, 0, 1], device=device)] * dim).view(-1, dim)
+        neighbours = (offsets * strides).sum(-1)  # [3^D]
         blocks = []
-        for start in range(0, num_nodes, block_size):
-            senders = pos[start:start + block_size]
-            # the matrix-multiplication shortcut of cdist cancels
-            # catastrophically: pairs at the boundary would flip, so compute
-            # every difference explicitly
-            within = torch.cdist(
-                senders, pos, compute_mode='donot_use_mm_for_euclid_dist'
-            ) <= self.max_range
-            within &= receiver.view(1, -1)  # column i receives
-            rows = torch.arange(senders.size(0), device=pos.device)
-            within[rows, rows + start] = False  # no self-edges
-            src, dst = within.nonzero(as_tuple=True)
-            blocks.append(torch.stack([src + start, dst]))
-        if not blocks:
-            return torch.empty(2, 0, dtype=torch.long, device=pos.device)
-        return torch.cat(blocks, dim=1)
+        for first in range(0, receivers.numel(), block_size):
+            targets = receivers[first:first + block_size]
+            wanted = key[targets].unsqueeze(1) + neighbours  # [R, 3^D]
+            slot = torch.searchsorted(cells, wanted).clamp_max(
+                cells.numel() - 1)
+            present = cells[slot] == wanted
+            count = torch.where(present, counts[slot], 0).view(-1)
+            begin = starts[slot].view(-1)
+            # every (receiver, neighbouring cell) run of nodes, expanded
+            total = int(count.sum())
+            run = torch.repeat_interleave(
+                torch.arange(count.numel(), device=device), count)
+            within = torch.arange(total, device=device) - (
+                torch.cumsum(count, 0) - count)[run]
+            senders = order[begin[run] + within]
+            ends = targets[run // neighbours.numel()]
+            distance = torch.cdist(
+                pos[senders].unsqueeze(1), pos[ends].unsqueeze(1),
+                compute_mode='donot_use_mm_for_euclid_dist').view(-1)
+            keep = (distance <= self.max_range) & (senders != ends)
+            blocks.append(torch.stack([senders[keep], ends[keep]]))
+        edges = torch.cat(blocks, dim=1)
+        # ordered by sender, then receiver
+        return edges[:, torch.argsort(edges[0] * num_nodes + edges[1])]
 
 
 class LinkPairRange(RangeModel):
