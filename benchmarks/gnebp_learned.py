@@ -35,7 +35,6 @@ def main():
     args = parser.parse_args()
 
     from tg_nebp.datasets import load_datasets
-    from tg_nebp.nn.conv.gaussian_nebp_conv import bounded_log
     from tg_nebp.training import gaussian_nebp_from_checkpoint
     from tg_nebp.utils import link_factors
 
@@ -47,7 +46,6 @@ def main():
     weights = {'los': [], 'nlos': []}
     inflations, consistencies = [], []
     current = {}
-    low, high = (math.log(b) for b in conv.weight_range)
 
     def on_linearize(belief, edge_index, edge_attr, factors,
                      generator=None):
@@ -62,11 +60,12 @@ def main():
         return original_linearize(belief, edge_index, edge_attr, factors,
                                   generator)
 
-    def on_weight(module, inputs, output):
-        weight = torch.exp(bounded_log(output.view(-1), low, high))
-        nlos = current['message_nlos']
-        weights['nlos'].append(weight[nlos].detach())
-        weights['los'].append(weight[~nlos].detach())
+    def on_weights(edge):
+        weight = original_weights(edge)
+        flat, nlos = weight.view(-1), current['message_nlos']
+        weights['nlos'].append(flat[nlos].detach())
+        weights['los'].append(flat[~nlos].detach())
+        return weight
 
     def on_inflation(cov, memory, anchor):
         kappa = original_inflation(cov, memory, anchor)
@@ -77,8 +76,9 @@ def main():
 
     original_linearize, original_inflation = (conv.bp.linearize,
                                               conv.inflation)
+    original_weights = conv.message_weights
     conv.bp.linearize, conv.inflation = on_linearize, on_inflation
-    conv.weight_head.register_forward_hook(on_weight)
+    conv.message_weights = on_weights
     with torch.no_grad():
         for data in dataset:
             current['anchor'] = data.anchor

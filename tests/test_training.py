@@ -16,7 +16,7 @@ from torch_geometric.data import Batch
 from tg_nebp.datasets import Scenario
 from tg_nebp.filters import NEBP, GaussianNEBP, StepOutput
 from tg_nebp.training import (CHECKPOINT_VERSION, PRETRAINED, adam,
-                              checkpoint_path, gaussian_nebp_from_checkpoint,
+                              checkpoint_base, checkpoint_path, gaussian_nebp_from_checkpoint,
                               gaussian_step_loss, load_checkpoint,
                               nebp_from_checkpoint, position_loss,
                               save_checkpoint, step_loss,
@@ -619,6 +619,10 @@ def test_gaussian_checkpoint_round_trip_and_refusals(tmp_path):
     torch.save(state, tmp_path / 'unknown.pt')
     with pytest.raises(ValueError, match=r"unknown base 'kalman'"):
         tracker_from_checkpoint(tmp_path / 'unknown.pt')
+    with pytest.raises(ValueError, match=r"unknown base 'kalman'"):
+        checkpoint_base(tmp_path / 'unknown.pt')
+    assert (checkpoint_base(path), checkpoint_base(particle)) == (
+        'gaussian', 'particle')
 
 
 @pytest.mark.parametrize('name', PRETRAINED)

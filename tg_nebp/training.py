@@ -29,7 +29,8 @@ from tg_nebp.utils import derive_seed, process_group
 __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
            'position_loss', 'save_checkpoint', 'load_checkpoint',
            'nebp_from_checkpoint', 'gaussian_nebp_from_checkpoint',
-           'tracker_from_checkpoint', 'checkpoint_path', 'gaussian_step_loss',
+           'tracker_from_checkpoint', 'checkpoint_path', 'checkpoint_base',
+           'gaussian_step_loss',
            'checkpoint_history', 'CHECKPOINT_VERSION', 'MAX_LR', 'BASES',
            'PRETRAINED']
 
@@ -152,14 +153,15 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
     return state
 
 
-def _load_base(path: Union[str, Path], base: str) -> dict:
-    # a checkpoint of 'base', or a ValueError that names what it holds
+def _load_base(path: Union[str, Path], base: Optional[str] = None) -> dict:
+    # a checkpoint of a known base (of 'base' if given), or a ValueError
+    # that names what it holds
     state = load_checkpoint(path)
     held = base_of(state['config'])
     if held not in BASES:
         raise ValueError(f"checkpoint '{path}' holds an NEBP of unknown base "
                          f"{held!r} (known: {', '.join(BASES)})")
-    if held != base:
+    if base is not None and held != base:
         raise ValueError(f"checkpoint '{path}' holds a {held} NEBP, not a "
                          f"{base} one: evaluate it with --method "
                          f"{_METHOD_OF_BASE[held]}")
@@ -222,8 +224,15 @@ def tracker_from_checkpoint(path: Union[str, Path]) -> Tracker:
     r"""The tracker of a checkpoint of either base (:data:`BASES`), as it
     was trained; a name of :data:`PRETRAINED` is the shipped one."""
     path = checkpoint_path(path)
-    state = load_checkpoint(path)
-    return _rebuilt(path, _load_base(path, base_of(state['config'])), {})
+    return _rebuilt(path, _load_base(path), {})
+
+
+def checkpoint_base(path: Union[str, Path]) -> str:
+    r"""The base (:data:`BASES`) of the checkpoint at :obj:`path` (a name
+    of :data:`PRETRAINED` is the shipped one); an unknown base is a
+    :class:`ValueError` naming it."""
+    path = checkpoint_path(path)
+    return base_of(_load_base(path)['config'])
 
 
 def _sum_over_ranks(values: Sequence[float], device: str) -> List[float]:

@@ -70,7 +70,7 @@ def compare_methods(scenario: Scenario,
     <hash>"`; a name of :data:`~tg_nebp.training.PRETRAINED` is the
     shipped checkpoint): the file's hash is part of the key, so a changed
     checkpoint is a new row."""
-    from tg_nebp.training import (base_of, checkpoint_path, load_checkpoint,
+    from tg_nebp.training import (checkpoint_base, checkpoint_path,
                                   tracker_from_checkpoint)
 
     motion, own = scenario.motion_model, scenario.measurement_model
@@ -110,11 +110,7 @@ def compare_methods(scenario: Scenario,
         path = checkpoint_path(path)
         if not path.is_file():
             raise ValueError(f"the NEBP checkpoint '{path}' does not exist")
-        base = base_of(load_checkpoint(path)['config'])
-        if base not in CHECKPOINT_ROWS:
-            raise ValueError(f"checkpoint '{path}' holds an NEBP of unknown "
-                             f"base {base!r} (known: "
-                             f"{', '.join(CHECKPOINT_ROWS)})")
+        base = checkpoint_base(path)
         kind = CHECKPOINT_ROWS[base]
         methods[f'{kind} {path.name} {_file_hash(path)}'] = (
             f'{"Gaussian " if base == "gaussian" else ""}NEBP from {path}',

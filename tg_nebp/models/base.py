@@ -592,7 +592,8 @@ class RangeModel(MeasurementModel):
         # the cell of every node, in float64 with 1 % to spare: rounding
         # never puts a pair within range two cells apart
         width = self.max_range * 1.01
-        scaled = pos.double() - pos.double().min(0).values
+        scaled = pos.double()
+        scaled = scaled - scaled.min(0).values
         if math.isfinite(width):
             scaled = scaled / width
         else:  # one cell holds every node

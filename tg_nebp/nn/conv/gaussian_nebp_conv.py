@@ -367,10 +367,7 @@ class GaussianNEBPConv(MessagePassing):
         gathered = self.propagate(factors.index, edge=edge,
                                   size=(node.size(0), node.size(0)))
         hidden = self.node_update(torch.cat([gathered, node], -1), hidden)
-        low, high = self.weight_range
-        weight = torch.exp(bounded_log(self.weight_head(edge),
-                                       math.log(low), math.log(high)))
-        weight = weight.to(new.eta)
+        weight = self.message_weights(edge).to(new.eta)
         tempered = FactorMessages(new.info * weight.view(-1, 1, 1),
                                   new.eta * weight)
         memory = torch.cat([hidden, features.consistency.to(dtype).view(
@@ -392,6 +389,14 @@ class GaussianNEBPConv(MessagePassing):
             raise ValueError(f"'memory' must be {weight.dtype} on "
                              f"{weight.device} (the parameters'), got "
                              f"{memory.dtype} on {memory.device}")
+
+    def message_weights(self, edge: Tensor) -> Tensor:
+        r"""The positive weight :math:`w_{st}` :math:`(M, 1)` of every
+        message edge from its embedding :math:`\mathbf{e}_{st}`, inside
+        :obj:`weight_range` (1 where the head is zero)."""
+        low, high = self.weight_range
+        return torch.exp(bounded_log(self.weight_head(edge), math.log(low),
+                                     math.log(high)))
 
     def message(self, edge: Tensor) -> Tensor:
         return edge
