@@ -232,8 +232,8 @@ CASES: Dict[str, Prepare] = {
     'nebp-with-resampler': argv_only(
         NEBP_EVALUATE + ['--checkpoint', 'absent.pt', '--resampler',
                          'systematic'], ['--resampler', 'nebp']),
-    'gbp-with-compile': argv_only(
-        ['evaluate', '--method', 'gbp', '--compile'], ['--compile', 'gbp']),
+    'iekf-with-compile': argv_only(
+        ['evaluate', '--method', 'iekf', '--compile'], ['--compile', 'iekf']),
     'device-cuda-99': argv_only(EVALUATE + ['--device', 'cuda:99'],
                                 ['--device', 'cuda:99']),
     # parameters accepted before that broke the numbers later, blaming

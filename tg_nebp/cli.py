@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
-    _add_compile(ev, 'bp, nebp: ')
+    _add_compile(ev, 'bp, nebp, gbp: ')
     _add_samples(ev, None)
     _add_resampling(ev)
     ev.set_defaults(run=_evaluate)

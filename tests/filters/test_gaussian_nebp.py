@@ -11,7 +11,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp.data import Realization
 from tg_nebp.filters import GaussianBP, GaussianNEBP
-from tg_nebp.models import ConstantVelocity
+from tg_nebp.models import ConstantVelocity, GaussianRange
 from tg_nebp.training import gaussian_step_loss
 
 from helpers import (assert_batch_equals_alone, gen, randomize,
@@ -23,17 +23,31 @@ def spd(info):
     return symmetric and not bool(torch.linalg.cholesky_ex(info)[1].any())
 
 
+class GeneralRange(GaussianRange):
+    # the same model through the general (matrix) messages: a range model
+    # with its own linearize is not sent rank-one messages
+    def linearize(self, *args):
+        return super().linearize(*args)
+
+
 def test_identity_tracker_is_gaussian_bp_bit_for_bit():
+    # bit for bit Gaussian BP's general messages, which the correction
+    # weights; to rounding the rank-one messages of plain Gaussian BP
     scenario = tiny_scenario(steps=6)
     graphs = [scenario.replace(num_agents=n).generate(gen(seed))
               for n, seed in ((3, 1), (6, 2), (5, 3))]
     for options in (dict(), dict(tolerance=None, num_iterations=7,
                                  damping=0.3, ends='receiver')):
-        plain = GaussianBP(**{'num_iterations': 20, **options})
+        general = GaussianBP(**{'num_iterations': 20, **options},
+                             measurement=GeneralRange())
+        rank_one = GaussianBP(**{'num_iterations': 20, **options})
         learned = GaussianNEBP(**options)
         for data in (graphs[0], Batch.from_data_list(graphs)):
-            a, b = plain(data), learned(data)
+            a, b = general(data), learned(data)
             assert torch.equal(a.mean, b.mean) and torch.equal(a.cov, b.cov)
+            c = rank_one(data)
+            torch.testing.assert_close(c.mean, a.mean, rtol=0, atol=1e-9)
+            torch.testing.assert_close(c.cov, a.cov, rtol=1e-9, atol=1e-12)
 
 
 def test_a_batch_equals_each_graph_alone_with_a_trained_correction():

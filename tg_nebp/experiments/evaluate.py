@@ -34,7 +34,7 @@ METHOD_OPTIONS = {
     'checkpoint': ('nebp', 'gnebp'),
     'particles': ('bp', 'nebp'),
     'samples': ('bp', 'nebp'),
-    'compile': ('bp', 'nebp'),
+    'compile': ('bp', 'nebp', 'gbp'),
     'resampler': ('bp', ),
     'regularize': ('bp', ),
     'ess_threshold': ('bp', ),
@@ -154,7 +154,8 @@ def method_tracker(method: str, scenario: Scenario,
                        ends=ends, tolerance=tolerance)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
-        return GaussianBP.recommended(**given, **models), 'gbp'
+        return GaussianBP.recommended(**given, compile=compile,
+                                      **models), 'gbp'
     if method == 'gnebp':
         if checkpoint is None:
             raise ValueError(f"method 'gnebp' needs a checkpoint "

@@ -1,4 +1,4 @@
-from typing import Iterator, Optional
+from typing import Iterator, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -8,7 +8,8 @@ from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import check_predicted_prior, graph_index
 from tg_nebp.models import MeasurementModel, MotionModel
-from tg_nebp.nn.conv.gaussian_bp_conv import (GaussianBelief, GaussianBPConv)
+from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
+                                              GaussianBPConv)
 
 __all__ = ['GaussianBP', 'GBP_RECOMMENDED']
 
@@ -23,6 +24,33 @@ def _inverse(matrices: Tensor) -> Tensor:
     # covariance <-> information of the agents' small blocks, symmetrized
     inverse = torch.linalg.inv(matrices)
     return 0.5 * (inverse + inverse.transpose(-1, -2))
+
+
+class _Active(NamedTuple):
+    # the graphs of a batch that still iterate in a time step: their nodes
+    # (rows of the batch), prior and current beliefs, links, anchor mask,
+    # previous messages, factors, memory and graph of every node
+    nodes: Tensor
+    prior: GaussianBelief
+    belief: GaussianBelief
+    edge_index: Tensor
+    edge_attr: Tensor
+    anchor: Tensor
+    messages: Optional[tuple]
+    factors: Factors
+    memory: Optional[Tensor]
+    graph_of: Tensor
+
+
+def _written(work: _Active, belief: GaussianBelief,
+             memory: Optional[Tensor]):
+    # the beliefs and memory of the whole batch with those of the graphs
+    # that iterate replaced (out of place: gradients flow)
+    belief = GaussianBelief(*(full.index_copy(0, work.nodes, part)
+                              for full, part in zip(belief, work.belief)))
+    if memory is not None:
+        memory = memory.index_copy(0, work.nodes, work.memory)
+    return belief, memory
 
 
 class GaussianBP(Tracker):
@@ -76,6 +104,10 @@ class GaussianBP(Tracker):
             marginals drops (they make its beliefs overconfident, and every
             later step counts shared information again); :obj:`1` is plain
             Gaussian BP. (default: :obj:`1.0`)
+        compile (bool, optional): Fuse the rank-one messages of a range
+            model with :func:`torch.compile` (see
+            :class:`~tg_nebp.nn.conv.GaussianBPConv`; the first steps
+            compile). (default: :obj:`False`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -87,7 +119,8 @@ class GaussianBP(Tracker):
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
                  ends: str = 'both', damping: float = 0.0,
-                 tolerance: Optional[float] = 0.01, inflation: float = 1.0):
+                 tolerance: Optional[float] = 0.01, inflation: float = 1.0,
+                 compile: bool = False):
         super().__init__(motion, measurement)
         self.num_iterations = check_positive_int(num_iterations,
                                                  'num_iterations')
@@ -96,7 +129,7 @@ class GaussianBP(Tracker):
         # beyond MAX_INFLATION the prior of every step is all but flat
         self.inflation = check_number(inflation, 'inflation', minimum=1.0,
                                       inclusive=True, maximum=MAX_INFLATION)
-        self.conv = GaussianBPConv(self.measurement, ends, damping)
+        self.conv = GaussianBPConv(self.measurement, ends, damping, compile)
 
     @classmethod
     def recommended(cls, **overrides) -> 'GaussianBP':
@@ -157,24 +190,14 @@ class GaussianBP(Tracker):
                                      anchor)
             info = torch.zeros_like(cov)
             info[agents] = _inverse(cov[agents])
-            prior = belief = GaussianBelief(mean, info)
-            messages = None
+            prior = GaussianBelief(mean, info)
             edge_attr = edge_attr.double()
             edge_index = edge_index.long()
-            factors = self.conv.factors(edge_index, anchor, mean.size(-1))
-            moving = torch.ones(num_graphs, dtype=torch.bool,
-                                device=graph_of.device)
-            for iteration in range(self.num_iterations):
-                new, messages, new_memory = self.iterate(
-                    prior, belief, edge_index, edge_attr, anchor, messages,
-                    generator, factors, memory, iteration)
-                if self.tolerance is None:
-                    belief, memory = new, new_memory
-                    continue
-                belief, memory, moving = self._converge(
-                    belief, new, memory, new_memory, graph_of, moving)
-                if not bool(moving.any()):
-                    break
+            belief, memory = self._iterate_step(
+                _Active(torch.arange(anchor.numel(), device=anchor.device),
+                        prior, prior, edge_index, edge_attr, anchor, None,
+                        self.conv.factors(edge_index, anchor, mean.size(-1)),
+                        memory, graph_of), num_graphs, generator)
             mean = belief.mean
             cov = torch.zeros_like(belief.info)
             cov[agents] = _inverse(belief.info[agents])
@@ -209,24 +232,58 @@ class GaussianBP(Tracker):
         beliefs and the memory, unchanged here."""
         return mean, cov, memory
 
-    def _converge(self, old: GaussianBelief, new: GaussianBelief,
-                  old_memory: Optional[Tensor], new_memory: Optional[Tensor],
-                  graph_of: Tensor, moving: Tensor):
-        # a graph whose means all moved by at most the tolerance has
-        # converged and keeps its beliefs for the rest of the step: each
-        # graph of a batch stops where it would stop alone (the graphs
-        # share no link, so the frozen ones do not change the others)
-        frozen = ~moving[graph_of]
-        belief = GaussianBelief(
-            torch.where(frozen.view(-1, 1), old.mean, new.mean),
-            torch.where(frozen.view(-1, 1, 1), old.info, new.info))
-        memory = (new_memory if new_memory is None else torch.where(
-            frozen.view(-1, 1), old_memory, new_memory))
-        step = (belief.mean - old.mean).abs().amax(-1)
-        largest = torch.zeros_like(moving, dtype=step.dtype).scatter_reduce(
-            0, graph_of, step, 'amax')
-        # NaN compares false: a diverged graph is not converged
-        return belief, memory, moving & ~(largest <= self.tolerance)
+    def _iterate_step(self, work: _Active, num_graphs: int, generator
+                      ) -> Tuple[GaussianBelief, Optional[Tensor]]:
+        # the iterations of one step: the beliefs and memory of every node
+        # at the end. A graph whose means all moved by at most the
+        # tolerance in an iteration has converged: it keeps that
+        # iteration's beliefs, and the iterations go on without it (the
+        # graphs share no link), so each graph of a batch gets what it gets
+        # alone and batching does not iterate converged graphs
+        belief, memory = work.belief, work.memory
+        for iteration in range(self.num_iterations):
+            new, messages, new_memory = self.iterate(
+                work.prior, work.belief, work.edge_index, work.edge_attr,
+                work.anchor, work.messages, generator, work.factors,
+                work.memory, iteration)
+            step = (new.mean - work.belief.mean).abs().amax(-1)
+            work = work._replace(belief=new, messages=messages,
+                                 memory=new_memory)
+            if self.tolerance is None:
+                continue
+            largest = step.new_zeros(num_graphs).scatter_reduce(
+                0, work.graph_of, step, 'amax')
+            # NaN compares false: a diverged graph is not converged
+            done = (largest <= self.tolerance)[work.graph_of]
+            if bool(done.any()):
+                belief, memory = _written(work, belief, memory)
+                if bool(done.all()):
+                    return belief, memory
+                work = self._restrict(work, ~done)
+        return _written(work, belief, memory)
+
+    def _restrict(self, work: _Active, keep: Tensor) -> _Active:
+        # the nodes 'keep' of the graphs that still iterate, with their
+        # links, factors, previous messages and memory: renumbered in
+        # order, so the factors' message edges keep their order and every
+        # node sums its messages as before
+        nodes = keep.nonzero().view(-1)
+        number = torch.full_like(keep, -1, dtype=torch.long)
+        number[nodes] = torch.arange(nodes.numel(), device=nodes.device)
+        links = keep[work.edge_index[1]]
+        edge_index = number[work.edge_index[:, links]]
+        anchor = work.anchor[nodes]
+        kept = keep[work.factors.index[1]]
+        return _Active(
+            work.nodes[nodes],
+            GaussianBelief(*(t[nodes] for t in work.prior)),
+            GaussianBelief(*(t[nodes] for t in work.belief)), edge_index,
+            work.edge_attr[links], anchor,
+            type(work.messages)(*(t[kept] for t in work.messages)),
+            self.conv.restricted_factors(work.factors, keep,
+                                         work.prior.mean.size(-1)),
+            None if work.memory is None else work.memory[nodes],
+            work.graph_of[nodes])
 
     def settings(self) -> dict:
         return dict(iterations=self.num_iterations,

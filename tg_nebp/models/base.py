@@ -456,19 +456,32 @@ class RangeModel(MeasurementModel):
                   ) -> Tuple[Tensor, Tensor]:
         r"""The gradient of :math:`\log p(\mathbf{z} | d)` with respect
         to the positions :math:`[\mathbf{p}_j; \mathbf{p}_i]`,
-        :math:`s [\mathbf{u}; -\mathbf{u}]` (:math:`s` the score,
-        :math:`\mathbf{u}` the unit vector from :math:`\mathbf{p}_i` to
-        :math:`\mathbf{p}_j`), and the curvature :math:`w \nabla d \,
-        \nabla d^\top` with the robust weight :math:`w`
-        (:meth:`robust_weights`; see :meth:`MeasurementModel.linearize`)."""
-        dim = sender.size(-1) // 2
-        distances, unit = unit_vectors(sender[:, :dim] - receiver[:, :dim])
-        score, weights = self.robust_weights(z, distances.view(-1, 1))
+        :math:`s [\mathbf{u}; -\mathbf{u}]`, and the curvature :math:`w
+        \nabla d \, \nabla d^\top` with :math:`\nabla d = [\mathbf{u};
+        -\mathbf{u}]`, from :meth:`range_linearization` (see
+        :meth:`MeasurementModel.linearize`)."""
+        unit, score, weights = self.range_linearization(z, sender, receiver)
         # d grows with p_j along u and with p_i against it
         direction = torch.cat([unit, -unit], -1)
         return (score.view(-1, 1) * direction,
                 weights.view(-1, 1, 1) * direction.unsqueeze(-1) *
                 direction.unsqueeze(-2))
+
+    def range_linearization(self, z: Tensor, sender: Tensor,
+                            receiver: Tensor
+                            ) -> Tuple[Tensor, Tensor, Tensor]:
+        r"""What :meth:`linearize` is made of, one link per row: the unit
+        vectors :math:`\mathbf{u}` :math:`(E, P)` from
+        :math:`\mathbf{p}_i` to :math:`\mathbf{p}_j` (zero where they
+        coincide), the scores :math:`s` :math:`(E)` and the robust weights
+        :math:`w` :math:`(E)` (:meth:`robust_weights`) at the distances
+        between :obj:`sender` and :obj:`receiver` :math:`(E, D)`. Every
+        factor is rank one along :math:`\mathbf{u}`, which lets Gaussian BP
+        send scalar messages (:class:`~tg_nebp.nn.conv.RangeMessages`)."""
+        dim = sender.size(-1) // 2
+        distances, unit = unit_vectors(sender[:, :dim] - receiver[:, :dim])
+        score, weights = self.robust_weights(z, distances.view(-1, 1))
+        return unit, score.view(-1), weights.view(-1)
 
     def robust_weights(self, z: Tensor, distances: Tensor
                        ) -> Tuple[Tensor, Tensor]:

@@ -6,8 +6,10 @@ import torch
 
 from tg_nebp.data import Realization
 from tg_nebp.filters import GaussianBP
-from tg_nebp.models import ConstantVelocity
-from tg_nebp.nn.conv import FactorMessages, GaussianBelief, GaussianBPConv
+from tg_nebp.models import (ConstantVelocity, GaussianRange, NLOSRange,
+                            StudentTRange)
+from tg_nebp.nn.conv import (FactorMessages, GaussianBelief, GaussianBPConv,
+                             RangeMessages)
 
 from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
                      linear_offset_model, linear_scenario, tiny_scenario)
@@ -126,8 +128,11 @@ def test_factors_and_message_edges():
     conv = GaussianBPConv()
     edge_index = torch.tensor([[2, 1, 0], [0, 0, 1]])
     anchor = torch.tensor([False, False, True])
-    f = conv.factors(edge_index, anchor, 4)
+    f = conv.factors(edge_index, anchor, 4, slots=True)
     assert f.ends.tolist() == [[0, 1], [0, 2]]
+    # a range model's factors are rank one: no slots unless asked for
+    assert conv.rank_one and conv.factors(edge_index, anchor,
+                                          4).curvature_slots is None
     # every link's 4 x 4 linearization (positions of [x_j; x_i]) placed in
     # its factor's [x_a; x_b], against a plain loop
     values = torch.arange(3 * 16, dtype=torch.float64).view(3, 4, 4)
@@ -326,7 +331,10 @@ def test_bad_beliefs_and_messages_are_named():
             r"'belief.mean' holds 6 nodes but the graph has 7")
     refused(belief, GaussianBelief(mean, info[..., :2]),
             r"'belief.info' must have shape \[7, 4, 4\]")
-    _, messages = conv(belief, belief, edge_index, edge_attr, anchor)
+    _, rank_one = conv(belief, belief, edge_index, edge_attr, anchor)
+    refused(belief, belief, r"'messages.direction' must have shape",
+            rank_one._replace(direction=rank_one.direction[:, :1]))
+    messages = rank_one.factor_messages()
     refused(belief, belief, r"'messages.info' must have shape",
             FactorMessages(messages.info[1:], messages.eta))
     nan = messages.eta.clone()
@@ -352,3 +360,114 @@ def test_half_precision_is_computed_in_float32():
     assert got.mean.dtype == torch.float32
     torch.testing.assert_close(got.mean, want.mean, rtol=0, atol=0)
     torch.testing.assert_close(got.info, want.info, rtol=0, atol=0)
+
+
+def in_general_form(model):
+    # the same model through the general (matrix) messages: a range model
+    # with a linearize of its own is not sent rank-one messages
+    class General(type(model)):
+        def linearize(self, *args):
+            return super().linearize(*args)
+    return General(**model.params())
+
+
+def random_beliefs(dim, seed, agents=10, anchors=3):
+    # agents and anchors in a box, beliefs near the truth with random SPD
+    # information, links within 7 m in both directions except a few in one
+    # only (factors of one and of two ranges)
+    g = gen(seed)
+    n, size = agents + anchors, 2 * dim
+    truth = 10 * torch.rand(n, dim, generator=g, dtype=torch.float64)
+    anchor = torch.arange(n) >= agents
+    mean = torch.cat([truth, torch.randn(n, dim, generator=g,
+                                         dtype=torch.float64)], -1)
+    mean[:agents, :dim] += torch.randn(agents, dim, generator=g,
+                                       dtype=torch.float64)
+    root = torch.randn(n, size, size, generator=g, dtype=torch.float64)
+    info = root @ root.transpose(-1, -2) / size + 0.2 * torch.eye(size)
+    info = torch.where(anchor.view(-1, 1, 1), torch.zeros_like(info), info)
+    src, dst = torch.meshgrid(torch.arange(n), torch.arange(n),
+                              indexing='ij')
+    near = (torch.cdist(truth, truth) < 7) & (src != dst) & ~anchor[dst]
+    near &= torch.rand(n, n, generator=g) < 0.9
+    edge_index = torch.stack([src[near], dst[near]])
+    distance = (truth[edge_index[0]] - truth[edge_index[1]]).norm(dim=-1)
+    # some ranges far off (NLOS), where the robust weights matter
+    edge_attr = (distance + 0.3 * torch.randn(distance.shape, generator=g,
+                                              dtype=torch.float64) +
+                 4 * (torch.rand(distance.shape, generator=g) < 0.15)
+                 ).clamp_min(0).view(-1, 1)
+    return GaussianBelief(mean, info), edge_index, edge_attr, anchor
+
+
+@pytest.mark.parametrize('dim', [2, 3])
+@pytest.mark.parametrize('ends', ['both', 'receiver'])
+@pytest.mark.parametrize('model', [GaussianRange(0.3), StudentTRange(0.3, 3),
+                                   NLOSRange(0.3, 0.2, 3.0)],
+                         ids=['gaussian', 'student-t', 'nlos'])
+def test_rank_one_messages_equal_the_general_messages(dim, ends, model):
+    # the closed-form scalar messages of range factors against the general
+    # Schur complements of their matrices, over iterations that remove
+    # the previous messages, with anchors, in 2-D and 3-D
+    prior, edge_index, edge_attr, anchor = random_beliefs(dim, seed=dim)
+    fast = GaussianBPConv(model, ends)
+    general = GaussianBPConv(in_general_form(model), ends)
+    assert fast.rank_one and not general.rank_one
+    beliefs, messages = [prior, prior], [None, None]
+    for iteration in range(6):
+        for k, conv in enumerate((fast, general)):
+            beliefs[k], messages[k] = conv(prior, beliefs[k], edge_index,
+                                           edge_attr, anchor, messages[k])
+        assert isinstance(messages[0], RangeMessages)
+        for got, expected in zip(messages[0].factor_messages(),
+                                 messages[1]):
+            torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(beliefs[0].mean, beliefs[1].mean,
+                                   rtol=0, atol=1e-9)
+        torch.testing.assert_close(beliefs[0].info, beliefs[1].info,
+                                   rtol=1e-9, atol=1e-9)
+    # the iterations moved the beliefs: the test is not of a fixed point
+    assert float((beliefs[0].mean - prior.mean).abs().max()) > 0.1
+
+
+@pytest.mark.parametrize('ends', ['both', 'receiver'])
+@pytest.mark.parametrize('slots', [False, True])
+def test_restricted_factors_are_the_factors_of_the_kept_links(ends, slots):
+    # three graphs of a batch, the middle one dropped: the factors of the
+    # other two, renumbered, without sorting again
+    graphs = [random_beliefs(2, seed, agents=5 + seed) for seed in (4, 5, 6)]
+    offsets = [0, 12, 25]  # 9, 10 and 11 agents and 3 anchors
+    edge_index = torch.cat([g[1] + o for g, o in zip(graphs, offsets)], 1)
+    anchor = torch.cat([g[3] for g in graphs])
+    keep = torch.ones_like(anchor)
+    keep[offsets[1]:offsets[2]] = False
+    conv = GaussianBPConv(ends=ends)
+    full = conv.factors(edge_index, anchor, 4, slots=slots)
+    number = torch.cumsum(keep, 0) - 1
+    links = keep[edge_index[1]]
+    expected = conv.factors(number[edge_index[:, links]], anchor[keep], 4,
+                            slots=slots)
+    got = conv.restricted_factors(full, keep, 4)
+    for field, value in got._asdict().items():
+        other = getattr(expected, field)
+        assert (value is None and other is None) or torch.equal(
+            value, other), field
+    assert got.index.size(1) < full.index.size(1)
+
+
+def test_compiled_rank_one_messages_equal_the_eager_ones():
+    # the torch.compile-fused messages, first and later iterations (two
+    # compiled graphs), in 2-D and 3-D (dynamic sizes), to rounding
+    eager, compiled = GaussianBPConv(), GaussianBPConv(compile=True)
+    for dim in (2, 3):
+        prior, edge_index, edge_attr, anchor = random_beliefs(dim, seed=dim)
+        beliefs, messages = [prior, prior], [None, None]
+        for iteration in range(3):
+            for k, conv in enumerate((eager, compiled)):
+                beliefs[k], messages[k] = conv(prior, beliefs[k], edge_index,
+                                               edge_attr, anchor, messages[k])
+            for got, expected in zip(messages[1], messages[0]):
+                torch.testing.assert_close(got, expected, rtol=1e-12,
+                                           atol=1e-12)
+            torch.testing.assert_close(beliefs[1].mean, beliefs[0].mean,
+                                       rtol=0, atol=1e-12)

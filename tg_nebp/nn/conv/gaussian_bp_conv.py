@@ -6,11 +6,12 @@ from torch_geometric.nn.conv import MessagePassing
 
 from tg_nebp.data.validation import (check_gaussian_belief, check_links,
                                      check_number)
-from tg_nebp.models import GaussianRange, MeasurementModel
+from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
 from tg_nebp.utils import compute_dtype, link_factors, long_edge_index
 
-__all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages', 'Factors',
-           'Linearization', 'ENDS']
+__all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages',
+           'RangeMessages', 'Factors', 'Linearization', 'ENDS',
+           'position_covariance']
 
 #: Which ends of a link its range informs: :obj:`"both"` (every measured
 #: range is shared with the neighbour it measured) or :obj:`"receiver"`
@@ -34,6 +35,28 @@ class FactorMessages(NamedTuple):
     the next iteration's extrinsic beliefs."""
     info: Tensor
     eta: Tensor
+
+
+class RangeMessages(NamedTuple):
+    r"""The factor-to-variable messages of range factors in rank-one form
+    (:meth:`GaussianBPConv.range_messages`): a range factor's information
+    lies along its link's direction, so each message is a scalar
+    pseudo-measurement of the target along the unit vector
+    :obj:`direction` :math:`\mathbf{u}` :math:`(M, R)` from the target to
+    the source, with information :math:`a \mathbf{u} \mathbf{u}^\top`
+    (:obj:`weight` :math:`a` :math:`(M)`) and information vector :math:`b
+    \mathbf{u}` (:obj:`coefficient` :math:`b` :math:`(M)`)."""
+    weight: Tensor
+    coefficient: Tensor
+    direction: Tensor
+
+    def factor_messages(self) -> FactorMessages:
+        r"""The same messages as matrices and vectors
+        (:class:`FactorMessages`), exactly symmetric."""
+        u = self.direction
+        return FactorMessages(
+            self.weight.view(-1, 1, 1) * (u.unsqueeze(-1) * u.unsqueeze(-2)),
+            self.coefficient.view(-1, 1) * u)
 
 
 class Linearization(NamedTuple):
@@ -60,14 +83,24 @@ class Factors(NamedTuple):
     each reads its factor with its target's half second
     (:obj:`message_slots` :math:`(M (2R)^2)`, :obj:`message_eta_slots`
     :math:`(M \cdot 2R)`) and the message edge of the same factor to the
-    other end :obj:`reverse` :math:`(M)` (:math:`-1` if none)."""
+    other end :obj:`reverse` :math:`(M)` (:math:`-1` if none); the factor
+    of every link :obj:`factor` :math:`(E)` and whether it runs from the
+    factor's second end to its first (:obj:`swapped`), the factor of every
+    message edge :obj:`link` :math:`(M)` and the end it informs
+    (:obj:`end`, 0 or 1). The slots are :obj:`None` where the factors
+    were made for the rank-one messages of range factors, which do not
+    read them."""
     ends: Tensor
-    curvature_slots: Tensor
-    gradient_slots: Tensor
+    curvature_slots: Optional[Tensor]
+    gradient_slots: Optional[Tensor]
     index: Tensor
-    message_slots: Tensor
-    message_eta_slots: Tensor
+    message_slots: Optional[Tensor]
+    message_eta_slots: Optional[Tensor]
     reverse: Tensor
+    factor: Tensor
+    swapped: Tensor
+    link: Tensor
+    end: Tensor
 
 
 def _halves(width: int, swap: Tensor) -> Tensor:
@@ -85,6 +118,35 @@ def _slots(item: Tensor, swap: Tensor, width: int) -> Tuple[Tensor, Tensor]:
     matrix = (item.view(-1, 1, 1) * size * size + order.view(-1, size, 1) *
               size + order.view(-1, 1, size))
     return matrix.reshape(-1), (item.view(-1, 1) * size + order).reshape(-1)
+
+
+def _placed(factors: Factors, width: int) -> Factors:
+    # the factors with the slots of the general messages, for factors made
+    # for the rank-one ones
+    curvature, gradient = _slots(factors.factor, factors.swapped, width)
+    message, message_eta = _slots(factors.link, factors.end == 0, width)
+    return factors._replace(curvature_slots=curvature,
+                            gradient_slots=gradient, message_slots=message,
+                            message_eta_slots=message_eta)
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    # the dot products of vectors given by components (R, M), summed over
+    # the few components one by one (a reduction over a short dimension is
+    # many times slower)
+    out = a[0] * b[0]
+    for k in range(1, a.size(0)):
+        out = out + a[k] * b[k]
+    return out
+
+
+def _matvec(matrices: Tensor, vectors: Tensor) -> Tensor:
+    # the products of many small matrices (R, R, M) and vectors (R, M), by
+    # components as _dot
+    out = matrices[:, 0] * vectors[0]
+    for k in range(1, vectors.size(0)):
+        out = out + matrices[:, k] * vectors[k]
+    return out
 
 
 def _inverse(matrices: Tensor) -> Tensor:
@@ -122,15 +184,31 @@ def _marginal_information(info: Tensor, mean: Tensor, width: int,
     return info_rr, eta_r.masked_fill(anchor.view(-1, 1), 0.0)
 
 
-def _check_messages(messages: FactorMessages, count: int,
-                    width: int) -> None:
+def position_covariance(belief: GaussianBelief, width: int,
+                        anchor: Tensor) -> Tensor:
+    r"""Every node's covariance on its first :obj:`width` state entries
+    :math:`(N, R, R)` (the factors' scope), from its information; zero for
+    anchors (known)."""
+    eye = torch.eye(belief.info.size(-1), dtype=belief.info.dtype,
+                    device=belief.info.device)
+    cov = torch.linalg.inv(torch.where(anchor.view(-1, 1, 1), eye,
+                                       belief.info))[:, :width, :width]
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    return cov.masked_fill(anchor.view(-1, 1, 1), 0.0)
+
+
+def _check_messages(messages, count: int, width: int) -> None:
     # the previous iteration's messages, one per message edge of the
     # factors: a message of another graph would be read at wrong slots
-    if not isinstance(messages, FactorMessages):
-        raise TypeError(f"'messages' must be FactorMessages, got "
-                        f"{type(messages).__name__}")
-    for field, shape in (('info', (count, width, width)),
-                         ('eta', (count, width))):
+    if isinstance(messages, FactorMessages):
+        shapes = (('info', (count, width, width)), ('eta', (count, width)))
+    elif isinstance(messages, RangeMessages):
+        shapes = (('weight', (count,)), ('coefficient', (count,)),
+                  ('direction', (count, width)))
+    else:
+        raise TypeError(f"'messages' must be FactorMessages or "
+                        f"RangeMessages, got {type(messages).__name__}")
+    for field, shape in shapes:
         value = getattr(messages, field)
         if not isinstance(value, Tensor) or value.shape != shape:
             raise ValueError(f"'messages.{field}' must have shape "
@@ -214,6 +292,10 @@ class GaussianBPConv(MessagePassing):
             previous message in each new one, :math:`(1 - \beta)
             \mathbf{m}_\mathrm{new} + \beta \mathbf{m}_\mathrm{old}` in
             information form. (default: :obj:`0.0`)
+        compile (bool, optional): Compute the rank-one messages
+            (:meth:`range_messages`) with a :func:`torch.compile`-fused
+            kernel (the first calls compile; the same arithmetic, equal to
+            rounding). (default: :obj:`False`)
 
     Shapes:
         - **input:**
@@ -228,7 +310,8 @@ class GaussianBPConv(MessagePassing):
           :math:`(M, R, R)`, :math:`(M, R)`
     """
     def __init__(self, measurement: Optional[MeasurementModel] = None,
-                 ends: str = 'both', damping: float = 0.0):
+                 ends: str = 'both', damping: float = 0.0,
+                 compile: bool = False):
         super().__init__(aggr='add', node_dim=0)
         self.measurement = measurement or GaussianRange()
         if not isinstance(self.measurement, MeasurementModel):
@@ -242,9 +325,15 @@ class GaussianBPConv(MessagePassing):
             raise ValueError(f"'damping' must lie in [0, 1), got {damping}")
         self.ends = ends
         self.damping = damping
+        self.compile = bool(compile)
+        # the pointwise arithmetic of many message edges and its gathers
+        # fuse into a few loops (the sums into the beliefs stay outside)
+        self._range_messages = torch.compile(
+            self.range_messages, dynamic=True) if compile else \
+            self.range_messages
 
-    def factors(self, edge_index: Tensor, anchor: Tensor,
-                state_dim: int) -> Factors:
+    def factors(self, edge_index: Tensor, anchor: Tensor, state_dim: int,
+                slots: Optional[bool] = None) -> Factors:
         r"""The factors of the links :obj:`edge_index` :math:`(2, E)` and
         the message edges that carry their messages, for states of size
         :obj:`state_dim` (:class:`~tg_nebp.nn.conv.Factors`): what the
@@ -254,16 +343,55 @@ class GaussianBPConv(MessagePassing):
         factor on :math:`[\mathbf{x}_a; \mathbf{x}_b]`, :math:`a < b`,
         that informs both; with :obj:`ends="receiver"` every measurement
         is its own factor, whose one message goes to the agent that
-        measured it."""
+        measured it. :obj:`slots`: whether to place the matrices of the
+        general messages (by default, unless :attr:`rank_one`)."""
         graph = link_factors(edge_index, anchor, self.ends)
         width = len(self.measurement.scope(state_dim))
-        curvature_slots, gradient_slots = _slots(graph.factor,
-                                                 graph.swapped, width)
-        message_slots, message_eta_slots = _slots(graph.link, graph.end == 0,
-                                                  width)
-        return Factors(graph.ends, curvature_slots, gradient_slots,
-                       graph.index, message_slots, message_eta_slots,
-                       graph.reverse)
+        placed = (None, None, None, None)
+        if slots or (slots is None and not self.rank_one):
+            placed = (*_slots(graph.factor, graph.swapped, width),
+                      *_slots(graph.link, graph.end == 0, width))
+        return Factors(graph.ends, placed[0], placed[1], graph.index,
+                       placed[2], placed[3], graph.reverse, graph.factor,
+                       graph.swapped, graph.link, graph.end)
+
+    def restricted_factors(self, factors: Factors, keep: Tensor,
+                           state_dim: int) -> Factors:
+        r"""The :obj:`factors` of the nodes :obj:`keep` (a bool mask) and
+        of their links, the nodes renumbered in order: what
+        :meth:`factors` gives for the kept links, without sorting them
+        again (the time loop's graphs that still iterate). Every link of a
+        kept node must have both ends kept (whole graphs of a batch)."""
+        number = torch.cumsum(keep, 0) - 1
+        kept_factor = keep[factors.ends[:, 1]]
+        factor_number = torch.cumsum(kept_factor, 0) - 1
+        kept_link = kept_factor[factors.factor]
+        kept_message = keep[factors.index[1]]
+        message_number = torch.cumsum(kept_message, 0) - 1
+        reverse = factors.reverse[kept_message]
+        reverse = torch.where(reverse >= 0,
+                              message_number[reverse.clamp_min(0)], reverse)
+        restricted = Factors(
+            number[factors.ends[kept_factor]], None, None,
+            number[factors.index[:, kept_message]], None, None, reverse,
+            factor_number[factors.factor[kept_link]],
+            factors.swapped[kept_link],
+            factor_number[factors.link[kept_message]],
+            factors.end[kept_message])
+        if factors.curvature_slots is None:
+            return restricted
+        return _placed(restricted, len(self.measurement.scope(state_dim)))
+
+    @property
+    def rank_one(self) -> bool:
+        r"""Whether :meth:`forward` sends rank-one messages
+        (:meth:`range_messages`): the measurement model is a
+        :class:`~tg_nebp.models.RangeModel` that linearizes as every
+        range model does (its factors lie along their links) and there is
+        no damping (which would mix two directions)."""
+        return (isinstance(self.measurement, RangeModel) and
+                type(self.measurement).linearize is RangeModel.linearize and
+                self.damping == 0)
 
     def forward(self, prior: GaussianBelief, belief: GaussianBelief,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
@@ -305,6 +433,13 @@ class GaussianBPConv(MessagePassing):
         prior, belief, edge_index, edge_attr, messages, factors = (
             self.prepare(prior, belief, edge_index, edge_attr, anchor,
                          messages, factors, validate))
+        if self.rank_one and not isinstance(messages, FactorMessages):
+            new = self._range_messages(belief, edge_index, edge_attr,
+                                       anchor, factors, messages)
+            return self.beliefs(prior, belief, new.factor_messages(),
+                                factors, anchor), new
+        if isinstance(messages, RangeMessages):
+            messages = messages.factor_messages()
         linearization = self.linearize(belief, edge_index, edge_attr,
                                        factors, generator)
         new = self.messages(belief, anchor, factors, linearization, messages)
@@ -340,7 +475,7 @@ class GaussianBPConv(MessagePassing):
         if validate and messages is not None:
             _check_messages(messages, factors.index.size(1), width)
         if messages is not None:
-            messages = FactorMessages(*(t.to(dtype) for t in messages))
+            messages = type(messages)(*(t.to(dtype) for t in messages))
         # the scope is a slice of every state: the leading entries (a range
         # model's positions, or the whole state)
         if tuple(scope) != tuple(range(width)):
@@ -360,6 +495,8 @@ class GaussianBPConv(MessagePassing):
         ranges of a pair summed into one factor. Inputs as :meth:`prepare`
         gives them (checked, in the compute dtype)."""
         width = len(self.measurement.scope(belief.mean.size(-1)))
+        if factors.curvature_slots is None:
+            factors = _placed(factors, width)
         src, dst = edge_index
         grad, curvature = self.measurement.linearize(
             edge_attr, belief.mean[src], belief.mean[dst], generator)
@@ -382,6 +519,92 @@ class GaussianBPConv(MessagePassing):
             factor_eta.view(-1)[factors.message_eta_slots].view(
                 -1, 2 * width),
             factor_grad[factors.message_eta_slots].view(-1, 2 * width))
+
+    def range_messages(self, belief: GaussianBelief, edge_index: Tensor,
+                       edge_attr: Tensor, anchor: Tensor, factors: Factors,
+                       messages: Optional[RangeMessages] = None
+                       ) -> RangeMessages:
+        r"""The messages of one iteration in rank-one form
+        (:class:`~tg_nebp.nn.conv.RangeMessages`), for a range model
+        (:attr:`rank_one`): the same messages as :meth:`messages` sends, in
+        closed form. The factor of a pair is :math:`W \nabla d \, \nabla
+        d^\top` and its gradient :math:`S \nabla d`, :math:`\nabla d =
+        [\mathbf{u}; -\mathbf{u}]` (:math:`W`, :math:`S` the sums of its
+        links' robust weights and scores from
+        :meth:`~tg_nebp.models.RangeModel.range_linearization`), so the
+        Schur complement that marginalizes the source collapses by the
+        Sherman-Morrison formula to
+
+        .. math::
+            a = \frac{W}{1 + W \sigma}, \quad b = \frac{W m - W
+            \bar{d} - S}{1 + W \sigma},
+
+        with :math:`\bar{d} = \mathbf{u}^\top (\bar{\mathbf{p}}_s -
+        \bar{\mathbf{p}}_t)` and the source's extrinsic variance
+        :math:`\sigma` and mean :math:`m` along :math:`\mathbf{u}` (zero
+        and :math:`\mathbf{u}^\top \mathbf{p}_s` for an anchor). The
+        extrinsic belief removes the factor's previous rank-one message
+        :math:`(a', b', \mathbf{u}')` to the source from its covariance
+        :math:`\boldsymbol{\Sigma}_s` and mean :math:`\boldsymbol{\mu}_s`
+        by Sherman-Morrison again: with :math:`\tau = \mathbf{u}'^\top
+        \boldsymbol{\Sigma}_s \mathbf{u}'` and :math:`\kappa =
+        \mathbf{u}^\top \boldsymbol{\Sigma}_s \mathbf{u}'`,
+        :math:`\sigma = \mathbf{u}^\top \boldsymbol{\Sigma}_s \mathbf{u}
+        + a' \kappa^2 / (1 - a' \tau)` and :math:`m = \mathbf{u}^\top
+        \boldsymbol{\mu}_s + \kappa (a' \mathbf{u}'^\top
+        \boldsymbol{\mu}_s - b') / (1 - a' \tau)`. Every quantity is a
+        scalar of a message edge: no matrix of a link is formed. Inputs as
+        :meth:`prepare` gives them."""
+        width = len(self.measurement.scope(belief.mean.size(-1)))
+        src, dst = edge_index
+        unit, score, weight = self.measurement.range_linearization(
+            edge_attr, belief.mean.index_select(0, src),
+            belief.mean.index_select(0, dst))
+        count = factors.ends.size(0)
+        # vectors by components (R, M), each a contiguous row, so that the
+        # few-term sums below are whole-row operations.
+        # A factor's direction, from its second end to its first: a link
+        # from b to a points the other way (exactly: the same difference,
+        # negated)
+        direction = unit.new_zeros(width, count).index_copy_(
+            1, factors.factor, torch.where(factors.swapped, -unit.t(),
+                                           unit.t()))
+        total_weight = weight.new_zeros(count).index_add_(0, factors.factor,
+                                                          weight)
+        total_score = score.new_zeros(count).index_add_(0, factors.factor,
+                                                        score)
+        source, target = factors.index
+        # from the target to the source: the factor's direction for a
+        # message to its second end
+        toward = direction.index_select(1, factors.link)
+        toward = torch.where(factors.end == 1, toward, -toward)
+        information = total_weight.index_select(0, factors.link)
+        position = belief.mean[:, :width].t()
+        at_source = position.index_select(1, source)
+        shift = information * _dot(toward, at_source - position.index_select(
+            1, target)) + total_score.index_select(0, factors.link)
+        cov = position_covariance(belief, width, anchor).permute(
+            1, 2, 0).reshape(width * width, -1).index_select(1, source).view(
+                width, width, -1)
+        along = _matvec(cov, toward)
+        variance = _dot(toward, along)
+        mean = _dot(toward, at_source)
+        if messages is not None:
+            has_old = factors.reverse >= 0
+            back = factors.reverse.clamp_min(0)
+            old_weight = torch.where(has_old, messages.weight.index_select(
+                0, back), 0.0)
+            old_coefficient = torch.where(
+                has_old, messages.coefficient.index_select(0, back), 0.0)
+            old = messages.direction.t().index_select(1, back)
+            cross = _dot(old, along)
+            remaining = 1 - old_weight * _dot(old, _matvec(cov, old))
+            variance = variance + old_weight * cross * cross / remaining
+            mean = mean + cross * (old_weight * _dot(old, at_source) -
+                                   old_coefficient) / remaining
+        scale = 1 / (1 + information * variance)
+        return RangeMessages(information * scale,
+                             (information * mean - shift) * scale, toward.t())
 
     def messages(self, belief: GaussianBelief, anchor: Tensor,
                  factors: Factors, linearization: Linearization,
@@ -472,4 +695,5 @@ class GaussianBPConv(MessagePassing):
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}({self.measurement}, '
-                f'ends={self.ends!r}, damping={self.damping})')
+                f'ends={self.ends!r}, damping={self.damping}'
+                + (', compile=True)' if self.compile else ')'))

@@ -10,11 +10,11 @@ from tg_nebp.data.validation import check_positive_int
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.gaussian_bp_conv import (FactorMessages, Factors,
                                               GaussianBelief, GaussianBPConv,
-                                              Linearization)
+                                              Linearization,
+                                              position_covariance)
 
 __all__ = ['GaussianNEBPConv', 'CorrectionFeatures', 'EDGE_FEATURES',
-           'NODE_FEATURES', 'INFLATION_FEATURES', 'position_covariance',
-           'bounded_log']
+           'NODE_FEATURES', 'INFLATION_FEATURES', 'bounded_log']
 
 #: The invariant features of a message edge :math:`s \to t` that the
 #: correction reads (see GaussianNEBPConv).
@@ -65,19 +65,6 @@ def _check_range(bounds, name: str) -> Tuple[float, float]:
         raise ValueError(f"'{name}' must be (low, high) with 0 < low < 1 < "
                          f"high, got {tuple(bounds)}")
     return low, high
-
-
-def position_covariance(belief: GaussianBelief, width: int,
-                        anchor: Tensor) -> Tensor:
-    r"""Every node's covariance on its first :obj:`width` state entries
-    :math:`(N, R, R)` (the factors' scope), from its information; zero for
-    anchors (known)."""
-    eye = torch.eye(belief.info.size(-1), dtype=belief.info.dtype,
-                    device=belief.info.device)
-    cov = torch.linalg.inv(torch.where(anchor.view(-1, 1, 1), eye,
-                                       belief.info))[:, :width, :width]
-    cov = 0.5 * (cov + cov.transpose(-1, -2))
-    return cov.masked_fill(anchor.view(-1, 1, 1), 0.0)
 
 
 def _trace_product(a: Tensor, b: Tensor) -> Tensor:
@@ -245,7 +232,13 @@ class GaussianNEBPConv(MessagePassing):
                 state_dim: int) -> Factors:
         r"""Gaussian BP's :meth:`~tg_nebp.nn.conv.GaussianBPConv.factors`
         of the links, which the iterations of a step share."""
-        return self.bp.factors(edge_index, anchor, state_dim)
+        return self.bp.factors(edge_index, anchor, state_dim, slots=True)
+
+    def restricted_factors(self, factors: Factors, keep: Tensor,
+                           state_dim: int) -> Factors:
+        r"""Gaussian BP's :meth:`~tg_nebp.nn.conv.GaussianBPConv.
+        restricted_factors`."""
+        return self.bp.restricted_factors(factors, keep, state_dim)
 
     def reset_correction(self) -> None:
         r"""Sets the output layers to zero: every weight 1 and every
