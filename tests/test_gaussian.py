@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from tg_nebp.gaussian import (add_link_information, block_diagonal,
-                              check_dense_joint, marginal_blocks,
-                              predict_joint, range_blocks, symmetric_inverse,
-                              unit_vectors)
+from tg_nebp.gaussian import (WoodburyPrior, add_link_information,
+                              block_diagonal, check_dense_joint,
+                              marginal_blocks, predict_joint, range_blocks,
+                              scope_index, unit_vectors)
 
 from helpers import gen
 
@@ -71,14 +71,28 @@ def test_range_blocks_are_the_gradient_outer_product():
     assert blocks[1].abs().max() == 0
 
 
-def test_symmetric_inverse_refuses_an_indefinite_matrix():
-    spd = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=torch.float64)
-    inverse = symmetric_inverse(spd)
-    torch.testing.assert_close(inverse @ spd, torch.eye(2,
-                                                        dtype=torch.float64))
-    with pytest.raises(ValueError, match='not positive definite'):
-        symmetric_inverse(torch.tensor([[1.0, 2.0], [2.0, 1.0]],
-                                       dtype=torch.float64))
+def test_woodbury_update_is_the_inverse_of_the_updated_information():
+    # (P^-1 + E^T M E)^-1 on the positions of 3 agents with states of 4,
+    # against dense inverses in float64; the third agent has no link (a
+    # singular M)
+    g = gen(3)
+    index = scope_index(3, 4, (0, 1))
+    assert index.tolist() == [0, 1, 4, 5, 8, 9]
+    root = torch.randn(12, 12, generator=g, dtype=torch.float64)
+    cov = root @ root.T / 12 + 0.1 * torch.eye(12, dtype=torch.float64)
+    part = torch.randn(6, 6, generator=g, dtype=torch.float64)
+    info = part @ part.T
+    info[4:], info[:, 4:] = 0.0, 0.0
+    embedded = torch.zeros(12, 12, dtype=torch.float64)
+    embedded[index.view(-1, 1), index] = info
+    expected = torch.linalg.inv(torch.linalg.inv(cov) + embedded)
+    update = WoodburyPrior.of(cov, index).updated(info)
+    covariance = update.covariance()
+    torch.testing.assert_close(covariance, expected, rtol=1e-10, atol=1e-12)
+    assert torch.equal(covariance, covariance.T)
+    vector = torch.randn(12, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(update.solve(vector), expected @ vector,
+                               rtol=1e-10, atol=1e-12)
 
 
 def test_dense_joint_check_names_the_sizes():

@@ -1,13 +1,16 @@
 r"""Tests of :mod:`tg_nebp.threads`: the governor's decisions from given
-readings, the restored thread count, particle BP's bit-identical results
-at 1 and 2 threads (what makes governing its threads safe), and
+readings, the restored thread count, the bit-identical results of particle
+BP and of the Gaussian methods at 1 and 2 threads (what makes governing
+their threads safe), and
 :obj:`--threads` on the command line."""
 import sys
 
 import pytest
 import torch
 
-from tg_nebp import ParticleBP
+from tg_nebp import GaussianBP, ParticleBP
+from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.filters import CentralizedIEKF
 from tg_nebp.cli import main
 from tg_nebp.threads import ThreadGovernor, runnable_elsewhere
 
@@ -91,6 +94,26 @@ def test_bp_is_bit_identical_at_one_and_two_threads(threads, options):
             **options).steps(data, gen(5))])
     for (mean1, log1), (mean2, log2) in zip(*runs):
         assert torch.equal(mean1, mean2) and torch.equal(log1, log2)
+
+
+@pytest.mark.parametrize('method', [
+    GaussianBP.recommended, CentralizedIEKF, PosteriorCRB,
+    lambda: CentralizedIEKF(marginal=True)], ids=['gbp', 'iekf', 'pcrb',
+                                                  'iekf-marginal'])
+def test_gaussian_methods_are_bit_identical_at_one_and_two_threads(
+        threads, method):
+    # why --threads auto is their default too
+    data = tiny_scenario(steps=4).grown(30).generate(gen(3))
+    runs = []
+    for count in (1, 2):
+        torch.set_num_threads(count)
+        runs.append(method()(data))
+    first, second = runs
+    if isinstance(first, torch.Tensor):  # the bound's covariances
+        assert torch.equal(first, second)
+    else:
+        assert torch.equal(first.mean, second.mean)
+        assert torch.equal(first.cov, second.cov)
 
 
 def test_cli_threads(tmp_path, capsys, threads):

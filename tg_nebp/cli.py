@@ -158,10 +158,11 @@ def _add_common(parser: argparse.ArgumentParser):
                         metavar='N|auto',
                         help="torch's CPU threads: a number, or 'auto' (as "
                         'many as the cores that other processes leave free, '
-                        'checked after every time step; BP only, whose '
-                        'results do not depend on the thread count) '
-                        "(default: 'auto' for BP runs, torch's default for "
-                        'NEBP)')
+                        'checked after every time step; for particle BP, '
+                        'Gaussian BP, the IEKF and the bound, whose results '
+                        'do not depend on the thread count) (default: '
+                        "'auto' for those, torch's default for NEBP and "
+                        'the Gaussian NEBP)')
     parser.add_argument('--root', default='datasets',
                         help='dataset root (default: datasets)')
 
@@ -543,12 +544,17 @@ def _check_paths(args):
         check_writable_folder(args.log_dir, '--log-dir')
 
 
+#: The methods of :obj:`tg-nebp evaluate` whose results are bit-identical
+#: for any thread count (tested at 1 and 2): the learned ones round by it.
+THREAD_INVARIANT = ('bp', 'gbp', 'iekf', 'pcrb')
+
+
 def _thread_invariant(args) -> bool:
-    # particle BP gives bit-identical results for any thread count (tested);
-    # NEBP's learned layers round by thread count. bench measures speed
-    # only and passes the setting on to its measurement processes
+    # bench measures speed only and passes the setting on to its
+    # measurement processes
     return (args.command in ('frontier', 'bench') or
-            (args.command == 'evaluate' and args.method == 'bp'))
+            (args.command == 'evaluate' and
+             args.method in THREAD_INVARIANT))
 
 
 @contextlib.contextmanager
@@ -560,8 +566,9 @@ def _threads_in_force(args):
         threads = 'auto' if _thread_invariant(args) else None
     elif threads == 'auto' and not _thread_invariant(args):
         raise ValueError("--threads auto is for BP runs (evaluate --method "
-                         "bp, frontier, bench): NEBP's results depend on the "
-                         "thread count; give a number")
+                         "bp, gbp, iekf or pcrb, frontier, bench): the "
+                         "learned methods' results depend on the thread "
+                         "count; give a number")
     if args.command == 'bench':  # its measurement processes set it
         args.threads, args.governor = threads, None
         yield

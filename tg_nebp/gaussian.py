@@ -21,9 +21,9 @@ from tg_nebp.utils import free_memory_bytes
 
 __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'check_predicted_prior', 'predict_joint', 'range_blocks',
-           'embed_scope',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
-           'symmetric_inverse', 'unit_vectors', 'JOINT_COPIES']
+           'unit_vectors', 'scope_index', 'WoodburyPrior', 'WoodburyUpdate',
+           'JOINT_COPIES']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
 #: recursion (covariance, information, factor, temporaries), for the
@@ -169,23 +169,6 @@ def range_blocks(unit: Tensor, weights: Tensor, state_dim: int) -> Tensor:
     return out.view(count, 2 * state_dim, 2 * state_dim)
 
 
-def embed_scope(grad: Tensor, curvature: Tensor, scope: Sequence[int],
-                state_dim: int) -> Tuple[Tensor, Tensor]:
-    r"""A linearization on the entries :obj:`scope` of both ends of a link
-    (:meth:`~tg_nebp.models.MeasurementModel.linearize`: gradient
-    :math:`(E, 2R)`, curvature :math:`(E, 2R, 2R)`) as one on the whole
-    stacked states :math:`[\mathbf{x}_j; \mathbf{x}_i]` (:math:`(E, 2S)`,
-    :math:`(E, 2S, 2S)`), zero on the entries it does not read."""
-    read = torch.tensor(scope, dtype=torch.long, device=grad.device)
-    both = torch.cat([read, state_dim + read])
-    full_grad = grad.new_zeros(grad.size(0), 2 * state_dim)
-    full_grad[:, both] = grad
-    full = curvature.new_zeros(curvature.size(0), 2 * state_dim,
-                               2 * state_dim)
-    full[:, both.view(-1, 1), both] = curvature
-    return full_grad, full
-
-
 def add_link_information(info: Tensor, blocks: Tensor, sender: Tensor,
                          receiver: Tensor) -> Tensor:
     r"""Adds, in place, the information :math:`(E, 2S, 2S)` of measured
@@ -210,17 +193,75 @@ def add_link_information(info: Tensor, blocks: Tensor, sender: Tensor,
     return info
 
 
-def symmetric_inverse(matrix: Tensor) -> Tensor:
-    r"""The inverse of a symmetric positive definite matrix by its
-    Cholesky factor, symmetrized; a matrix that is not positive definite
-    is a :class:`ValueError` (a covariance or information that lost its
-    definiteness is a bug or a degenerate problem, never silently
-    inverted)."""
-    factor, info = torch.linalg.cholesky_ex(matrix)
-    if bool(info.any()):
-        raise ValueError(f"a joint covariance or information matrix of size "
-                         f"{matrix.size(-1)} is not positive definite "
-                         f"(leading minor {int(info.max())}): the problem is "
-                         f"degenerate")
-    inverse = torch.cholesky_inverse(factor)
-    return 0.5 * (inverse + inverse.transpose(-1, -2))
+def scope_index(count: int, state_dim: int, scope: Sequence[int],
+                device=None) -> Tensor:
+    r"""The rows :math:`(AR)` of a joint over :obj:`count` agents with
+    states of size :obj:`state_dim` that hold the entries :obj:`scope`
+    (:math:`R` of them, a range model's positions) of every agent, agent
+    by agent."""
+    read = torch.tensor(scope, dtype=torch.long, device=device)
+    agents = torch.arange(count, device=device).view(-1, 1)
+    return (agents * state_dim + read).view(-1)
+
+
+class WoodburyPrior(NamedTuple):
+    r"""A joint covariance :math:`\mathbf{P}` :math:`(AS, AS)` (:obj:`cov`)
+    ready for updates with informations on :math:`K` of its entries
+    (:func:`scope_index`: the measured links inform the positions only):
+    its columns there :math:`\mathbf{G} = \mathbf{P} \mathbf{E}^\top`
+    (:obj:`gain`) and its block there :math:`\mathbf{C} = \mathbf{E}
+    \mathbf{P} \mathbf{E}^\top` (:obj:`inner`), shared by every update
+    of the same prior (the Gauss-Newton iterations of a step)."""
+    cov: Tensor
+    gain: Tensor
+    inner: Tensor
+
+    @classmethod
+    def of(cls, cov: Tensor, index: Tensor) -> 'WoodburyPrior':
+        gain = cov[:, index]
+        return cls(cov, gain, gain[index])
+
+    def updated(self, info: Tensor) -> 'WoodburyUpdate':
+        r"""The update with the information :obj:`info` :math:`(K, K)` on
+        the entries (:class:`WoodburyUpdate`)."""
+        eye = torch.eye(info.size(0), dtype=info.dtype, device=info.device)
+        return WoodburyUpdate(self, info, torch.linalg.lu_factor(
+            eye + info @ self.inner))
+
+
+class WoodburyUpdate(NamedTuple):
+    r"""A joint covariance updated with an information :math:`\mathbf{M}`
+    :math:`(K, K)` (:obj:`info`) on :math:`K` of its entries
+    (:meth:`WoodburyPrior.updated`), by the Woodbury identity
+
+    .. math::
+        (\mathbf{P}^{-1} + \mathbf{E}^\top \mathbf{M} \mathbf{E})^{-1} =
+        \mathbf{P} - \mathbf{G} (\mathbf{I} + \mathbf{M}
+        \mathbf{C})^{-1} \mathbf{M} \mathbf{G}^\top
+
+    (:class:`WoodburyPrior` gives :math:`\mathbf{G}` and
+    :math:`\mathbf{C}`): one LU factorization of size :math:`K`
+    (:obj:`system`) instead of inverting the :math:`(AS, AS)` prior and
+    posterior. :math:`\mathbf{I} + \mathbf{M} \mathbf{C}` is invertible
+    for any positive semi-definite :math:`\mathbf{M}` (a singular one:
+    agents without links)."""
+    prior: WoodburyPrior
+    info: Tensor
+    system: Tuple[Tensor, Tensor]
+
+    def covariance(self) -> Tensor:
+        r"""The updated covariance :math:`(AS, AS)`, symmetrized."""
+        gain = self.prior.gain
+        weight = torch.linalg.lu_solve(*self.system, self.info)
+        weight = 0.5 * (weight + weight.transpose(0, 1))
+        out = self.prior.cov - gain @ weight @ gain.transpose(0, 1)
+        return 0.5 * (out + out.transpose(0, 1))
+
+    def solve(self, vector: Tensor) -> Tensor:
+        r"""The updated covariance times :obj:`vector` :math:`(AS)`, i.e.
+        the solution of the updated information's system, without forming
+        the covariance."""
+        gain = self.prior.gain
+        inner = self.info @ (gain.transpose(0, 1) @ vector)
+        return self.prior.cov @ vector - gain @ torch.linalg.lu_solve(
+            *self.system, inner.view(-1, 1)).view(-1)

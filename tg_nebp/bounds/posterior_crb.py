@@ -5,10 +5,10 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_realization, check_state_dim
-from tg_nebp.gaussian import (GraphLayout, add_link_information,
-                              block_diagonal, check_dense_joint,
-                              check_predicted_prior, marginal_blocks,
-                              predict_joint, symmetric_inverse)
+from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
+                              add_link_information, block_diagonal,
+                              check_dense_joint, check_predicted_prior,
+                              marginal_blocks, predict_joint, scope_index)
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
 __all__ = ['PosteriorCRB', 'BoundStep']
@@ -110,6 +110,11 @@ class PosteriorCRB(torch.nn.Module):
                           'the posterior CRB', states.device)
         states = states.double()
         prior_cov = data.prior_cov.double()
+        # the links inform the entries the likelihood reads: the update
+        # works on those (a range model's positions), by Woodbury
+        scope = self.measurement.scope(size)
+        read = torch.tensor(scope, device=states.device)
+        both = torch.cat([read, size + read])
         covs = [block_diagonal(prior_cov[nodes]) for nodes in layout.agents]
         previous = data.prior_mean.double()
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
@@ -124,12 +129,15 @@ class PosteriorCRB(torch.nn.Module):
                                     self.motion.jacobian(previous[nodes]),
                                     self.motion.noise_covariance(
                                         previous[nodes]))
-                info = symmetric_inverse(cov)
                 mine = edge_graph == g
-                add_link_information(info, blocks[mine],
+                count = nodes.numel()
+                info = cov.new_zeros(count * len(scope), count * len(scope))
+                add_link_information(info, blocks[mine][:, both][:, :, both],
                                      layout.agent_index[src[mine]],
                                      layout.agent_index[dst[mine]])
-                covs[g] = symmetric_inverse(info)
+                covs[g] = WoodburyPrior.of(cov, scope_index(
+                    count, size, scope, cov.device)).updated(
+                        info).covariance()
                 out[nodes] = marginal_blocks(covs[g], size)
             previous = truth
             yield BoundStep(t, out)

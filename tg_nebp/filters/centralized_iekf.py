@@ -6,11 +6,10 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
-from tg_nebp.gaussian import (GraphLayout, add_link_information,
-                              block_diagonal, check_dense_joint,
-                              check_predicted_prior, embed_scope,
-                              marginal_blocks, predict_joint,
-                              symmetric_inverse)
+from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
+                              add_link_information, block_diagonal,
+                              check_dense_joint, check_predicted_prior,
+                              marginal_blocks, predict_joint, scope_index)
 from tg_nebp.models import MeasurementModel, MotionModel
 
 __all__ = ['CentralizedIEKF']
@@ -155,32 +154,43 @@ class CentralizedIEKF(Tracker):
                                 state[sender.clamp_min(0)], known)
         return at_sender, state[receiver]
 
-    def _cost(self, state: Tensor, prior: Tensor, info: Tensor, z: Tensor,
-              *links) -> Tensor:
-        # the negative log-posterior of the step (up to a constant): the
-        # measurement model's own likelihood
-        offset = (state - prior).view(-1)
+    def _cost(self, state: Tensor, prior: Tensor, factor: Tensor,
+              z: Tensor, *links) -> Tensor:
+        # the negative log-posterior of the step (up to a constant), the
+        # prior by its covariance's Cholesky factor: the measurement
+        # model's own likelihood
+        offset = (state - prior).view(-1, 1)
         sender, receiver = self._ends(state, *links)
         log_lik = self.measurement.log_likelihood(z, sender.unsqueeze(1),
                                                   receiver.unsqueeze(1))
-        return 0.5 * offset @ (info @ offset) - log_lik.sum()
+        return 0.5 * (offset * torch.cholesky_solve(offset, factor)).sum() - \
+            log_lik.sum()
 
-    def _normal_equations(self, state: Tensor, prior: Tensor, info: Tensor,
-                          z: Tensor, sender: Tensor, receiver: Tensor,
-                          known: Tensor):
-        # the Gauss-Newton matrix H and the gradient g of the log-posterior
+    def _linearized(self, state: Tensor, woodbury: WoodburyPrior,
+                    factor: Tensor, prior: Tensor, z: Tensor, sender: Tensor,
+                    receiver: Tensor, known: Tensor):
+        # the Gauss-Newton system of the log-posterior at 'state': its
+        # inverse as a Woodbury update of the prior covariance with the
+        # links' curvature on the entries the likelihood reads, and the
+        # gradient
         count, size = state.shape
-        grads, blocks = embed_scope(*self.measurement.linearize(
-            z, *self._ends(state, sender, receiver, known)),
-            self.measurement.scope(size), size)
-        hessian = add_link_information(info.clone(), blocks, sender,
-                                       receiver)
-        grad = -(info @ (state - prior).view(-1)).view(count, size)
-        grads = grads.view(-1, 2, size)
-        grad.index_add_(0, receiver, grads[:, 1])
+        scope = self.measurement.scope(size)
+        width = len(scope)
+        grads, blocks = self.measurement.linearize(
+            z, *self._ends(state, sender, receiver, known))
+        info = add_link_information(
+            state.new_zeros(count * width, count * width), blocks, sender,
+            receiver)
+        update = woodbury.updated(info)
+        offset = (state - prior).view(-1, 1)
+        grad = -torch.cholesky_solve(offset, factor).view(count, size)
+        grads = grads.view(-1, 2, width)
+        links = grads.new_zeros(count, width).index_add_(0, receiver,
+                                                         grads[:, 1])
         agent = sender >= 0
-        grad.index_add_(0, sender[agent], grads[agent, 0])
-        return hessian, grad
+        links.index_add_(0, sender[agent], grads[agent, 0])
+        grad[:, list(scope)] += links
+        return update, grad
 
     def update(self, mean: Tensor, cov: Tensor, z: Tensor, sender: Tensor,
                receiver: Tensor, known: Tensor):
@@ -189,19 +199,32 @@ class CentralizedIEKF(Tracker):
         :math:`(E, F)` of the links from :obj:`sender` to :obj:`receiver`
         :math:`(E)` (agent indices, :math:`-1` for an anchor, whose state
         :obj:`known` :math:`(E, S)` gives): Gauss-Newton with step halving
-        on the step's MAP cost; returns the estimate and its covariance."""
-        info = symmetric_inverse(cov)
+        on the step's MAP cost; returns the estimate and its covariance.
+        The links inform the entries the likelihood reads (a range model's
+        positions), so every Gauss-Newton system is solved as a Woodbury
+        update of the prior covariance on those entries
+        (:class:`~tg_nebp.gaussian.WoodburyUpdate`): one Cholesky
+        factorization of the prior per step, no inverse of the joint."""
+        factor, failed = torch.linalg.cholesky_ex(cov)
+        if bool(failed.any()):
+            raise ValueError(f"a joint covariance of size {cov.size(-1)} is "
+                             f"not positive definite (leading minor "
+                             f"{int(failed)}): the problem is degenerate")
         links = (z, sender, receiver, known)
+        # the prior covariance at the entries the links inform, the same
+        # in every Gauss-Newton system of the step
+        woodbury = WoodburyPrior.of(cov, scope_index(
+            mean.size(0), mean.size(1), self.measurement.scope(mean.size(1)),
+            cov.device))
         state = mean
-        cost = self._cost(state, mean, info, *links)
+        cost = self._cost(state, mean, factor, *links)
         for _ in range(self.num_iterations):
-            hessian, grad = self._normal_equations(state, mean, info, *links)
-            step = torch.cholesky_solve(grad.view(-1, 1),
-                                        torch.linalg.cholesky(hessian))
-            step = step.view_as(state)
+            update, grad = self._linearized(state, woodbury, factor, mean,
+                                            *links)
+            step = update.solve(grad.view(-1)).view_as(state)
             for _ in range(self.max_halvings + 1):
                 trial = state + step
-                trial_cost = self._cost(trial, mean, info, *links)
+                trial_cost = self._cost(trial, mean, factor, *links)
                 if bool(trial_cost <= cost):
                     break
                 step = 0.5 * step
@@ -210,8 +233,8 @@ class CentralizedIEKF(Tracker):
             state, cost = trial, trial_cost
             if bool(step.abs().amax() <= self.tolerance):
                 break
-        hessian, _ = self._normal_equations(state, mean, info, *links)
-        return state, symmetric_inverse(hessian)
+        update, _ = self._linearized(state, woodbury, factor, mean, *links)
+        return state, update.covariance()
 
     def settings(self) -> dict:
         return dict(iterations=self.num_iterations,

@@ -191,8 +191,14 @@ def position_covariance(belief: GaussianBelief, width: int,
     anchors (known)."""
     eye = torch.eye(belief.info.size(-1), dtype=belief.info.dtype,
                     device=belief.info.device)
-    cov = torch.linalg.inv(torch.where(anchor.view(-1, 1, 1), eye,
-                                       belief.info))[:, :width, :width]
+    cov, singular = torch.linalg.inv_ex(torch.where(anchor.view(-1, 1, 1),
+                                                    eye, belief.info))
+    if bool(singular.any()):
+        node = int(singular.nonzero()[0, 0])
+        raise ValueError(f"the belief of node {node} has singular "
+                         f"information: its prior and messages leave a "
+                         f"state entry undetermined")
+    cov = cov[:, :width, :width]
     cov = 0.5 * (cov + cov.transpose(-1, -2))
     return cov.masked_fill(anchor.view(-1, 1, 1), 0.0)
 
@@ -304,10 +310,13 @@ class GaussianBPConv(MessagePassing):
           edge indices :math:`(2, |\mathcal{E}|)`,
           link features :math:`(|\mathcal{E}|, F)` (the range first),
           anchor mask :math:`(|\mathcal{V}|)`,
-          previous messages :math:`(M, R, R)`, :math:`(M, R)` *(optional)*
+          previous messages :math:`(M, R, R)`, :math:`(M, R)`, or for a
+          range model (:attr:`rank_one`) :math:`(M)`, :math:`(M)`,
+          :math:`(M, R)` *(optional)*
         - **output:** beliefs, means :math:`(|\mathcal{V}|, S)` and
           information :math:`(|\mathcal{V}|, S, S)`, and the messages
-          :math:`(M, R, R)`, :math:`(M, R)`
+          (:class:`~tg_nebp.nn.conv.FactorMessages`, or
+          :class:`~tg_nebp.nn.conv.RangeMessages` for a range model)
     """
     def __init__(self, measurement: Optional[MeasurementModel] = None,
                  ends: str = 'both', damping: float = 0.0,
@@ -395,11 +404,14 @@ class GaussianBPConv(MessagePassing):
 
     def forward(self, prior: GaussianBelief, belief: GaussianBelief,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
-                messages: Optional[FactorMessages] = None,
+                messages=None,
                 generator: Optional[torch.Generator] = None,
                 factors: Optional[Factors] = None, validate: bool = True
-                ) -> Tuple[GaussianBelief, FactorMessages]:
-        r"""Runs one iteration.
+                ) -> Tuple[GaussianBelief, tuple]:
+        r"""Runs one iteration: the new beliefs and messages
+        (:class:`~tg_nebp.nn.conv.RangeMessages` for a range model,
+        :attr:`rank_one`, unless given the general
+        :class:`~tg_nebp.nn.conv.FactorMessages`).
 
         Args:
             prior (GaussianBelief): The nodes' (predicted) prior.
@@ -410,9 +422,9 @@ class GaussianBPConv(MessagePassing):
                 :math:`i` measured node :math:`j`).
             edge_attr (torch.Tensor): Link features, the range first.
             anchor (torch.Tensor): Bool mask of anchors (known states).
-            messages (FactorMessages, optional): The previous iteration's
-                messages on the message edges of :meth:`factors` (none at
-                the first). (default: :obj:`None`)
+            messages (FactorMessages or RangeMessages, optional): The
+                previous iteration's messages on the message edges of
+                :meth:`factors` (none at the first). (default: :obj:`None`)
             generator (torch.Generator, optional): For a measurement model
                 whose linearization draws (a Monte Carlo Fisher
                 information). (default: :obj:`None`)
@@ -475,7 +487,9 @@ class GaussianBPConv(MessagePassing):
         if validate and messages is not None:
             _check_messages(messages, factors.index.size(1), width)
         if messages is not None:
-            messages = type(messages)(*(t.to(dtype) for t in messages))
+            kind = (RangeMessages if isinstance(messages, RangeMessages) else
+                    FactorMessages)
+            messages = kind(*(t.to(dtype) for t in messages))
         # the scope is a slice of every state: the leading entries (a range
         # model's positions, or the whole state)
         if tuple(scope) != tuple(range(width)):
@@ -563,12 +577,15 @@ class GaussianBPConv(MessagePassing):
         count = factors.ends.size(0)
         # vectors by components (R, M), each a contiguous row, so that the
         # few-term sums below are whole-row operations.
-        # A factor's direction, from its second end to its first: a link
-        # from b to a points the other way (exactly: the same difference,
-        # negated)
-        direction = unit.new_zeros(width, count).index_copy_(
-            1, factors.factor, torch.where(factors.swapped, -unit.t(),
-                                           unit.t()))
+        # A factor's direction, from its second end to its first, from its
+        # first link (a link from b to a points the other way; both links of
+        # a pair give it exactly: the same difference, negated)
+        links = torch.arange(src.numel(), device=src.device)
+        first = torch.full((count, ), src.numel(), dtype=torch.long,
+                           device=src.device).scatter_reduce_(
+                               0, factors.factor, links, 'amin')
+        direction = torch.where(factors.swapped, -unit.t(), unit.t())[
+            :, first]
         total_weight = weight.new_zeros(count).index_add_(0, factors.factor,
                                                           weight)
         total_score = score.new_zeros(count).index_add_(0, factors.factor,

@@ -163,7 +163,9 @@ class GaussianNEBPConv(MessagePassing):
     any number of iterations and steps. The output layers
     :math:`\mathbf{v}_w` and :math:`\psi_\kappa`'s last start at zero
     (:meth:`reset_correction`), so an untrained correction is Gaussian BP
-    exactly (weights 1, no inflation): training starts from it. The
+    exactly (weights 1, no inflation; bit for bit its general messages,
+    to rounding the rank-one ones of a range model): training starts from
+    it. The
     network runs in its parameters' dtype; the beliefs keep theirs.
 
     Args:
@@ -236,8 +238,8 @@ class GaussianNEBPConv(MessagePassing):
 
     def restricted_factors(self, factors: Factors, keep: Tensor,
                            state_dim: int) -> Factors:
-        r"""Gaussian BP's :meth:`~tg_nebp.nn.conv.GaussianBPConv.
-        restricted_factors`."""
+        r"""Gaussian BP's :meth:`restricted_factors
+        <tg_nebp.nn.conv.GaussianBPConv.restricted_factors>`."""
         return self.bp.restricted_factors(factors, keep, state_dim)
 
     def reset_correction(self) -> None:
