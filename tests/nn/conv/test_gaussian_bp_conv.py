@@ -471,3 +471,18 @@ def test_compiled_rank_one_messages_equal_the_eager_ones():
                                            atol=1e-12)
             torch.testing.assert_close(beliefs[1].mean, beliefs[0].mean,
                                        rtol=0, atol=1e-12)
+
+
+def test_a_step_without_links_keeps_the_prior():
+    # no link: no message, in both forms, and the checks of the previous
+    # (empty) messages hold
+    prior, _, _, anchor = random_beliefs(2, seed=7)
+    edge_index = torch.zeros(2, 0, dtype=torch.long)
+    edge_attr = torch.zeros(0, 1, dtype=torch.float64)
+    for conv in (GaussianBPConv(), GaussianBPConv(damping=0.2)):
+        belief, messages = conv(prior, prior, edge_index, edge_attr, anchor)
+        belief, messages = conv(prior, belief, edge_index, edge_attr, anchor,
+                                messages)
+        torch.testing.assert_close(belief.mean, prior.mean, rtol=0,
+                                   atol=1e-12)
+        assert all(t.size(0) == 0 for t in messages)

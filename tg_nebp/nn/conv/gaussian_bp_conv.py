@@ -220,7 +220,8 @@ def _check_messages(messages, count: int, width: int) -> None:
             raise ValueError(f"'messages.{field}' must have shape "
                              f"{list(shape)} (one per message edge), got "
                              f"{list(getattr(value, 'shape', []))}")
-        bad = ~torch.isfinite(value).reshape(count, -1).all(-1)
+        # (a trailing axis keeps the flattening defined without messages)
+        bad = ~torch.isfinite(value.unsqueeze(-1)).flatten(1).all(-1)
         if bool(bad.any()):
             raise ValueError(f"'messages.{field}[{int(bad.nonzero()[0, 0])}]"
                              f"' holds a non-finite value")
