@@ -112,16 +112,19 @@ def mixed_k_checkpoint(path):
     return path
 
 
-def torchrun(*args, timeout=120, check=True):
-    r"""Runs :obj:`torchrun` with two processes on a free port, single
-    threaded, importing this tg_nebp; returns its standard output (with
-    :obj:`check`, which asserts success), or else the completed process."""
-    path = [PACKAGE_ROOT] + os.environ.get('PYTHONPATH', '').split(os.pathsep)
+def torchrun(*args, timeout=120, check=True, processes=2):
+    r"""Runs :obj:`torchrun` with :obj:`processes` processes on a free
+    port, single threaded, importing this tg_nebp; returns its standard
+    output (with :obj:`check`, which asserts success), or else the
+    completed process."""
+    # (and these helpers, for a worker in a subfolder of the tests)
+    path = [PACKAGE_ROOT, os.path.dirname(os.path.abspath(__file__))] + \
+        os.environ.get('PYTHONPATH', '').split(os.pathsep)
     env = dict(os.environ, OMP_NUM_THREADS='1',
                PYTHONPATH=os.pathsep.join(filter(None, path)))
     done = subprocess.run(
         [sys.executable, '-m', 'torch.distributed.run', '--standalone',
-         '--nproc_per_node=2', *map(str, args)], env=env,
+         f'--nproc_per_node={processes}', *map(str, args)], env=env,
         capture_output=True, text=True, timeout=timeout)
     if not check:
         return done

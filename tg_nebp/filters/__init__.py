@@ -7,6 +7,8 @@ from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF
 from .gaussian_bp import GBP_RECOMMENDED, GaussianBP
 from .gaussian_nebp import GaussianNEBP
+from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
+                              strips)
 from tg_nebp.data.validation import check_state_dim
 from tg_nebp.utils import weighted_moments
 
@@ -17,6 +19,10 @@ __all__ = [
     'CentralizedIEKF',
     'GaussianBP',
     'GaussianNEBP',
+    'PartitionedGaussianBP',
+    'Partition',
+    'partition',
+    'strips',
     'GBP_RECOMMENDED',
     'StepOutput',
     'TrackOutput',

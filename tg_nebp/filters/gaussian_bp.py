@@ -251,8 +251,7 @@ class GaussianBP(Tracker):
                                  memory=new_memory)
             if self.tolerance is None:
                 continue
-            largest = step.new_zeros(num_graphs).scatter_reduce(
-                0, work.graph_of, step, 'amax')
+            largest = self.largest_moves(step, work.graph_of, num_graphs)
             # NaN compares false: a diverged graph is not converged
             done = (largest <= self.tolerance)[work.graph_of]
             if bool(done.any()):
@@ -261,6 +260,14 @@ class GaussianBP(Tracker):
                     return belief, memory
                 work = self._restrict(work, ~done)
         return _written(work, belief, memory)
+
+    def largest_moves(self, step: Tensor, graph_of: Tensor,
+                      num_graphs: int) -> Tensor:
+        r"""Every graph's largest move of a belief mean in an iteration
+        :math:`(G)`, from every node's :obj:`step` (what the tolerance
+        stops on)."""
+        return step.new_zeros(num_graphs).scatter_reduce(0, graph_of, step,
+                                                         'amax')
 
     def _restrict(self, work: _Active, keep: Tensor) -> _Active:
         # the nodes 'keep' of the graphs that still iterate, with their

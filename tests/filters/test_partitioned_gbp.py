@@ -1,0 +1,101 @@
+r"""Gaussian BP with one network's agents spread over the ranks of a
+:obj:`torchrun` job (gloo): every rank's agents get what one process gives
+them, bit for bit, with 2 and 4 ranks. Run as a script by :obj:`torchrun`,
+this file is the worker."""
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.distributed as dist
+from torch_geometric.data import Batch
+
+from tg_nebp.filters import (GaussianBP, PartitionedGaussianBP, partition,
+                             strips)
+
+from helpers import gen, tiny_scenario, torchrun
+
+
+def network():
+    # 60 agents on the tiny scenario's area grown at its density: links
+    # cross every strip border
+    scenario = tiny_scenario(steps=5).grown(60)
+    return scenario, scenario.generate(gen(4))
+
+
+#: A tolerance that takes many iterations
+OPTIONS = dict(num_iterations=40, tolerance=1e-4)
+
+
+def tracked(path: Path, rank: int) -> None:
+    scenario, data = network()
+    owner = strips(data, dist.get_world_size())
+    part, plan = partition(data, owner, rank)
+    tracker = PartitionedGaussianBP.recommended(
+        plan=plan, motion=scenario.motion_model,
+        measurement=scenario.measurement_model, **OPTIONS)
+    out = tracker(part)
+    # the stop is decided over all ranks: each sees the largest move of
+    # any (here every rank's own move is its number)
+    moves = tracker.largest_moves(torch.tensor([float(rank)]),
+                                  torch.zeros(1, dtype=torch.long), 1)
+    torch.save(dict(nodes=plan.nodes[plan.owned], moves=moves,
+                    halo=int((~plan.owned).sum()),
+                    mean=out.mean[plan.owned], cov=out.cov[plan.owned]),
+               path / f'rank{rank}.pt')
+
+
+@pytest.mark.parametrize('ranks', [2, 4])
+def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
+    torchrun(__file__, tmp_path, processes=ranks, timeout=120)
+    scenario, data = network()
+    expected = GaussianBP.recommended(
+        motion=scenario.motion_model,
+        measurement=scenario.measurement_model, **OPTIONS)(data)
+    seen = []
+    for rank in range(ranks):
+        part = torch.load(tmp_path / f'rank{rank}.pt')
+        assert part['halo'] > 0  # the borders are crossed
+        assert part['moves'].tolist() == [ranks - 1.0]
+        nodes = part['nodes']
+        assert torch.equal(part['mean'], expected.mean[nodes])
+        assert torch.equal(part['cov'], expected.cov[nodes])
+        seen.append(nodes)
+    # every node is owned once
+    assert torch.equal(torch.cat(seen).sort().values,
+                       torch.arange(data.num_nodes))
+
+
+def test_partition_keeps_the_order_and_plans_both_sides():
+    _, data = network()
+    owner = strips(data, 3)
+    parts = [partition(data, owner, rank) for rank in range(3)]
+    for rank, (part, plan) in enumerate(parts):
+        assert torch.equal(plan.nodes, plan.nodes.sort().values)
+        # every link of an owned node, and only those
+        mine = owner == rank
+        src, dst = data.edge_index
+        assert part.edge_index.size(1) == int((mine[src] | mine[dst]).sum())
+        for other in range(3):
+            if other == rank:
+                continue
+            # what one side sends is what the other receives, row by row
+            sent = plan.nodes[plan.send[other]]
+            received = parts[other][1].nodes[parts[other][1].receive[rank]]
+            assert torch.equal(sent, received)
+
+
+def test_a_batch_is_refused():
+    _, data = network()
+    part, plan = partition(data, strips(data, 2), 0)
+    tracker = PartitionedGaussianBP(plan)
+    with pytest.raises(ValueError, match='one network, not a batch'):
+        tracker(Batch.from_data_list([part]))
+
+
+if __name__ == '__main__':  # the worker of torchrun
+    dist.init_process_group('gloo')
+    try:
+        tracked(Path(sys.argv[1]), dist.get_rank())
+    finally:
+        dist.destroy_process_group()

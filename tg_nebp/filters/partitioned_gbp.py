@@ -1,0 +1,166 @@
+r"""One network's agents spread over the ranks of a :obj:`torchrun` job:
+Gaussian BP partitioned in space, every rank iterating its own agents and
+exchanging the beliefs on the partition borders after every iteration.
+
+Each rank holds the agents it owns (a strip of the area, :func:`strips`)
+and a halo: the other ends of every link that touches its agents, with
+those links. It computes every message of the factors that touch its
+agents, in both directions, so the message from its agent to a halo node
+(the reverse message that the next iteration removes) is its own; after
+every iteration it receives the halo's beliefs from their owners
+(:class:`PartitionedGaussianBP`). The nodes and links keep the order they
+have in the whole network, so every agent sums its messages in the same
+order, and each rank's agents get what one process gives them, bit for
+bit."""
+from typing import List, NamedTuple, Tuple
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.filters.gaussian_bp import GaussianBP
+from tg_nebp.nn.conv.gaussian_bp_conv import GaussianBelief
+
+__all__ = ['Partition', 'strips', 'partition', 'PartitionedGaussianBP']
+
+
+class Partition(NamedTuple):
+    r"""One rank's part of a network (:func:`partition`): the nodes it
+    holds, by their number in the whole network (:obj:`nodes`, sorted),
+    which of them it owns (:obj:`owned`), and per rank the rows it sends
+    there (:obj:`send`: its agents in that rank's halo) and receives from
+    there (:obj:`receive`: that rank's agents in its halo), in the same
+    order on both sides."""
+    nodes: Tensor
+    owned: Tensor
+    send: List[Tensor]
+    receive: List[Tensor]
+
+
+def strips(data: Realization, num_parts: int) -> Tensor:
+    r"""The part of every node :math:`(N)`: strips of equal node counts
+    along the first coordinate of the prior means (a spatial partition, so
+    that few links cross it)."""
+    order = torch.argsort(data.prior_mean[:, 0], stable=True)
+    part = torch.empty_like(order)
+    part[order] = torch.arange(order.numel()) * num_parts // order.numel()
+    return part
+
+
+def _held(data: Realization, owner: Tensor, rank: int) -> Tensor:
+    # the nodes a rank holds: its own and the other ends of their links
+    mine = owner == rank
+    src, dst = data.edge_index
+    touches = mine[src] | mine[dst]
+    held = mine.clone()
+    held[src[touches]] = True
+    held[dst[touches]] = True
+    return held
+
+
+def partition(data: Realization, owner: Tensor, rank: int
+              ) -> Tuple[Realization, Partition]:
+    r"""The realization that rank :obj:`rank` tracks (its nodes and every
+    link that touches one of its own, numbered in the whole network's
+    order) and its :class:`Partition`, for the parts :obj:`owner`
+    :math:`(N)` (:func:`strips`)."""
+    num_parts = int(owner.max()) + 1
+    held = [_held(data, owner, q) for q in range(num_parts)]
+    nodes = held[rank].nonzero().view(-1)
+    number = torch.full_like(owner, -1)
+    number[nodes] = torch.arange(nodes.numel())
+    mine = owner == rank
+    src, dst = data.edge_index
+    links = mine[src] | mine[dst]
+    part = Realization(
+        prior_mean=data.prior_mean[nodes], prior_cov=data.prior_cov[nodes],
+        anchor=data.anchor[nodes],
+        edge_index=number[data.edge_index[:, links]],
+        edge_attr=data.edge_attr[links], edge_time=data.edge_time[links],
+        num_steps=data.num_time_steps, num_nodes=nodes.numel())
+    states = getattr(data, 'states', None)
+    if states is not None:
+        part.states = states[nodes]
+    send, receive = [], []
+    for q in range(num_parts):
+        if q == rank:
+            send.append(nodes.new_zeros(0))
+            receive.append(nodes.new_zeros(0))
+            continue
+        # agents of one rank in the other's halo, in node order
+        send.append(number[(mine & held[q]).nonzero().view(-1)])
+        receive.append(number[((owner == q) & held[rank]).nonzero().view(
+            -1)])
+    return part, Partition(nodes, mine[nodes], send, receive)
+
+
+class PartitionedGaussianBP(GaussianBP):
+    r"""Gaussian BP on one rank's part of a network (:func:`partition`),
+    in a :obj:`torch.distributed` process group (gloo on CPU, nccl on a
+    GPU): after every iteration the halo nodes' beliefs are replaced by
+    their owners' (point-to-point), and a step's iterations stop when the
+    largest move over all ranks is within the tolerance (an all-reduce).
+    The other arguments are :class:`GaussianBP`'s. One network at a time
+    (no batch).
+
+    Args:
+        plan (Partition): This rank's part.
+        group (optional): The process group. (default: the default group)
+    """
+    def __init__(self, plan: Partition, group=None, **options):
+        super().__init__(**options)
+        self.plan = plan
+        self.group = group
+
+    def check(self, data: Realization) -> None:
+        r"""The realization checks of every tracker, and that it is one
+        network (its part of one) and this rank's part of it."""
+        super().check(data)
+        if getattr(data, 'batch', None) is not None:
+            raise ValueError("a partitioned Gaussian BP tracks one network, "
+                             "not a batch")
+        if data.num_nodes != self.plan.nodes.numel():
+            raise ValueError(f"the realization holds {data.num_nodes} nodes "
+                             f"but this rank's part has "
+                             f"{self.plan.nodes.numel()}: track the "
+                             f"realization that partition() gave with it")
+
+    def exchanged_bytes(self, state_dim: int, dtype=torch.float64) -> int:
+        r"""The bytes this rank sends in one iteration: the mean and
+        information of each of its agents in another rank's halo."""
+        rows = sum(int(send.numel()) for send in self.plan.send)
+        size = torch.finfo(dtype).bits // 8
+        return rows * (state_dim + state_dim * state_dim) * size
+
+    def iterate(self, prior, belief, *args):
+        new, messages, memory = super().iterate(prior, belief, *args)
+        return self.exchange(new), messages, memory
+
+    def exchange(self, belief: GaussianBelief) -> GaussianBelief:
+        r"""The beliefs with the halo's replaced by their owners'."""
+        size = belief.mean.size(-1)
+        rows = torch.cat([belief.mean, belief.info.flatten(1)], -1)
+        requests, received = [], []
+        for q, (send, receive) in enumerate(zip(self.plan.send,
+                                                self.plan.receive)):
+            if send.numel():
+                requests.append(dist.isend(rows[send].contiguous(), q,
+                                           group=self.group))
+            if receive.numel():
+                buffer = rows.new_empty(receive.numel(), rows.size(1))
+                requests.append(dist.irecv(buffer, q, group=self.group))
+                received.append((receive, buffer))
+        for request in requests:
+            request.wait()
+        rows = rows.clone()
+        for receive, buffer in received:
+            rows[receive] = buffer
+        return GaussianBelief(rows[:, :size],
+                              rows[:, size:].view(-1, size, size))
+
+    def largest_moves(self, step: Tensor, graph_of: Tensor,
+                      num_graphs: int) -> Tensor:
+        largest = super().largest_moves(step, graph_of, num_graphs)
+        dist.all_reduce(largest, dist.ReduceOp.MAX, group=self.group)
+        return largest
