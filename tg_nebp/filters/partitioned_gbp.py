@@ -134,6 +134,8 @@ class PartitionedGaussianBP(GaussianBP):
         return rows * (state_dim + state_dim * state_dim) * size
 
     def iterate(self, prior, belief, *args):
+        r"""One iteration of Gaussian BP on this rank's part, then the halo's
+        beliefs from their owners (:meth:`exchange`)."""
         new, messages, memory = super().iterate(prior, belief, *args)
         return self.exchange(new), messages, memory
 
@@ -161,6 +163,8 @@ class PartitionedGaussianBP(GaussianBP):
 
     def largest_moves(self, step: Tensor, graph_of: Tensor,
                       num_graphs: int) -> Tensor:
+        r"""The largest move of a belief mean over all ranks (an
+        all-reduce), so that every rank stops its iterations together."""
         largest = super().largest_moves(step, graph_of, num_graphs)
         dist.all_reduce(largest, dist.ReduceOp.MAX, group=self.group)
         return largest
