@@ -357,13 +357,12 @@ class GaussianBPConv(MessagePassing):
         general messages (by default, unless :attr:`rank_one`)."""
         graph = link_factors(edge_index, anchor, self.ends)
         width = len(self.measurement.scope(state_dim))
-        placed = (None, None, None, None)
+        factors = Factors(graph.ends, None, None, graph.index, None, None,
+                          graph.reverse, graph.factor, graph.swapped,
+                          graph.link, graph.end)
         if slots or (slots is None and not self.rank_one):
-            placed = (*_slots(graph.factor, graph.swapped, width),
-                      *_slots(graph.link, graph.end == 0, width))
-        return Factors(graph.ends, placed[0], placed[1], graph.index,
-                       placed[2], placed[3], graph.reverse, graph.factor,
-                       graph.swapped, graph.link, graph.end)
+            return _placed(factors, width)
+        return factors
 
     def restricted_factors(self, factors: Factors, keep: Tensor,
                            state_dim: int) -> Factors:
