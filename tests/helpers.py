@@ -298,3 +298,57 @@ def first_step(data, motion):
     info[agents] = torch.linalg.inv(cov[agents])
     edge_index, edge_attr = next(iter(data.edges_by_step()))
     return GaussianBelief(mean, info), edge_index, edge_attr.double()
+
+
+def live_trackers():
+    r"""A tracker of every kind by name, built the same way in every
+    process (the learned ones with fixed random weights), for the live
+    session tests: Gaussian BP plain and recommended, the IEKF joint and
+    marginal, particle BP plain and recommended (M-sample messages,
+    regularized), NEBP and the Gaussian NEBP."""
+    from tg_nebp.filters import (NEBP, CentralizedIEKF, GaussianBP,
+                                 GaussianNEBP, ParticleBP)
+    return {
+        'gbp': lambda: GaussianBP(),
+        'gbp-recommended': lambda: GaussianBP.recommended(),
+        'iekf': lambda: CentralizedIEKF(),
+        'iekf-marginal': lambda: CentralizedIEKF(marginal=True),
+        'bp': lambda: ParticleBP(num_particles=40),
+        'bp-recommended': lambda: ParticleBP.recommended(num_particles=40),
+        'nebp': lambda: randomize(NEBP(num_particles=16, message_dim=8,
+                                       hidden_dim=8), seed=4, scale=0.1),
+        'gnebp': lambda: randomize(GaussianNEBP.recommended(hidden_dim=8),
+                                   seed=5, scale=0.1),
+    }
+
+
+def stream_realization(session, data, steps=None, start=0, dt=None,
+                       order=None, leave_links=()):
+    r"""Feeds the time steps :obj:`start` to :obj:`steps` of a single
+    realization to a live session (nodes named 'n<index>', those of
+    :obj:`order`, every node by default, joined at the first step fed if
+    the session holds none; links of nodes not in the session, and of the
+    nodes in :obj:`leave_links`, are left out), returning the outputs."""
+    from tg_nebp.filters import AgentPrior, AnchorAt
+    join = {}
+    if not session.ids:
+        for i in range(data.num_nodes) if order is None else order:
+            if bool(data.anchor[i]):
+                join[f'n{i}'] = AnchorAt(data.prior_mean[i, :2].tolist())
+            else:
+                join[f'n{i}'] = AgentPrior(data.prior_mean[i].tolist(),
+                                           data.prior_cov[i].tolist())
+    outputs = []
+    for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        if t < start or (steps is not None and t >= steps):
+            continue
+        present = set(session.ids) | set(join)
+        links, ranges = [], []
+        for (j, i), z in zip(edge_index.t().tolist(), edge_attr[:, 0]):
+            if {f'n{j}', f'n{i}'} <= present and not (
+                    {j, i} & set(leave_links)):
+                links.append((f'n{j}', f'n{i}'))
+                ranges.append(float(z))
+        outputs.append(session.update(links, ranges, dt=dt, join=join))
+        join = {}
+    return outputs

@@ -1,5 +1,6 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
-:obj:`reproduce`, :obj:`frontier`, :obj:`compare` and :obj:`bench`."""
+:obj:`reproduce`, :obj:`frontier`, :obj:`compare`, :obj:`bench`, and the
+live path: :obj:`track`, :obj:`record` and :obj:`score`."""
 import argparse
 import contextlib
 import math
@@ -15,11 +16,14 @@ from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
                                           evaluate_scenario)
 from tg_nebp.experiments.frontier import frontier
 from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
+from tg_nebp.experiments.track import (LIVE_METHODS, record_realization,
+                                       score_files, track_stream)
 from tg_nebp.experiments.train import train_scenario
 from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.particle_bp import MAX_BANDWIDTH
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
+from tg_nebp.live import ON_ERROR
 from tg_nebp.models import MODELS
 from tg_nebp.threads import threads_in_force
 from tg_nebp.training import MAX_LR, PRETRAINED
@@ -151,7 +155,9 @@ def _threads(text: str):
     return 'auto' if text == 'auto' else _positive(text)
 
 
-def _add_common(parser: argparse.ArgumentParser):
+def _add_common(parser: argparse.ArgumentParser, root: bool = True):
+    # --device, --threads and (for the commands that read datasets)
+    # --root
     parser.add_argument('--device', type=_device, default='cpu',
                         help="'cpu' (default), 'cuda' or 'cuda:N'")
     parser.add_argument('--threads', type=_threads, default=None,
@@ -163,8 +169,9 @@ def _add_common(parser: argparse.ArgumentParser):
                         'do not depend on the thread count) (default: '
                         "'auto' for those, torch's default for NEBP and "
                         'the Gaussian NEBP)')
-    parser.add_argument('--root', default='datasets',
-                        help='dataset root (default: datasets)')
+    if root:
+        parser.add_argument('--root', default='datasets',
+                            help='dataset root (default: datasets)')
 
 
 def _add_compile(parser: argparse.ArgumentParser, who: str = ''):
@@ -252,6 +259,33 @@ def _train(args) -> int:
     return 0
 
 
+def _track(args) -> int:
+    # method_tracker refuses an option that the method does not take
+    options = {name: getattr(args, name) for name in METHOD_OPTIONS}
+    counts = track_stream(args.method, args.input, args.output,
+                          args.scenario, args.on_error, args.save_state,
+                          args.resume, args.seed, args.device, **options)
+    if counts['skipped']:
+        sys.stderr.write(f"{counts['skipped']} bad line(s) skipped\n")
+    return 0
+
+
+def _record(args) -> int:
+    record_realization(args.measurements, args.truth, args.scenario,
+                       args.realization, args.seed, args.root)
+    print(f"realization {args.realization} -> {args.measurements} "
+          f"(measurements), {args.truth} (truth)")
+    return 0
+
+
+def _score(args) -> int:
+    entry = score_files(args.estimates, args.truth)
+    print(f"RMSE {entry['rmse']:.3f} m, outage {entry['outage']}, "
+          f"P(accept) {entry['accept']}, {entry['steps']} steps, "
+          f"{entry['estimates']} estimates")
+    return 0
+
+
 def _frontier(args) -> int:
     out = Path(args.out)
     result = frontier(args.particles, args.samples, args.resampler,
@@ -288,6 +322,44 @@ def _reproduce(args) -> int:
     return 0
 
 
+def _add_method_options(parser: argparse.ArgumentParser):
+    # the options of method_tracker (METHOD_OPTIONS), for evaluate and track
+    add = parser.add_argument
+    add('--marginal', action='store_true',
+        help='iekf: keep only every agent\'s marginal between steps (the '
+        'ideal of a distributed filter)')
+    add('--inflation', type=_at_least(1, _number), default=None,
+        metavar='K', help='gbp: multiply every belief covariance by K '
+        'before the next prediction (default: 1.5; 1 is plain Gaussian BP)')
+    add('--tolerance', type=_at_least(0, _number), default=None,
+        metavar='T', help='gbp, gnebp: stop a step\'s iterations once no '
+        'belief mean moves by more than T (default: 0.01; 0 runs every '
+        'iteration)')
+    add('--ends', choices=['both', 'receiver'], default=None,
+        help="bp, gbp: which ends of a link its range informs: 'both' (a "
+        "pair of nodes' two ranges one factor that informs both, extrinsic "
+        "messages) or 'receiver' (the paper's convention) (default: "
+        "receiver for bp, both for gbp)")
+    add('--checkpoint', default=None,
+        help='NEBP checkpoint (with --method nebp), Gaussian NEBP '
+        'checkpoint (with --method gnebp): a path, or one shipped: '
+        f"{', '.join(PRETRAINED)}")
+    add('--particles', type=_positive, default=None,
+        help="particles K per agent (default: 1000 for BP, the checkpoint's "
+        'K for NEBP; any K for an equivariant checkpoint)')
+    add('--iterations', type=_positive, default=None,
+        help='message passing iterations per step (bp, default: 1; gbp, at '
+        'most, default: 20) or Gauss-Newton iterations per step (iekf, '
+        'default: 5)')
+    add('--resampler', choices=sorted(RESAMPLERS), default=None,
+        help='bp: how to draw the particles of the next step (default: '
+        'multinomial)')
+    _add_measurement(parser, 'BP\'s or the IEKF')
+    _add_compile(parser, 'bp, nebp, gbp: ')
+    _add_samples(parser, None)
+    _add_resampling(parser)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog='tg-nebp',
@@ -313,48 +385,12 @@ def build_parser() -> argparse.ArgumentParser:
         'writes; the metrics equal one process\'s.')
     ev.add_argument('--method', choices=list(METHODS), default='bp',
                     help=f"{', '.join(METHODS)} (default: bp)")
-    ev.add_argument('--marginal', action='store_true',
-                    help='iekf: keep only every agent\'s marginal between '
-                    'steps (the ideal of a distributed filter)')
-    ev.add_argument('--inflation', type=_at_least(1, _number), default=None,
-                    metavar='K', help='gbp: multiply every belief '
-                    'covariance by K before the next prediction (default: '
-                    '1.5; 1 is plain Gaussian BP)')
-    ev.add_argument('--tolerance', type=_at_least(0, _number), default=None,
-                    metavar='T', help='gbp, gnebp: stop a step\'s iterations '
-                    'once '
-                    'no belief mean moves by more than T (default: 0.01; 0 '
-                    'runs every iteration)')
-    ev.add_argument('--ends', choices=['both', 'receiver'], default=None,
-                    help="bp, gbp: which ends of a link its range informs: "
-                    "'both' (a pair of nodes' two ranges one factor that "
-                    "informs both, extrinsic messages) or 'receiver' (the "
-                    "paper's convention) (default: receiver for bp, both "
-                    "for gbp)")
-    ev.add_argument('--checkpoint', default=None,
-                    help='NEBP checkpoint (with --method nebp), Gaussian '
-                    'NEBP checkpoint (with --method gnebp): a path, or '
-                    f"one shipped: {', '.join(PRETRAINED)}")
-    ev.add_argument('--particles', type=_positive, default=None,
-                    help='particles K per agent (default: 1000 for BP, the '
-                    "checkpoint's K for NEBP; any K for an equivariant "
-                    'checkpoint)')
     _add_test_data(ev, realizations=10)
-    ev.add_argument('--iterations', type=_positive, default=None,
-                    help='message passing iterations per step (bp, default: '
-                    '1; gbp, at most, default: 20) or Gauss-Newton '
-                    'iterations per step (iekf, default: 5)')
-    ev.add_argument('--resampler', choices=sorted(RESAMPLERS),
-                    default=None, help='bp: how to draw the particles of '
-                    'the next step (default: multinomial)')
-    _add_measurement(ev, 'BP\'s or the IEKF')
     ev.add_argument('--out', default='results/evaluate',
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
-    _add_compile(ev, 'bp, nebp, gbp: ')
-    _add_samples(ev, None)
-    _add_resampling(ev)
+    _add_method_options(ev)
     ev.set_defaults(run=_evaluate)
 
     tr = sub.add_parser(
@@ -507,6 +543,71 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(cp)
     cp.set_defaults(run=_compare)
+
+    tk = sub.add_parser(
+        'track', help='track live: JSON lines of measurements in, one line '
+        'of estimates per step out', description='Runs a tracker live, one '
+        'time step per input line (JSON: "dt" or "time", "join": [{"id", '
+        '"mean", "cov"} or {"id", "anchor"}], "leave": [ids], "links": '
+        '[[from, to, range], ...]), and writes each step\'s line of '
+        'estimates ({"t", "time", "estimates": [{"id", "mean", "cov"}]}) '
+        'as soon as it is processed. The models are the scenario\'s. A bad '
+        'line is reported with its line number and skipped, or ends the '
+        'run (--on-error); the session is never half-updated by it.')
+    tk.add_argument('--method', choices=list(LIVE_METHODS), default='gbp',
+                    help=f"{', '.join(LIVE_METHODS)} (default: gbp)")
+    tk.add_argument('--input', default='-', metavar='FILE|-',
+                    help='measurement lines (default: -, standard input)')
+    tk.add_argument('--output', default='-', metavar='FILE|-',
+                    help='estimate lines (default: -, standard output)')
+    tk.add_argument('--on-error', choices=list(ON_ERROR), default='stop',
+                    help='a bad line: report it and go on (skip), or end '
+                    'the run with exit status 2 (stop) (default: stop)')
+    tk.add_argument('--save-state', default=None, metavar='FILE',
+                    help='save the session after every line (atomically)')
+    tk.add_argument('--resume', default=None, metavar='FILE',
+                    help='continue a saved session: the lines it had read '
+                    'are skipped (feed the same input), an --output file '
+                    'keeps the lines of the saved steps')
+    tk.add_argument('--scenario', default='paper_test',
+                    help='scenario name or JSON file whose motion and '
+                    'measurement models the tracker uses (default: '
+                    'paper_test)')
+    tk.add_argument('--seed', type=_non_negative, default=0,
+                    help='seed of the session\'s draws (default: 0)')
+    _add_method_options(tk)
+    _add_common(tk, root=False)
+    tk.set_defaults(run=_track)
+
+    rc = sub.add_parser(
+        'record', help='write a test realization as measurement lines for '
+        'track, its truth apart', description='Writes realization INDEX '
+        'of the test data (the ones evaluate tracks with the same --seed) '
+        'as the measurement lines of tg-nebp track (measurements only) and '
+        'its true states to another file, for a replay through the live '
+        'path and tg-nebp score.')
+    rc.add_argument('--scenario', default='paper_test',
+                    help='scenario name or JSON file (default: paper_test)')
+    rc.add_argument('--seed', type=_non_negative, default=0,
+                    help='seed of the test data (default: 0)')
+    rc.add_argument('--realization', type=_non_negative, default=0,
+                    metavar='INDEX', help='which realization (default: 0)')
+    rc.add_argument('--measurements', required=True, metavar='FILE',
+                    help='where the measurement lines go')
+    rc.add_argument('--truth', required=True, metavar='FILE',
+                    help='where the true states go')
+    rc.add_argument('--root', default='datasets',
+                    help='dataset root (default: datasets)')
+    rc.set_defaults(run=_record, threads=None, device='cpu')
+
+    sc = sub.add_parser(
+        'score', help='the accuracy of track\'s estimates against record\'s '
+        'truth', description='Prints the RMSE, outage and P(accept) of '
+        'estimate lines against true states, computed as evaluate computes '
+        'them.')
+    sc.add_argument('--estimates', required=True, metavar='FILE')
+    sc.add_argument('--truth', required=True, metavar='FILE')
+    sc.set_defaults(run=_score, threads=None, device='cpu')
 
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '
                            'tracker on the test network')

@@ -51,13 +51,21 @@ class GraphLayout(NamedTuple):
     @classmethod
     def of(cls, data) -> 'GraphLayout':
         r"""The layout of :obj:`data`, a single or batched realization."""
-        num_nodes = data.num_nodes
         graph_of = graph_index(data)
-        agents, agent_index = [], torch.full((num_nodes, ), -1,
-                                             dtype=torch.long,
-                                             device=data.anchor.device)
-        for g in range(int(graph_of.max()) + 1 if num_nodes else 0):
-            nodes = ((graph_of == g) & ~data.anchor).nonzero().view(-1)
+        return cls.of_nodes(data.anchor, graph_of, int(graph_of.max()) + 1
+                            if data.num_nodes else 0)
+
+    @classmethod
+    def of_nodes(cls, anchor: Tensor, graph_of: Optional[Tensor] = None,
+                 num_graphs: int = 1) -> 'GraphLayout':
+        r"""The layout of nodes with the anchor mask :obj:`anchor`
+        :math:`(N)` in the graphs :obj:`graph_of` :math:`(N)` of
+        :obj:`num_graphs` (one graph by default)."""
+        if graph_of is None:
+            graph_of = torch.zeros_like(anchor, dtype=torch.long)
+        agents, agent_index = [], torch.full_like(graph_of, -1)
+        for g in range(num_graphs):
+            nodes = ((graph_of == g) & ~anchor).nonzero().view(-1)
             agent_index[nodes] = torch.arange(nodes.numel(),
                                               device=nodes.device)
             agents.append(nodes)

@@ -5,6 +5,7 @@ removed at the next write to their folder."""
 import json
 import math
 import os
+import pickle
 import re
 import socket
 import tempfile
@@ -13,7 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional, Union
 
+import torch
+
 __all__ = ['atomic_write', 'write_json', 'write_text', 'read_json',
+           'read_tensors',
            'read_resumable', 'NUMBER', 'Number', 'claim_folder',
            'remove_stale_temporaries', 'check_writable_folder', 'one_line',
            'first_line']
@@ -104,6 +108,30 @@ def write_json(path: Union[str, Path], obj: Any, sort_keys: bool = True):
     every object sorted, or in their order in :obj:`obj` (an order that
     means something, such as a table's rows) without :obj:`sort_keys`."""
     write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + '\n')
+
+
+def read_tensors(path: Union[str, Path], what: str) -> Any:
+    r"""The object that :func:`torch.save` wrote to :obj:`path`, read with
+    :obj:`weights_only=True`: tensors and plain values only, so no code
+    from the file runs. A missing, foreign or unsafe file is a
+    :class:`ValueError` that calls it :obj:`what` (a checkpoint, a saved
+    session)."""
+    try:
+        return torch.load(path, map_location='cpu', weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"{what} '{path}' does not exist") from None
+    except pickle.UnpicklingError as e:
+        # never pass on torch's advice to retry with weights_only=False
+        # (torch names the refused class or function: 'Unsupported global';
+        # random bytes fail on an opcode instead)
+        reason = ('it holds objects other than tensors and primitives: '
+                  'refused' if 'global' in str(e).lower() else
+                  'corrupt or foreign')
+        raise ValueError(f"'{path}' is not a readable {what}: {reason}"
+                         ) from None
+    except Exception as e:  # the unpickler raises many kinds on bad input
+        raise ValueError(f"'{path}' is not a readable {what} (corrupt or "
+                         f"foreign): {first_line(e)}") from None
 
 
 def write_text(path: Union[str, Path], text: str):

@@ -10,7 +10,6 @@ Training runs in one process or, under :obj:`torchrun`, data-parallel in
 several (gradients summed over the ranks), with the same result up to float
 rounding (see :func:`train`)."""
 import math
-import pickle
 from pathlib import Path
 from typing import (Callable, Dict, Iterable, List, Optional, Sequence,
                     Tuple, Union)
@@ -23,7 +22,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
 from tg_nebp.data.validation import check_number
-from tg_nebp.io import atomic_write, first_line, one_line
+from tg_nebp.io import atomic_write, one_line, read_tensors
 from tg_nebp.utils import derive_seed, process_group
 
 __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
@@ -125,22 +124,7 @@ def save_checkpoint(path: Union[str, Path], model: Tracker,
 
 def load_checkpoint(path: Union[str, Path]) -> dict:
     r"""Reads and checks a checkpoint (never executes code from it)."""
-    try:
-        state = torch.load(path, map_location='cpu', weights_only=True)
-    except FileNotFoundError:
-        raise ValueError(f"checkpoint '{path}' does not exist") from None
-    except pickle.UnpicklingError as e:
-        # never pass on torch's advice to retry with weights_only=False
-        # (torch names the refused class or function: 'Unsupported global';
-        # random bytes fail on an opcode instead)
-        reason = ('it holds objects other than tensors and primitives: '
-                  'refused' if 'global' in str(e).lower() else
-                  'corrupt or foreign')
-        raise ValueError(f"'{path}' is not a readable tg_nebp checkpoint: "
-                         f"{reason}") from None
-    except Exception as e:  # the unpickler raises many kinds on bad input
-        raise ValueError(f"'{path}' is not a readable tg_nebp checkpoint "
-                         f"(corrupt or foreign): {first_line(e)}") from None
+    state = read_tensors(path, 'tg_nebp checkpoint')
     if not isinstance(state, dict) or state.get('format') != CHECKPOINT_FORMAT:
         raise ValueError(f"'{path}' is not a tg_nebp NEBP checkpoint")
     if state.get('version') not in READABLE_VERSIONS:

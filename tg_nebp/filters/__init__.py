@@ -7,6 +7,7 @@ from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF
 from .gaussian_bp import GBP_RECOMMENDED, GaussianBP
 from .gaussian_nebp import GaussianNEBP
+from .session import AgentPrior, AnchorAt, TrackingSession
 from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
                               strips)
 from tg_nebp.data.validation import check_state_dim
@@ -20,6 +21,9 @@ __all__ = [
     'GaussianBP',
     'GaussianNEBP',
     'PartitionedGaussianBP',
+    'TrackingSession',
+    'AgentPrior',
+    'AnchorAt',
     'Partition',
     'partition',
     'strips',

@@ -1,4 +1,4 @@
-from typing import Iterator, Optional
+from typing import Iterator, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -9,10 +9,20 @@ from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
                               check_dense_joint, check_predicted_prior,
-                              marginal_blocks, predict_joint, scope_index)
+                              graph_index, marginal_blocks, predict_joint,
+                              scope_index)
 from tg_nebp.models import MeasurementModel, MotionModel
 
-__all__ = ['CentralizedIEKF']
+__all__ = ['CentralizedIEKF', 'JointState']
+
+
+class JointState(NamedTuple):
+    r"""What the centralized IEKF carries from one time step to the
+    next: every node's :obj:`mean` :math:`(N, S)` (float64; an anchor's
+    known state) and, per graph, the :obj:`joints` covariance
+    :math:`(A S, A S)` of its agents in node order."""
+    mean: Tensor
+    joints: Tuple[Tensor, ...]
 
 
 class CentralizedIEKF(Tracker):
@@ -84,6 +94,8 @@ class CentralizedIEKF(Tracker):
           :math:`(N, T, S)` and covariance :math:`(N, T, S, S)` (anchors:
           their known state, zero covariance)
     """
+    state_type = JointState
+
     def __init__(self, num_iterations: int = 5,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
@@ -102,7 +114,7 @@ class CentralizedIEKF(Tracker):
               generator=None) -> Iterator[StepOutput]:
         r"""Runs the time loop lazily, yielding a
         :class:`~tg_nebp.filters.StepOutput` per time step (without
-        particles).
+        particles): :meth:`step` over the realization's links.
 
         Args:
             data (Realization): A single or batched realization.
@@ -110,40 +122,102 @@ class CentralizedIEKF(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
+        graph_of = graph_index(data)
+        num_graphs = int(graph_of.max()) + 1
+        state = self.initial_state(data)
+        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+            output, state = self.step(state, edge_index, edge_attr,
+                                      data.anchor, t, graph_of=graph_of,
+                                      num_graphs=num_graphs)
+            yield output
+
+    def initial_state(self, data: Realization,
+                      generator=None) -> JointState:
+        r"""The state before the first step of the nodes of :obj:`data`
+        (its :obj:`prior_mean`, :obj:`prior_cov`, :obj:`anchor` and
+        graphs are read): every node's prior mean in float64 and, per
+        graph, the block-diagonal joint of its agents' prior covariances;
+        a joint too large for the free memory is refused
+        (:func:`~tg_nebp.gaussian.check_dense_joint`). No draws."""
         check_predicted_prior(data, self.motion, 'the centralized IEKF')
         layout = GraphLayout.of(data)
-        size = data.prior_mean.size(1)
-        check_dense_joint(max(a.numel() for a in layout.agents), size,
-                          'the centralized IEKF', data.prior_mean.device)
-        prior_mean = data.prior_mean.double()
-        means = [prior_mean[nodes] for nodes in layout.agents]
-        covs = [block_diagonal(data.prior_cov.double()[nodes])
-                for nodes in layout.agents]
-        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
-            src, dst = edge_index
-            edge_graph = layout.graph_of[dst]
-            mean = prior_mean.clone()  # anchors keep their known state
-            cov = mean.new_zeros(data.num_nodes, size, size)
-            for g, nodes in enumerate(layout.agents):
-                mine = edge_graph == g
-                # the senders' known positions where they are anchors
-                known = prior_mean[src[mine]]
-                means[g], covs[g] = self.update(
-                    *self.predict(means[g], covs[g]), edge_attr[mine].double(),
-                    layout.agent_index[src[mine]],
-                    layout.agent_index[dst[mine]], known)
-                mean[nodes] = means[g]
-                cov[nodes] = marginal_blocks(covs[g], size)
-                if self.marginal:
-                    covs[g] = block_diagonal(cov[nodes])
-            yield StepOutput(t, mean, cov)
+        check_dense_joint(max(a.numel() for a in layout.agents),
+                          data.prior_mean.size(1), 'the centralized IEKF',
+                          data.prior_mean.device)
+        prior_cov = data.prior_cov.double()
+        return JointState(data.prior_mean.double(), tuple(
+            block_diagonal(prior_cov[nodes]) for nodes in layout.agents))
 
-    def predict(self, mean: Tensor, cov: Tensor):
+    def step(self, state: JointState, edge_index: Tensor, edge_attr: Tensor,
+             anchor: Tensor, t: int, generator=None,
+             motion: Optional[MotionModel] = None,
+             graph_of: Optional[Tensor] = None, num_graphs: int = 1
+             ) -> Tuple[StepOutput, JointState]:
+        r"""One time step of every graph, the arithmetic that the offline
+        loop (:meth:`steps`) and a live session
+        (:class:`~tg_nebp.filters.TrackingSession`) share: the prediction
+        by :obj:`motion` (the tracker's by default) and the update with
+        the links :obj:`edge_index` :math:`(2, E)`, features
+        :obj:`edge_attr` :math:`(E, F)`. Returns the step's
+        :class:`~tg_nebp.filters.StepOutput` (time index :obj:`t`:
+        every node's mean and marginal covariance) and the state after
+        it. :obj:`graph_of` :math:`(N)` gives every node's graph of a
+        batch of :obj:`num_graphs` (one graph by default)."""
+        layout = GraphLayout.of_nodes(anchor, graph_of, num_graphs)
+        size = state.mean.size(1)
+        src, dst = edge_index
+        edge_graph = layout.graph_of[dst]
+        mean = state.mean.clone()  # anchors keep their known state
+        cov = mean.new_zeros(mean.size(0), size, size)
+        joints = []
+        for g, nodes in enumerate(layout.agents):
+            mine = edge_graph == g
+            # the senders' known positions where they are anchors
+            known = state.mean[src[mine]]
+            mean[nodes], joint = self.update(
+                *self.predict(state.mean[nodes], state.joints[g], motion),
+                edge_attr[mine].double(), layout.agent_index[src[mine]],
+                layout.agent_index[dst[mine]], known)
+            cov[nodes] = marginal_blocks(joint, size)
+            joints.append(block_diagonal(cov[nodes]) if self.marginal else
+                          joint)
+        return StepOutput(t, mean, cov), JointState(mean, tuple(joints))
+
+    def select_state(self, state: JointState, keep: Tensor,
+                     anchor: Tensor) -> JointState:
+        r"""The state of the nodes :obj:`keep` :math:`(N)` of one graph:
+        their means and the joint of the agents that stay (a Gaussian's
+        marginal: the leaving agents' rows and columns dropped)."""
+        size = state.mean.size(1)
+        stays = keep[~anchor].repeat_interleave(size)
+        joint, = state.joints
+        return JointState(state.mean[keep], (joint[stays][:, stays], ))
+
+    def join_state(self, state: JointState, joined: JointState,
+                   anchor: Tensor, joined_anchor: Tensor) -> JointState:
+        r"""The state of one graph's nodes followed by the joining ones
+        (an :meth:`initial_state`): the joint extended by theirs, with no
+        correlation between them."""
+        (joint, ), (new, ) = state.joints, joined.joints
+        size = state.mean.size(1)
+        check_dense_joint((joint.size(0) + new.size(0)) // size, size,
+                          'the centralized IEKF', joint.device)
+        extended = joint.new_zeros(joint.size(0) + new.size(0),
+                                   joint.size(1) + new.size(1))
+        extended[:joint.size(0), :joint.size(1)] = joint
+        extended[joint.size(0):, joint.size(1):] = new
+        return JointState(torch.cat([state.mean, joined.mean]),
+                          (extended, ))
+
+    def predict(self, mean: Tensor, cov: Tensor,
+                motion: Optional[MotionModel] = None):
         r"""The prediction of the agents' means :math:`(A, S)` and joint
-        covariance :math:`(AS, AS)`."""
-        return (self.motion.mean(mean),
-                predict_joint(cov, self.motion.jacobian(mean),
-                              self.motion.noise_covariance(mean)))
+        covariance :math:`(AS, AS)` by :obj:`motion` (the tracker's motion
+        model by default)."""
+        motion = self.motion if motion is None else motion
+        return (motion.mean(mean),
+                predict_joint(cov, motion.jacobian(mean),
+                              motion.noise_covariance(mean)))
 
     @staticmethod
     def _ends(state: Tensor, sender: Tensor, receiver: Tensor,

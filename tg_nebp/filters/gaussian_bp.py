@@ -11,7 +11,7 @@ from tg_nebp.models import MeasurementModel, MotionModel
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
 
-__all__ = ['GaussianBP', 'GBP_RECOMMENDED']
+__all__ = ['GaussianBP', 'GaussianState', 'GBP_RECOMMENDED']
 
 #: The largest covariance inflation :class:`GaussianBP` accepts.
 MAX_INFLATION = 10.0
@@ -24,6 +24,19 @@ def _inverse(matrices: Tensor) -> Tensor:
     # covariance <-> information of the agents' small blocks, symmetrized
     inverse = torch.linalg.inv(matrices)
     return 0.5 * (inverse + inverse.transpose(-1, -2))
+
+
+class GaussianState(NamedTuple):
+    r"""What a Gaussian BP tracker carries from one time step to the
+    next, one row per node: the beliefs' :obj:`mean` :math:`(N, S)` and
+    :obj:`cov` :math:`(N, S, S)` (float64; a prior before a node's first
+    step), :obj:`fresh` :math:`(N)` (the row holds a given prior, not yet
+    predicted: not inflated) and the correction's :obj:`memory`
+    (:obj:`None` for Gaussian BP)."""
+    mean: Tensor
+    cov: Tensor
+    fresh: Tensor
+    memory: Optional[Tensor]
 
 
 class _Active(NamedTuple):
@@ -115,6 +128,8 @@ class GaussianBP(Tracker):
           :math:`(N, T, S)` and covariance :math:`(N, T, S, S)` (anchors:
           their known state, zero covariance)
     """
+    state_type = GaussianState
+
     def __init__(self, num_iterations: int = 20,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
@@ -148,22 +163,25 @@ class GaussianBP(Tracker):
         constructor arguments."""
         return cls(**{**GBP_RECOMMENDED, **overrides})
 
-    def predict(self, mean: Tensor, cov: Tensor, anchor: Tensor):
+    def predict(self, mean: Tensor, cov: Tensor, anchor: Tensor,
+                motion: Optional[MotionModel] = None):
         r"""The prediction of every agent's mean :math:`(N, S)` and
-        covariance :math:`(N, S, S)`; anchors keep theirs."""
+        covariance :math:`(N, S, S)` by :obj:`motion` (the tracker's motion
+        model by default); anchors keep theirs."""
+        motion = self.motion if motion is None else motion
         agents = ~anchor
         mean, cov = mean.clone(), cov.clone()
-        jacobian = self.motion.jacobian(mean[agents])
+        jacobian = motion.jacobian(mean[agents])
         cov[agents] = (jacobian @ cov[agents] @ jacobian.transpose(-1, -2) +
-                       self.motion.noise_covariance(mean[agents]))
-        mean[agents] = self.motion.mean(mean[agents])
+                       motion.noise_covariance(mean[agents]))
+        mean[agents] = motion.mean(mean[agents])
         return mean, cov
 
     def steps(self, data: Realization,
               generator=None) -> Iterator[StepOutput]:
         r"""Runs the time loop lazily, yielding a
         :class:`~tg_nebp.filters.StepOutput` per time step (without
-        particles).
+        particles): :meth:`step` over the realization's links.
 
         Args:
             data (Realization): A single or batched realization.
@@ -173,38 +191,80 @@ class GaussianBP(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
-        check_predicted_prior(data, self.motion, 'Gaussian BP')
         if isinstance(generator, (list, tuple)):
             generator = generator[0] if generator else None
-        anchor = data.anchor
-        agents = ~anchor
         graph_of = graph_index(data)
         num_graphs = int(graph_of.max()) + 1
-        mean = data.prior_mean.double()
-        cov = data.prior_cov.double()
-        memory = self.initial_memory(data)
+        state = self.initial_state(data)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
-            # the filter's own beliefs are inflated, not the given prior
-            mean, cov = self.predict(mean, cov if t == 0 else
-                                     self.inflate(cov, memory, anchor),
-                                     anchor)
-            info = torch.zeros_like(cov)
-            info[agents] = _inverse(cov[agents])
-            prior = GaussianBelief(mean, info)
-            edge_attr = edge_attr.double()
-            edge_index = edge_index.long()
-            belief, memory = self._iterate_step(
-                _Active(torch.arange(anchor.numel(), device=anchor.device),
-                        prior, prior, edge_index, edge_attr, anchor, None,
-                        self.conv.factors(edge_index, anchor, mean.size(-1)),
-                        memory, graph_of), num_graphs, generator)
-            mean = belief.mean
-            cov = torch.zeros_like(belief.info)
-            cov[agents] = _inverse(belief.info[agents])
-            yield StepOutput(t, mean, cov)
-            mean, cov, memory = self.carry(mean, cov, memory)
+            output, state = self.step(state, edge_index, edge_attr,
+                                      data.anchor, t, generator,
+                                      graph_of=graph_of,
+                                      num_graphs=num_graphs)
+            yield output
 
-    def initial_memory(self, data: Realization) -> Optional[Tensor]:
+    def initial_state(self, data: Realization,
+                      generator=None) -> GaussianState:
+        r"""The state before the first step of the nodes of :obj:`data`
+        (its :obj:`prior_mean`, :obj:`prior_cov` and :obj:`anchor` are
+        read): the prior in float64, every node :obj:`fresh` (a given
+        prior: not inflated before its first prediction), and the
+        :meth:`initial_memory`. A prior whose prediction is singular is
+        refused (:func:`~tg_nebp.gaussian.check_predicted_prior`). No
+        draws."""
+        check_predicted_prior(data, self.motion, 'Gaussian BP')
+        anchor = data.anchor
+        return GaussianState(data.prior_mean.double(),
+                             data.prior_cov.double(), torch.ones_like(anchor),
+                             self.initial_memory(anchor.numel(),
+                                                 anchor.device))
+
+    def step(self, state: GaussianState, edge_index: Tensor,
+             edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
+             motion: Optional[MotionModel] = None,
+             graph_of: Optional[Tensor] = None, num_graphs: int = 1
+             ) -> Tuple[StepOutput, GaussianState]:
+        r"""One time step, the arithmetic that the offline loop
+        (:meth:`steps`), a live session
+        (:class:`~tg_nebp.filters.TrackingSession`) and a partitioned run
+        share: the last step's beliefs handed on (:meth:`carry`) and
+        inflated (:meth:`inflate`; a :obj:`fresh` prior is not), predicted
+        by :obj:`motion` (the tracker's by default; a session's time step
+        differs per step), then the iterations on the links
+        :obj:`edge_index` :math:`(2, E)` with features :obj:`edge_attr`
+        :math:`(E, F)`, sorted by receiver. Returns the step's
+        :class:`~tg_nebp.filters.StepOutput` (time index :obj:`t`) and
+        the state after it. :obj:`graph_of` :math:`(N)` gives every
+        node's graph of a batch of :obj:`num_graphs` (one graph by
+        default)."""
+        mean, cov, memory = state.mean, state.cov, state.memory
+        if not bool(state.fresh.all()):
+            mean, cov, memory = self.carry(mean, cov, memory)
+            # the filter's own beliefs are inflated, not a given prior
+            cov = torch.where(state.fresh.view(-1, 1, 1), cov,
+                              self.inflate(cov, memory, anchor))
+        mean, cov = self.predict(mean, cov, anchor, motion)
+        agents = ~anchor
+        info = torch.zeros_like(cov)
+        info[agents] = _inverse(cov[agents])
+        prior = GaussianBelief(mean, info)
+        edge_attr = edge_attr.double()
+        edge_index = edge_index.long()
+        if graph_of is None:
+            graph_of = torch.zeros_like(anchor, dtype=torch.long)
+        belief, memory = self._iterate_step(
+            _Active(torch.arange(anchor.numel(), device=anchor.device),
+                    prior, prior, edge_index, edge_attr, anchor, None,
+                    self.conv.factors(edge_index, anchor, mean.size(-1)),
+                    memory, graph_of), num_graphs, generator)
+        mean = belief.mean
+        cov = torch.zeros_like(belief.info)
+        cov[agents] = _inverse(belief.info[agents])
+        return StepOutput(t, mean, cov), GaussianState(
+            mean, cov, torch.zeros_like(state.fresh), memory)
+
+    def initial_memory(self, num_nodes: int,
+                       device=None) -> Optional[Tensor]:
         r"""What the iterations carry besides the beliefs, one row per
         node, before the first step: nothing for Gaussian BP (a learned
         correction keeps its node embeddings there)."""
@@ -228,8 +288,9 @@ class GaussianBP(Tracker):
         return new, messages, memory
 
     def carry(self, mean: Tensor, cov: Tensor, memory: Optional[Tensor]):
-        r"""What a step hands to the next (after it was yielded): the
-        beliefs and the memory, unchanged here."""
+        r"""What a step hands to the next (at the start of the next, after
+        the step's output was used): the beliefs and the memory, unchanged
+        here."""
         return mean, cov, memory
 
     def _iterate_step(self, work: _Active, num_graphs: int, generator

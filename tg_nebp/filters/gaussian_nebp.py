@@ -85,8 +85,8 @@ class GaussianNEBP(GaussianBP):
         check_position_dim(self.position_dim, data.prior_mean.size(1),
                            'this Gaussian NEBP')
 
-    def initial_memory(self, data: Realization) -> Tensor:
-        return self.conv.initial_memory(data.num_nodes, data.anchor.device)
+    def initial_memory(self, num_nodes: int, device=None) -> Tensor:
+        return self.conv.initial_memory(num_nodes, device)
 
     def inflate(self, cov: Tensor, memory: Tensor, anchor: Tensor) -> Tensor:
         r"""Every agent's covariance inflated by its learned

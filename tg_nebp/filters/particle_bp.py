@@ -1,6 +1,8 @@
+import functools
 import math
 import warnings
-from typing import Callable, Iterator, List, Optional, Sequence, Union
+from typing import (Callable, Iterator, List, NamedTuple, Optional, Sequence,
+                    Tuple, Union)
 
 import torch
 from torch import Tensor
@@ -21,7 +23,7 @@ from tg_nebp.utils import (compute_dtype, free_memory_bytes, link_factors,
                            log_normalize, long_edge_index, plain_tensor,
                            sort_by_receiver, weighted_moments)
 
-__all__ = ['ParticleBP', 'weighted_moments',
+__all__ = ['ParticleBP', 'ParticleState', 'weighted_moments',
            'RECOMMENDED']
 
 Generators = Union[torch.Generator, Sequence[torch.Generator], None]
@@ -81,7 +83,22 @@ def _check_prediction(particles: Tensor, motion, t: int) -> None:
                          f"the motion model diverge")
 
 
-def _check_belief(log_weights: Tensor, data: Realization, t: int) -> None:
+def _realization_ranges(data: Realization, t: int) -> Callable:
+    # the measurements of a node at time index t, named by their rows of
+    # the realization (the offline loop's description of a zero belief)
+    def describe(node: int) -> str:
+        edges = ((data.edge_time == t) &
+                 (data.edge_index[1] == node)).nonzero().view(-1)[:3]
+        return ', '.join(f"'edge_attr[{e}]' = "
+                         f"{float(data.edge_attr[e, 0]):.4g}"
+                         for e in edges.tolist())
+
+    return describe
+
+
+def _check_belief(log_weights: Tensor, t: int, edge_index: Tensor,
+                  edge_attr: Tensor,
+                  describe: Optional[Callable] = None) -> None:
     # a belief of zero weights cannot be normalized or resampled: name the
     # measurements that caused it rather than let NaNs or an internal field
     # of the resampler reach the user
@@ -89,15 +106,30 @@ def _check_belief(log_weights: Tensor, data: Realization, t: int) -> None:
     if not bool(zero.any()):
         return
     i = int(zero.nonzero()[0, 0])
-    edges = ((data.edge_time == t) &
-             (data.edge_index[1] == i)).nonzero().view(-1)[:3].tolist()
-    ranges = ', '.join(f"'edge_attr[{e}]' = {float(data.edge_attr[e, 0]):.4g}"
-                       for e in edges)
+    if describe is None:
+        ranges = ', '.join(f'{float(r):.4g}' for r in
+                           edge_attr[edge_index[1] == i, 0][:3].tolist())
+    else:
+        ranges = describe(i)
     raise ValueError(f"node {i} at time index {t}: its measurements ("
                      f"{ranges or 'none'}) give every one of its particles "
                      f"zero likelihood in {log_weights.dtype}; the ranges "
                      f"and the prior of node {i} or its neighbours are "
                      f"irreconcilably far apart for the measurement model")
+
+
+class ParticleState(NamedTuple):
+    r"""What a particle tracker carries from one time step to the next,
+    one row per node: the :obj:`particles` :math:`(N, K, S)` and their
+    normalized :obj:`log_weights` :math:`(N, K)` of the last step before
+    resampling, its weighted covariance :obj:`cov` :math:`(N, S, S)` (the
+    regularization's shape) and :obj:`fresh` :math:`(N)`: the row holds
+    draws of a given prior, which the next step predicts without
+    resampling."""
+    particles: Tensor
+    log_weights: Tensor
+    cov: Tensor
+    fresh: Tensor
 
 
 class ParticleBP(Tracker):
@@ -175,6 +207,8 @@ class ParticleBP(Tracker):
         - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean
           :math:`(N, T, S)` and covariance :math:`(N, T, S, S)`
     """
+    state_type = ParticleState
+
     def __init__(self, num_particles: int = 1000, num_iterations: int = 1,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
@@ -296,9 +330,12 @@ class ParticleBP(Tracker):
         return mean.unsqueeze(1) + offset
 
     def predict(self, particles: Tensor, anchor: Tensor,
-                generator: Optional[torch.Generator] = None) -> Tensor:
-        r"""The prediction step; anchors keep their particles."""
-        moved = self.motion.sample(particles, generator=generator)
+                generator: Optional[torch.Generator] = None,
+                motion: Optional[MotionModel] = None) -> Tensor:
+        r"""The prediction step by :obj:`motion` (the tracker's motion
+        model by default); anchors keep their particles."""
+        motion = self.motion if motion is None else motion
+        moved = motion.sample(particles, generator=generator)
         return torch.where(anchor.view(-1, 1, 1), particles, moved)
 
     def update(self, particles: Tensor, log_weights: Tensor,
@@ -407,7 +444,8 @@ class ParticleBP(Tracker):
               generator: Generators = None) -> Iterator[StepOutput]:
         r"""Runs the time loop lazily, yielding a
         :class:`~tg_nebp.filters.StepOutput` per time step (training takes an
-        optimizer step between them).
+        optimizer step between them): :meth:`step` over the realization's
+        links.
 
         Args:
             data (Realization): A single or batched realization.
@@ -421,44 +459,95 @@ class ParticleBP(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
+        counts = _nodes_per_graph(data, generator)
         # one dtype for the whole loop: half precision is promoted
-        dtype = compute_dtype(data.prior_mean, data.prior_cov, data.edge_attr)
+        state = self.initial_state(data, generator, compute_dtype(
+            data.prior_mean, data.prior_cov, data.edge_attr))
+        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+            output, state = self.step(state, edge_index, edge_attr,
+                                      data.anchor, t, generator,
+                                      counts=counts,
+                                      describe=_realization_ranges(data, t))
+            yield output
+
+    def initial_state(self, data: Realization,
+                      generator: Generators = None,
+                      dtype: Optional[torch.dtype] = None) -> ParticleState:
+        r"""The state before the first step of the nodes of :obj:`data`
+        (its :obj:`prior_mean`, :obj:`prior_cov` and :obj:`anchor` are
+        read): :math:`K` particles per node drawn from the prior
+        (:meth:`sample_prior`, with :obj:`generator` as there) in
+        :obj:`dtype` (the prior's compute type by default), uniform
+        weights, every node :obj:`fresh`. A run whose particles do not fit
+        in the free memory is refused first (:meth:`check_memory`)."""
+        if dtype is None:
+            dtype = compute_dtype(data.prior_mean, data.prior_cov)
         self.check_memory(data.num_nodes, data.prior_mean.size(1), dtype,
                           data.prior_mean.device)
-        counts = _nodes_per_graph(data, generator)
-        anchor = data.anchor
         particles = self.sample_prior(data, generator).to(dtype)
         log_weights = particles.new_full(particles.shape[:2],
                                          -math.log(self.num_particles))
+        size = particles.size(-1)
+        # no step yet: nothing to regularize with
+        cov = particles.new_zeros(particles.size(0), size, size)
+        return ParticleState(particles, log_weights, cov,
+                             torch.ones_like(data.anchor))
 
-        # the M-sample offsets of every step, per graph from its generator
-        # (none drawn for the paper's pairing: its random stream is as is)
-        sampled = self.bp_conv.samples_for(self.num_particles)
+    def step(self, state: ParticleState, edge_index: Tensor,
+             edge_attr: Tensor, anchor: Tensor, t: int,
+             generator: Generators = None,
+             motion: Optional[MotionModel] = None,
+             counts: Optional[List[int]] = None,
+             describe: Optional[Callable] = None
+             ) -> Tuple[StepOutput, ParticleState]:
+        r"""One time step, the arithmetic that the offline loop
+        (:meth:`steps`) and a live session
+        (:class:`~tg_nebp.filters.TrackingSession`) share: the last
+        step's particles resampled (:meth:`resample_step`; not a
+        :obj:`fresh` prior's), predicted by :obj:`motion` (the tracker's
+        by default), weighted by the iterations on the links
+        :obj:`edge_index` :math:`(2, E)`, features :obj:`edge_attr`
+        :math:`(E, F)`, sorted by receiver, and summarized. Returns the
+        step's :class:`~tg_nebp.filters.StepOutput` (time index
+        :obj:`t`) and the state after it. With one generator per graph,
+        :obj:`counts` gives the graphs' node counts; :obj:`describe`
+        names a node's measurements in the error of a zero belief."""
+        particles, log_weights = state.particles, state.log_weights
+        if not bool(state.fresh.all()):
+            moved, carried = self.resample_step(particles, log_weights,
+                                                state.cov, generator, counts)
+            # a prior's draws are predicted as they are
+            fresh = state.fresh.view(-1, 1)
+            particles = torch.where(fresh.unsqueeze(-1), particles, moved)
+            log_weights = torch.where(fresh, log_weights, carried)
+        num_nodes = particles.size(0)
+        # receiver-sorted links: no check, no sort per step
+        edge_index = EdgeIndex(edge_index.long(),
+                               sparse_size=(num_nodes, num_nodes),
+                               sort_order='col')
+        particles = _draw(functools.partial(self.predict, motion=motion),
+                          generator, counts, particles, anchor)
+        _check_prediction(particles, self.motion if motion is None else
+                          motion, t)
+        # the M-sample offsets, per graph from its generator (none drawn
+        # for the paper's pairing: its random stream is as is)
+        offsets = None
+        if self.bp_conv.samples_for(self.num_particles) != 1:
+            offsets = _draw(self._draw_offsets, generator, counts, particles)
+        log_weights = self.update(particles, log_weights, edge_index,
+                                  edge_attr.to(particles.dtype), anchor,
+                                  validate=False, sample_offsets=offsets)
+        _check_belief(log_weights, t, edge_index, edge_attr, describe)
+        mean, cov = weighted_moments(particles, log_weights)
+        # the gradient is cut between steps (resampling): weights carry
+        # over as values
+        return (StepOutput(t, mean, cov, particles, log_weights),
+                ParticleState(particles, log_weights.detach(), cov.detach(),
+                              torch.zeros_like(state.fresh)))
 
-        def draw_offsets(part: Tensor, g: Optional[torch.Generator]):
-            return self.bp_conv.draw_offsets(part.size(0),
-                                             self.num_particles, g,
-                                             part.device)
-
-        size = (data.num_nodes, data.num_nodes)
-        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
-            # edges_by_step sorts by receiver: no check, no sort per step
-            edge_index = EdgeIndex(edge_index.long(), sparse_size=size,
-                                   sort_order='col')
-            particles = _draw(self.predict, generator, counts, particles,
-                              anchor)
-            _check_prediction(particles, self.motion, t)
-            offsets = (None if sampled == 1 else _draw(
-                draw_offsets, generator, counts, particles))
-            log_weights = self.update(particles, log_weights, edge_index,
-                                      edge_attr.to(dtype), anchor,
-                                      validate=False, sample_offsets=offsets)
-            _check_belief(log_weights, data, t)
-            mean, cov = weighted_moments(particles, log_weights)
-            yield StepOutput(t, mean, cov, particles, log_weights)
-            particles, log_weights = self.resample_step(
-                particles, log_weights.detach(), cov.detach(), generator,
-                counts)
+    def _draw_offsets(self, part: Tensor, g: Optional[torch.Generator]):
+        return self.bp_conv.draw_offsets(part.size(0), self.num_particles, g,
+                                         part.device)
 
     def resample_step(self, particles: Tensor, log_weights: Tensor,
                       cov: Tensor, generator: Generators = None,

@@ -71,6 +71,49 @@ class Tracker(torch.nn.Module):
         that draw random numbers draw them from :obj:`generator`."""
         raise NotImplementedError
 
+    def initial_state(self, data: Realization, generator=None):
+        r"""The state before the first step of the nodes of :obj:`data`
+        (its :obj:`prior_mean`, :obj:`prior_cov` and :obj:`anchor`): an
+        instance of :attr:`state_type`, drawn from :obj:`generator` where
+        the method draws. With :meth:`step` it is what a live
+        :class:`~tg_nebp.filters.TrackingSession` needs of a tracker."""
+        raise NotImplementedError(f'{type(self).__name__} does not run '
+                                  f'live: it defines no initial_state()')
+
+    def step(self, state, edge_index: Tensor, edge_attr: Tensor,
+             anchor: Tensor, t: int, generator=None,
+             motion: Optional[MotionModel] = None):
+        r"""One time step from :obj:`state` with the links
+        :obj:`edge_index` :math:`(2, E)` (sorted by receiver) and their
+        features :obj:`edge_attr` :math:`(E, F)`, predicting by
+        :obj:`motion` (the tracker's by default): the step's
+        :class:`StepOutput` (time index :obj:`t`) and the state after it.
+        The offline loop (:meth:`steps`) and a live session call it
+        alike."""
+        raise NotImplementedError(f'{type(self).__name__} does not run '
+                                  f'live: it defines no step()')
+
+    #: The class of the state that :meth:`initial_state` and :meth:`step`
+    #: return (a :class:`~typing.NamedTuple` of tensors).
+    state_type = None
+
+    def select_state(self, state, keep: Tensor, anchor: Tensor):
+        r"""The state of the nodes :obj:`keep` :math:`(N)` (a mask; the
+        others leave): every field's rows, here (a tracker whose state
+        is not one row per node overrides it). :obj:`anchor` is the mask
+        of the nodes before."""
+        return type(state)(*(None if field is None else field[keep]
+                             for field in state))
+
+    def join_state(self, state, joined, anchor: Tensor,
+                   joined_anchor: Tensor):
+        r"""The state of the nodes of :obj:`state` followed by those of
+        :obj:`joined` (an :meth:`initial_state`): every field's rows
+        concatenated, here. :obj:`anchor` and :obj:`joined_anchor` are
+        their anchor masks."""
+        return type(state)(*(None if old is None else torch.cat([old, new])
+                             for old, new in zip(state, joined)))
+
     def forward(self, data: Realization, generator=None) -> TrackOutput:
         r"""Tracks a whole (batched) sequence; :obj:`generator` as in
         :meth:`steps`."""

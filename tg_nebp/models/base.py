@@ -253,6 +253,23 @@ class MotionModel(Model):
             f"(mean() and noise_covariance()): the posterior CRB and the "
             f"Gaussian trackers need one")
 
+    def with_time_step(self, dt: float) -> 'MotionModel':
+        r"""The same model over a time step of :obj:`dt` seconds, for a
+        live session whose steps are not evenly spaced: the model rebuilt
+        from its own :meth:`~tg_nebp.models.Model.params` with :obj:`dt`
+        replaced (itself where :obj:`dt` is its own). A model without a
+        :obj:`dt` parameter cannot move by another time step and says so
+        (a :class:`ValueError`); one whose time step is not a parameter
+        named :obj:`dt` overrides this method."""
+        params = self.params()
+        if 'dt' not in params:
+            raise ValueError(f"the motion model {self} has no time step "
+                             f"'dt' among its parameters: it cannot move "
+                             f"by a time step of {dt} s")
+        if dt == params['dt']:
+            return self
+        return type(self)(**{**params, 'dt': dt})
+
 
 class MeasurementModel(Model):
     r"""The measurement role.

@@ -1,0 +1,76 @@
+r"""The latency of one live step on the paper's test network (100 agents,
+13 anchors): a recorded realization (seed 0, realization 0) replayed line
+by line through a :class:`~tg_nebp.filters.TrackingSession`, every line
+read, stepped and its estimate line formatted; the median, 90th
+percentile and largest of the 49 steps after the first (which joins every
+node), and the median of the session's update alone (no JSON), one torch
+thread. The methods are
+those of ``tg-nebp track`` at their defaults (particle BP and the Gaussian
+NEBP as named below). The figures of the docs' page "Tracking live":
+
+    python benchmarks/track_latency.py
+    python benchmarks/track_latency.py --methods gbp iekf --threads 2
+"""
+import argparse
+import json
+import statistics
+import time
+
+import torch
+
+from tg_nebp.datasets import Scenario
+from tg_nebp.experiments.evaluate import method_tracker
+from tg_nebp.filters import TrackingSession
+from tg_nebp.live import estimate_line, parse_step, realization_lines
+
+# the options of every method (tg-nebp track's defaults otherwise)
+OPTIONS = {'bp': dict(), 'gnebp': dict(checkpoint='paper')}
+
+
+def replay(tracker, lines):
+    # every line's seconds: read, step, write (the estimate line), and the
+    # step's (the session's update) alone
+    session = TrackingSession(tracker)
+    seconds, updates = [], []
+    with torch.no_grad():
+        for line in lines:
+            start = time.perf_counter()
+            step = parse_step(line)
+            stepping = time.perf_counter()
+            output = session.update(step.links, step.ranges, step.dt,
+                                    step.time, step.join, step.leave)
+            updates.append(time.perf_counter() - stepping)
+            estimate_line(session, output)
+            seconds.append(time.perf_counter() - start)
+    return seconds, updates
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--methods', nargs='+',
+                        default=['gbp', 'iekf', 'gnebp', 'bp'])
+    parser.add_argument('--threads', type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    scenario = Scenario.load('paper_test')
+    data = scenario.generate(torch.Generator().manual_seed(0))
+    lines = list(realization_lines(data))
+    for method in args.methods:
+        tracker, _ = method_tracker(method, scenario,
+                                    **OPTIONS.get(method, {}))
+        replay(tracker, lines[:3])  # warm-up
+        seconds, updates = replay(tracker.eval(), lines)
+        # the first line joins every node: apart
+        ordered = sorted(seconds[1:])
+        print(json.dumps(dict(
+            method=method, steps=len(seconds), threads=args.threads,
+            first_ms=round(1e3 * seconds[0], 2),
+            median_ms=round(1e3 * statistics.median(seconds[1:]), 2),
+            p90_ms=round(1e3 * ordered[int(0.9 * len(ordered))], 2),
+            max_ms=round(1e3 * ordered[-1], 2),
+            update_median_ms=round(1e3 * statistics.median(updates[1:]),
+                                   2))))
+
+
+if __name__ == '__main__':
+    main()

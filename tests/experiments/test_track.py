@@ -1,0 +1,188 @@
+r"""The live path from the command line: :obj:`tg-nebp record`,
+:obj:`track` (in process, and as a subprocess fed through a pipe) and
+:obj:`score`."""
+import json
+import os
+import random
+import selectors
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+from helpers import PACKAGE_ROOT, tiny_scenario
+
+from tg_nebp.cli import main
+
+STEPS = 6
+
+
+def scenario_file(folder):
+    path = folder / 'tiny.json'
+    path.write_text(json.dumps(vars(tiny_scenario(steps=STEPS))))
+    return path
+
+
+def test_a_replay_through_track_scores_as_evaluate(tmp_path, capsys):
+    # the acceptance: a recorded test realization replayed through the
+    # live path has the metrics that evaluate gives on that realization
+    root, out = str(tmp_path / 'data'), tmp_path / 'out'
+    measurements, truth = tmp_path / 'm.jsonl', tmp_path / 't.jsonl'
+    estimates = tmp_path / 'e.jsonl'
+    assert main(['record', '--scenario', 'paper_test', '--root', root,
+                 '--measurements', str(measurements), '--truth',
+                 str(truth)]) == 0
+    assert main(['track', '--method', 'gbp', '--input', str(measurements),
+                 '--output', str(estimates)]) == 0
+    capsys.readouterr()
+    assert main(['score', '--estimates', str(estimates), '--truth',
+                 str(truth)]) == 0
+    scored = capsys.readouterr().out
+    assert main(['evaluate', '--method', 'gbp', '--realizations', '1',
+                 '--root', root, '--out', str(out), '--quiet']) == 0
+    entry = json.loads((out / 'metrics.json').read_text())['gbp']
+    assert scored.startswith(
+        f"RMSE {entry['rmse']:.3f} m, outage {entry['outage']}, P(accept) "
+        f"{entry['accept']}, 50 steps, 5000 estimates")
+    from tg_nebp.experiments.track import score_files
+    exact = score_files(str(estimates), str(truth))
+    assert exact['rmse'] == entry['rmse']
+    assert exact['outage'] == entry['outage']
+    assert exact['accept'] == entry['accept']
+
+
+def _process(*args, stdin=subprocess.PIPE):
+    env = dict(os.environ, PYTHONPATH=PACKAGE_ROOT, OMP_NUM_THREADS='1')
+    # the estimate lines must come flushed by track itself
+    env.pop('PYTHONUNBUFFERED', None)
+    return subprocess.Popen(
+        [sys.executable, '-m', 'tg_nebp', 'track', *map(str, args)],
+        stdin=stdin, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, env=env, bufsize=1)
+
+
+def _read_line(stream, timeout=60.0):
+    # one line of a pipe within the timeout (None if none came)
+    selector = selectors.DefaultSelector()
+    selector.register(stream, selectors.EVENT_READ)
+    ready = selector.select(timeout)
+    selector.close()
+    return stream.readline() if ready else None
+
+
+@pytest.fixture(scope='module')
+def recorded(tmp_path_factory):
+    folder = tmp_path_factory.mktemp('recorded')
+    scenario = scenario_file(folder)
+    measurements, truth = folder / 'm.jsonl', folder / 't.jsonl'
+    assert main(['record', '--scenario', str(scenario), '--root',
+                 str(folder / 'data'), '--measurements', str(measurements),
+                 '--truth', str(truth)]) == 0
+    uninterrupted = folder / 'e.jsonl'
+    assert main(['track', '--method', 'bp', '--particles', '50',
+                 '--scenario', str(scenario), '--input', str(measurements),
+                 '--output', str(uninterrupted)]) == 0
+    return dict(scenario=scenario, lines=measurements.read_text().split(
+        '\n')[:-1], estimates=uninterrupted.read_text().split('\n')[:-1])
+
+
+def test_track_answers_every_line_before_the_next_and_skips_bad_ones(
+        recorded, tmp_path):
+    # a feeder writes a line, pauses, and waits for its estimate line
+    # before the next: every estimate comes flushed; the bad lines of each
+    # kind are reported with their line numbers and skipped, and the saved
+    # state after a bad line is the state before it
+    state = tmp_path / 'state.pt'
+    process = _process('--method', 'bp', '--particles', '50', '--scenario',
+                       recorded['scenario'], '--on-error', 'skip',
+                       '--save-state', state)
+    bad = ['not json', '{"links": [[0, 99, 3.0]]}',
+           '{"links": [[0, 1, -2.0]]}', '{"links": [[0, 1, NaN]]}',
+           '{"links": [[1, 1, 2.0]]}']
+    lines = recorded['lines']
+    feed = [lines[0], *bad, *lines[1:]]
+    outputs, saved = [], []
+    try:
+        for number, line in enumerate(feed, 1):
+            process.stdin.write(line + '\n')
+            process.stdin.flush()
+            time.sleep(0.05)
+            if number not in (2, 3, 4, 5, 6):  # a good line: its estimate
+                answer = _read_line(process.stdout)
+                assert answer is not None, f'no estimate for line {number}'
+                outputs.append(answer.rstrip('\n'))
+            _wait_saved(state, number)
+            saved.append(torch.load(state, weights_only=True))
+        process.stdin.close()
+        assert process.wait(60) == 0
+        errors = process.stderr.read().splitlines()
+    finally:
+        process.kill()
+    assert outputs == recorded['estimates']
+    assert [e.split(':')[0] for e in errors[:5]] == [
+        f'skipped line {n}' for n in (2, 3, 4, 5, 6)]
+    assert errors[5] == '5 bad line(s) skipped'
+    for after in saved[1:6]:  # after each bad line: the state of line 1
+        for key in ('generator', 'anchor'):
+            assert torch.equal(after[key], saved[0][key])
+        for name, value in after['state'].items():
+            assert torch.equal(value, saved[0]['state'][name]), name
+
+
+def _wait_saved(path, lines, timeout=120.0):
+    # until the saved state holds the first 'lines' lines
+    deadline = time.time() + timeout
+    while time.time() < deadline and (
+            _progress(path) or {}).get('lines') != lines:
+        time.sleep(0.05)
+    assert (_progress(path) or {}).get('lines') == lines
+
+
+def _progress(path):
+    try:
+        return json.loads(torch.load(path, weights_only=True)['progress'])
+    except Exception:  # not written yet, or being replaced
+        return None
+
+
+def test_track_stops_at_a_bad_line_with_one_error(recorded, tmp_path):
+    process = _process('--method', 'gbp', '--scenario', recorded['scenario'])
+    out, err = process.communicate(
+        recorded['lines'][0] + '\n{"links": [[0, 1, 3.0]\n' +
+        recorded['lines'][1] + '\n', timeout=120)
+    assert process.returncode == 2
+    assert len(out.splitlines()) == 1
+    assert err.splitlines() == [err.splitlines()[0]]
+    assert err.startswith('error: line 2: not JSON: ')
+
+
+def test_killed_and_resumed_track_writes_the_uninterrupted_lines(
+        recorded, tmp_path):
+    # killed (SIGKILL) after a random step, resumed from its saved state
+    # with the same input: the output file is the uninterrupted run's
+    rng = random.Random(30)
+    kill_after = rng.randrange(1, STEPS - 1)
+    state, output = tmp_path / 'state.pt', tmp_path / 'e.jsonl'
+    args = ('--method', 'bp', '--particles', '50', '--scenario',
+            recorded['scenario'], '--save-state', state, '--output', output)
+    process = _process(*args)
+    try:
+        for line in recorded['lines'][:kill_after]:
+            process.stdin.write(line + '\n')
+            process.stdin.flush()
+        _wait_saved(state, kill_after)
+    finally:
+        process.kill()
+        process.wait()
+    # a kill between a step's estimate line and its save leaves a line
+    # that the resumed run writes again: the resumed run drops it
+    with open(output, 'a') as stream:
+        stream.write(recorded['estimates'][kill_after] + '\n')
+    full = tmp_path / 'm.jsonl'
+    full.write_text(''.join(line + '\n' for line in recorded['lines']))
+    resumed = _process(*args, '--resume', state, '--input', full,
+                       stdin=subprocess.DEVNULL)
+    out, err = resumed.communicate(timeout=120)
+    assert resumed.returncode == 0, err
+    assert output.read_text().split('\n')[:-1] == recorded['estimates']

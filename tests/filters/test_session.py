@@ -1,0 +1,447 @@
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from helpers import (PACKAGE_ROOT, gen, live_trackers, stream_realization,
+                     tiny_scenario)
+
+from tg_nebp.filters import (AgentPrior, AnchorAt, CentralizedIEKF,
+                             GaussianBP, ParticleBP, TrackingSession)
+from tg_nebp.models import ConstantVelocityDrag, GaussianRange, MotionModel
+
+STEPS = 6
+# the step at which a session is saved, an agent joins or one leaves
+SPLIT = 3
+# tiny_scenario: agents 0-2, then anchors 3-5; the late agent is the last
+LATE = 2
+ORDER = [0, 1, 3, 4, 5, 2]
+
+
+@pytest.fixture(scope='module')
+def data():
+    return tiny_scenario(STEPS).generate(gen(3))
+
+
+def assert_same_outputs(ours, theirs, particles=False):
+    assert len(ours) == len(theirs)
+    for a, b in zip(ours, theirs):
+        assert a.t == b.t
+        assert torch.equal(a.mean, b.mean)
+        assert torch.equal(a.cov, b.cov)
+        if particles:
+            assert torch.equal(a.particles, b.particles)
+            assert torch.equal(a.log_weights, b.log_weights)
+
+
+@pytest.mark.parametrize('name', list(live_trackers()))
+def test_streaming_equals_the_offline_loop(data, name):
+    # the session calls the offline loop's step function: the same bits,
+    # the particle trackers with the same generator
+    tracker = live_trackers()[name]()
+    with torch.no_grad():
+        offline = list(tracker.steps(data, gen(8)))
+        online = stream_realization(TrackingSession(tracker,
+                                                    generator=gen(8)), data)
+    assert_same_outputs(online, offline,
+                        particles=offline[0].particles is not None)
+
+
+def _isolated_until(data, node, t):
+    # the realization without the links of 'node' before time index t
+    keep = ~((data.edge_index == node).any(0) & (data.edge_time < t))
+    out = data.clone()
+    out.edge_index = data.edge_index[:, keep]
+    out.edge_attr = data.edge_attr[keep]
+    out.edge_time = data.edge_time[keep]
+    return out
+
+
+def _belief(session, row):
+    # a node's belief in a Gaussian tracker's state (the IEKF's joint
+    # holds the agents in row order)
+    state = session.state
+    if hasattr(state, 'joints'):
+        agent = int((~session.anchor[:row]).sum())
+        size = state.mean.size(1)
+        block = slice(agent * size, (agent + 1) * size)
+        return state.mean[row], state.joints[0][block, block]
+    return state.mean[row], state.cov[row]
+
+
+def _links(data, t, without=()):
+    # the links of time index t, and their ranges, but those of the nodes
+    # 'without'
+    edge_index, edge_attr = data.edges_by_step()[t]
+    pairs, ranges = [], []
+    for (j, i), z in zip(edge_index.t().tolist(), edge_attr[:, 0].tolist()):
+        if not {j, i} & set(without):
+            pairs.append((f'n{j}', f'n{i}'))
+            ranges.append(z)
+    return pairs, ranges
+
+
+def assert_close_outputs(ours, theirs, exact):
+    if exact:
+        assert_same_outputs(ours, theirs)
+        return
+    assert len(ours) == len(theirs)
+    for a, b in zip(ours, theirs):
+        torch.testing.assert_close(a.mean, b.mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(a.cov, b.cov, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize('make, exact', [(GaussianBP, True),
+                                         (CentralizedIEKF, False)])
+def test_an_agent_that_joins_equals_one_present_with_that_prior(data, make,
+                                                                exact):
+    # the late agent has no links before SPLIT. In one run it is there from
+    # the start (its row last); in the other it joins at SPLIT with the
+    # belief that the first run holds for it then. From SPLIT on both give
+    # the same for every node: Gaussian BP bit for bit (float64 priors:
+    # nothing is rounded; a joined prior is not inflated, so plain Gaussian
+    # BP), the IEKF to rounding (the first run's joint holds round-off
+    # between the lonely agent and the others where the second's holds
+    # zeros)
+    tracker = make()
+    lonely = _isolated_until(data, LATE, SPLIT)
+    present = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(present, lonely, steps=SPLIT, order=ORDER)
+    mean, cov = _belief(present, ORDER.index(LATE))
+    after = stream_realization(present, lonely, start=SPLIT)
+
+    late = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(late, lonely, steps=SPLIT, order=ORDER[:-1])
+    assert f'n{LATE}' not in late.ids
+    joined = [late.update(*_links(lonely, SPLIT), join={
+        f'n{LATE}': AgentPrior(mean.tolist(), cov.tolist())})]
+    joined += stream_realization(late, lonely, start=SPLIT + 1)
+    assert late.ids == present.ids
+    assert_close_outputs(joined, after, exact)
+    # it did take part: its estimate moved off its prior
+    assert float((after[-1].mean[-1, :2] - mean[:2]).norm()) > 0.1
+
+
+@pytest.mark.parametrize('make, exact', [
+    (GaussianBP, True), (lambda: CentralizedIEKF(marginal=True), False)])
+def test_an_agent_that_leaves_no_longer_influences_anyone(data, make,
+                                                          exact):
+    # one run keeps the agent without links from SPLIT on, the other lets
+    # it leave at SPLIT: the others' estimates agree (Gaussian BP: bit for
+    # bit; the IEKF of marginals: the same arithmetic on a joint without
+    # the leaver's independent block)
+    tracker = make()
+    stay = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(stay, data, steps=SPLIT, order=ORDER)
+    stayed = stream_realization(stay, data, start=SPLIT, leave_links=[LATE])
+    gone = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(gone, data, steps=SPLIT, order=ORDER)
+    left = [gone.update(*_links(data, SPLIT, without=[LATE]),
+                        leave=[f'n{LATE}'])]
+    left += stream_realization(gone, data, start=SPLIT + 1)
+    assert gone.ids == stay.ids[:-1]
+    assert len(left) == STEPS - SPLIT
+    assert_close_outputs(left, [o._replace(mean=o.mean[:-1], cov=o.cov[:-1])
+                                for o in stayed], exact)
+    with pytest.raises(ValueError, match=r"'links\[0\]' \['n0', 'n2'\]: "
+                       r"unknown identifier 'n2'"):
+        gone.update([('n0', 'n2')], [3.0])
+
+
+def test_particle_agents_join_from_their_prior_and_leave(data):
+    # a joining agent's particles are draws of its prior (uniform weights,
+    # not resampled before their first prediction); a leaving agent's row
+    # is gone
+    session = TrackingSession(ParticleBP(num_particles=4000),
+                              generator=gen(1))
+    stream_realization(session, data, steps=SPLIT, order=ORDER[:-1])
+    prior = AgentPrior([5.0, 6.0, 0.5, -0.25],
+                       torch.diag(torch.tensor([4.0, 1.0, 0.01,
+                                                0.04])).tolist())
+    out = session.update(*_links(data, SPLIT, without=[LATE]),
+                         join={'late': prior})
+    # no links: its belief is its prior predicted by the motion model
+    motion = session.tracker.motion
+    start = torch.tensor([prior.mean], dtype=torch.float64)
+    jacobian = motion.jacobian(start)[0]
+    mean = motion.mean(start)[0]
+    cov = (jacobian @ torch.tensor(prior.cov, dtype=torch.float64) @
+           jacobian.t() + motion.noise_covariance(start)[0])
+    spread = cov.diagonal().sqrt()
+    # the sample mean of 4000 draws: within 5 standard errors (the drag
+    # is nearly linear over the prior's velocity spread)
+    assert bool(((out.mean[-1].double() - mean).abs() <=
+                 5 * spread / 4000 ** 0.5).all())
+    torch.testing.assert_close(out.cov[-1].double().diagonal(),
+                               cov.diagonal(), rtol=0.1, atol=1e-4)
+    session.update(leave=['late', 'n0'])
+    assert session.ids == ['n1', 'n3', 'n4', 'n5']
+    assert session.state.particles.size(0) == 4
+
+
+def _all_nodes(data):
+    return {f'n{i}': (AnchorAt(data.prior_mean[i, :2].tolist())
+                      if bool(data.anchor[i]) else
+                      AgentPrior(data.prior_mean[i].tolist(),
+                                 data.prior_cov[i].tolist()))
+            for i in range(data.num_nodes)}
+
+
+def test_a_time_step_per_step_equals_the_model_of_that_time_step(data):
+    # dt = 0.5 given per step equals the motion model whose dt is 0.5, and
+    # so does 'time'; the clock follows
+    half = GaussianBP(motion=ConstantVelocityDrag(dt=0.5))
+    theirs = stream_realization(TrackingSession(half), data)
+    by_dt = TrackingSession(GaussianBP())
+    ours = stream_realization(by_dt, data, dt=0.5)
+    assert_same_outputs(ours, theirs)
+    assert by_dt.time == 0.5 * STEPS
+    by_time = TrackingSession(GaussianBP(), time=10.0)
+    first = by_time.update(*_links(data, 0), time=10.5,
+                           join=_all_nodes(data))
+    assert torch.equal(first.mean, theirs[0].mean)
+    with pytest.raises(ValueError, match="'time' = 10.5 does not come "
+                       "after the last step's time 10.5"):
+        by_time.update(time=10.5)
+    # the particle trackers take it too: the same draws, another motion
+    particle = stream_realization(
+        TrackingSession(ParticleBP(num_particles=30), generator=gen(2)),
+        data, dt=0.5)
+    offline = list(ParticleBP(num_particles=30, motion=ConstantVelocityDrag(
+        dt=0.5)).steps(data, gen(2)))
+    assert_same_outputs(particle, offline, particles=True)
+    # a dt of the model's own is the model itself
+    assert GaussianBP().motion.with_time_step(1.0) is not None
+    motion = ConstantVelocityDrag()
+    assert motion.with_time_step(1.0) is motion
+
+
+class Stepless(MotionModel, name='test-stepless'):
+    r"""A random walk whose time step is not a parameter."""
+    def sample(self, states, generator=None):
+        return states + torch.randn(states.shape, generator=generator,
+                                    dtype=states.dtype)
+
+    def params(self):
+        return {}
+
+
+def test_a_motion_model_without_a_time_step_says_so(data):
+    session = TrackingSession(ParticleBP(num_particles=10,
+                                         motion=Stepless()))
+    stream_realization(session, data, steps=1)  # its own step: fine
+    with pytest.raises(ValueError, match=r"the motion model Stepless\(\) "
+                       r"has no time step 'dt' among its parameters: it "
+                       r"cannot move by a time step of 0.5 s"):
+        session.update(dt=0.5)
+    assert session.num_steps == 1
+
+
+def test_a_saved_session_continues_in_a_new_process(data, tmp_path):
+    # every tracker: saved at SPLIT, loaded by another Python process,
+    # continued to the end: the uninterrupted run's bits
+    expected = {}
+    for name, make in live_trackers().items():
+        session = TrackingSession(make(), generator=gen(8))
+        with torch.no_grad():
+            stream_realization(session, data, steps=SPLIT)
+            session.save(tmp_path / f'{name}.pt')
+            expected[name] = stream_realization(session, data, start=SPLIT)
+    worker = os.path.join(os.path.dirname(__file__), 'session_worker.py')
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [PACKAGE_ROOT, os.path.dirname(os.path.dirname(worker))]))
+    done = subprocess.run([sys.executable, worker, str(tmp_path),
+                           str(SPLIT), *expected], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for name, outputs in expected.items():
+        continued = torch.load(tmp_path / f'{name}.out.pt',
+                               weights_only=True)
+        assert len(continued) == STEPS - SPLIT, name
+        for (mean, cov), output in zip(continued, outputs):
+            assert torch.equal(mean, output.mean), name
+            assert torch.equal(cov, output.cov), name
+
+
+class Foreign:
+    pass
+
+
+def test_loading_refuses_another_tracker_model_network_or_code(
+        tmp_path, data):
+    path = tmp_path / 'session.pt'
+    session = TrackingSession(GaussianBP())
+    stream_realization(session, data, steps=1)
+    session.save(path)
+    assert TrackingSession.load(path, GaussianBP()).num_steps == 1
+    for tracker, match in (
+            (CentralizedIEKF(), r"saved by another tracker: GaussianBP "
+             r"\(this session: CentralizedIEKF\)"),
+            (GaussianBP(motion=ConstantVelocityDrag(sigma_a=0.1)),
+             'saved by another motion model'),
+            (GaussianBP(measurement=GaussianRange(sigma=2.0)),
+             'saved by another measurement model'),
+            (GaussianBP(inflation=1.5), 'saved by another configuration')):
+        with pytest.raises(ValueError, match=match):
+            TrackingSession.load(path, tracker)
+    trackers = live_trackers()
+    learned = TrackingSession(trackers['gnebp']())
+    stream_realization(learned, data, steps=1)
+    learned.save(path)
+    other = trackers['gnebp']()
+    with torch.no_grad():
+        next(other.parameters()).add_(1.0)
+    with pytest.raises(ValueError, match='saved by another network'):
+        TrackingSession.load(path, other)
+    # a file that would run code is refused unread; so is a foreign one
+    torch.save(dict(format='tg_nebp-session', code=Foreign()), path)
+    with pytest.raises(ValueError, match='objects other than tensors and '
+                       'primitives: refused'):
+        TrackingSession.load(path, GaussianBP())
+    torch.save(dict(weights=torch.zeros(2)), path)
+    with pytest.raises(ValueError, match='not a saved tg_nebp tracking '
+                       'session'):
+        TrackingSession.load(path, GaussianBP())
+
+
+def _snapshot(session):
+    saved = session.state_dict()
+    plain = {k: v for k, v in saved.items()
+             if not isinstance(v, (dict, torch.Tensor))}
+    return json.dumps(plain, sort_keys=True), saved
+
+
+def _assert_same_state(a, b):
+    assert a[0] == b[0]
+    for key in ('anchor', 'generator'):
+        assert torch.equal(a[1][key], b[1][key])
+    for name, value in a[1]['state'].items():
+        other = b[1]['state'][name]
+        if isinstance(value, list):
+            assert all(torch.equal(x, y) for x, y in zip(value, other))
+        elif value is not None:
+            assert torch.equal(value, other), name
+
+
+@pytest.mark.parametrize('update, match', [
+    (dict(links=[('n0', 'zz')], ranges=[3.0]),
+     r"'links\[0\]' \['n0', 'zz'\]: unknown identifier 'zz'"),
+    (dict(links=[('n1', 'n1')], ranges=[3.0]), 'a link to itself'),
+    (dict(links=[('n0', 'n1')], ranges=[-1.0]),
+     r"'ranges\[0\]' of 'links\[0\]' \['n0', 'n1'\] is negative"),
+    (dict(links=[('n0', 'n1')], ranges=[float('nan')]), 'is not finite'),
+    (dict(links=[('n0', 'n3')], ranges=[3.0]),
+     "'n3' is an anchor, and anchors never measure"),
+    (dict(links=[('n0', 'n1'), ('n0', 'n1')], ranges=[3.0, 3.1]),
+     r"the same link as 'links\[0\]'"),
+    (dict(links=[('n0', 'n1')], ranges=[]), '1 links but 0 ranges'),
+    (dict(join={'n0': AgentPrior([0.0] * 4, torch.eye(4).tolist())}),
+     'already in use'),
+    (dict(join={'x': AgentPrior([0.0] * 4, [
+        [1.0, 2.0, 0, 0], [0.0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])}),
+     'cov is not symmetric'),
+    (dict(join={'x': AgentPrior([0.0] * 4, (-torch.eye(4)).tolist())}),
+     'not positive semi-definite'),
+    (dict(join={'x': AgentPrior([0.0] * 6, torch.eye(6).tolist())}),
+     r"'join\[0\]' \('x'\) mean must have shape \[4\]"),
+    (dict(leave=['nobody']), r"'leave\[0\]': unknown identifier"),
+    (dict(dt=0.0), "'dt' must be a finite number above 0"),
+    (dict(join={'x': AnchorAt([1.0, 2.0])}, links=[('x', 'n9')],
+          ranges=[1.0]), "unknown identifier 'n9'"),
+])
+def test_a_bad_step_names_its_field_and_changes_nothing(data, update,
+                                                        match):
+    session = TrackingSession(ParticleBP(num_particles=10),
+                              generator=gen(4))
+    stream_realization(session, data, steps=1)
+    before = _snapshot(session)
+    with pytest.raises(ValueError, match=match):
+        session.update(**update)
+    _assert_same_state(_snapshot(session), before)
+    assert session.num_steps == 1 and session.time == 1.0
+
+
+def test_a_step_that_fails_inside_the_tracker_changes_nothing(data):
+    # every particle of the receiver gets zero likelihood in the middle of
+    # the step (after draws): the state and the generator are as before,
+    # and the next step is the one an untouched session takes
+    def session():
+        made = TrackingSession(ParticleBP(num_particles=10,
+                                          measurement=GaussianRange(1e-6)),
+                               generator=gen(4))
+        stream_realization(made, data, steps=1)
+        return made
+
+    failed, clean = session(), session()
+    before = _snapshot(failed)
+    with pytest.raises(ValueError, match='zero likelihood'):
+        failed.update([('n3', 'n0')], [1e14])
+    _assert_same_state(_snapshot(failed), before)
+    assert_same_outputs(stream_realization(failed, data, start=1, steps=2),
+                        stream_realization(clean, data, start=1, steps=2),
+                        particles=True)
+
+
+@pytest.mark.parametrize('make', [GaussianBP.recommended, CentralizedIEKF])
+def test_a_step_without_links_predicts_and_a_joined_prior_is_not_inflated(
+        data, make):
+    # a step without measurements is the motion model's prediction alone:
+    # of the filter's own belief inflated (Gaussian BP's kappa = 1.5), of a
+    # prior that joins at that step not
+    tracker = make()
+    session = TrackingSession(tracker, dtype=torch.float64)
+    last = stream_realization(session, data, steps=SPLIT)[-1]
+    kappa = getattr(tracker, 'inflation', 1.0)
+    prior = AgentPrior([5.0, 6.0, 0.5, -0.25], torch.diag(torch.tensor(
+        [4.0, 1.0, 0.01, 0.04], dtype=torch.float64)).tolist())
+    beliefs = [(0, *session.estimates(last)['n0'], kappa),
+               (-1, torch.tensor(prior.mean, dtype=torch.float64),
+                torch.tensor(prior.cov, dtype=torch.float64), 1.0)]
+    out = session.update(dt=2.0, join={'late': prior})
+    motion = tracker.motion.with_time_step(2.0)
+    for row, mean, cov, inflation in beliefs:
+        start = mean.view(1, -1)
+        jacobian = motion.jacobian(start)[0]
+        predicted = (inflation * jacobian @ cov @ jacobian.t() +
+                     motion.noise_covariance(start)[0])
+        torch.testing.assert_close(out.mean[row], motion.mean(start)[0],
+                                   rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out.cov[row], predicted, rtol=1e-9,
+                                   atol=1e-12)
+
+
+def keep_first(log_weights, num_samples, generator):
+    r"""A resampler that keeps particle 0 of every node."""
+    return torch.zeros(log_weights.shape[:-1] + (num_samples, ),
+                       dtype=torch.long)
+
+
+def test_a_joined_prior_is_not_resampled_before_its_prediction(data):
+    # the resampler collapses every belief to one particle: the old agents
+    # keep the motion noise's spread only, the joining agent its prior's
+    session = TrackingSession(ParticleBP(num_particles=2000,
+                                         resampler=keep_first),
+                              generator=gen(6))
+    stream_realization(session, data, steps=SPLIT)
+    out = session.update(join={'late': AgentPrior(
+        [5.0, 6.0, 0.5, -0.25], torch.diag(torch.tensor(
+            [4.0, 1.0, 0.01, 0.04])).tolist())})
+    assert float(out.cov[0, 0, 0]) < 0.01
+    assert 3.0 < float(out.cov[-1, 0, 0]) < 5.5
+
+
+@pytest.mark.parametrize('name', ['gbp', 'bp'])
+def test_links_in_any_order(data, name):
+    # the session sorts a step's links by receiver, as the layers need:
+    # links fed in reverse give the offline result (to the rounding of
+    # another summation order)
+    tracker = live_trackers()[name]()
+    offline = list(tracker.steps(data, gen(8)))
+    session = TrackingSession(tracker, _all_nodes(data), generator=gen(8))
+    for t in range(STEPS):
+        links, ranges = _links(data, t)
+        out = session.update(links[::-1], ranges[::-1])
+        torch.testing.assert_close(out.mean, offline[t].mean, rtol=1e-5,
+                                   atol=1e-5)

@@ -1,0 +1,99 @@
+import json
+import math
+
+import pytest
+import torch
+from helpers import gen, tiny_scenario
+
+from tg_nebp.evaluation import summarize
+from tg_nebp.filters import GaussianBP, ParticleBP, TrackingSession
+from tg_nebp.live import (parse_step, realization_lines, score, track_lines,
+                          truth_lines)
+
+
+@pytest.fixture(scope='module')
+def data():
+    return tiny_scenario(4).generate(gen(3))
+
+
+def test_a_recorded_realization_replays_as_the_offline_loop(data):
+    # measurement lines in, estimate lines out: the floats read back bit
+    # for bit, and the score is the evaluation's of the same estimates
+    lines = list(realization_lines(data))
+    assert 'states' not in lines[0] and len(lines) == 4
+    first = json.loads(lines[0])
+    assert [entry['id'] for entry in first['join']] == list(range(6))
+    assert 'anchor' in first['join'][3] and 'mean' in first['join'][0]
+    written = []
+    counts = track_lines(TrackingSession(GaussianBP()), lines,
+                         written.append)
+    assert counts == dict(lines=4, written=4, skipped=0)
+    offline = list(GaussianBP().steps(data))
+    errors, nees = [], []
+    for line, step in zip(written, offline):
+        estimates = json.loads(line)['estimates']
+        assert [e['id'] for e in estimates] == [0, 1, 2]
+        mean = torch.tensor([e['mean'] for e in estimates],
+                            dtype=torch.float64)
+        cov = torch.tensor([e['cov'] for e in estimates],
+                           dtype=torch.float64)
+        assert torch.equal(mean, step.mean[:3])
+        assert torch.equal(cov, step.cov[:3])
+        truth = data.states[:3, step.t, :2]
+        offset = mean[:, :2] - truth
+        errors.append(offset.norm(dim=-1))
+        whitened = torch.linalg.solve(cov[:, :2, :2], offset.unsqueeze(-1))
+        nees.append((offset.unsqueeze(-2) @ whitened
+                     ).view(-1))
+    entry = score(written, truth_lines(data))
+    expected = summarize(torch.cat(errors), torch.cat(nees))
+    assert entry['outage'] == expected['outage']
+    assert entry['accept'] == expected['accept']
+    assert math.isclose(entry['rmse'], expected['rmse'], rel_tol=1e-12)
+    assert entry['steps'] == 4 and entry['estimates'] == 12
+
+
+@pytest.mark.parametrize('line, match', [
+    ('{"links": [[0, 1, 3.0]', 'not JSON'),
+    ('[1, 2]', 'a line is a JSON object, got list'),
+    ('{"link": []}', "unknown field 'link'"),
+    ('{"links": [[0, 1]]}', r"'links\[0\]' must be \[from, to, range\]"),
+    ('{"join": [{"id": 7}]}', r"'join\[0\]' must hold 'mean' and 'cov'"),
+    ('{"join": [{"id": 7, "anchor": [1, 2]}, {"id": 7, "anchor": [3, 4]}]}',
+     "identifier 7 is repeated"),
+    ('{"leave": 3}', "'leave' must be a list"),
+])
+def test_a_malformed_line_names_its_field(line, match):
+    with pytest.raises(ValueError, match=match):
+        parse_step(line)
+
+
+def test_bad_lines_are_numbered_and_skipped_or_stop_the_run(data):
+    lines = list(realization_lines(data))
+    bad = ['not json', '{"links": [[0, 99, 3.0]]}',
+           '{"links": [[0, 1, -2.0]]}', '{"links": [[0, 1, NaN]]}',
+           '{"links": [[1, 1, 2.0]]}']
+    stream = lines[:1] + bad + [''] + lines[1:]
+    written, reports = [], []
+    tracker = ParticleBP(num_particles=20)
+    counts = track_lines(TrackingSession(tracker, generator=gen(1)), stream,
+                         written.append, 'skip', reports.append)
+    assert counts == dict(lines=len(stream), written=4, skipped=5)
+    assert [r.split(':')[0] for r in reports] == [
+        'skipped line 2', 'skipped line 3', 'skipped line 4',
+        'skipped line 5', 'skipped line 6']
+    assert 'unknown identifier 99' in reports[1]
+    assert 'is negative' in reports[2] and 'not finite' in reports[3]
+    assert 'a link to itself' in reports[4]
+    # skipped lines changed nothing: the estimates are the clean stream's
+    clean = []
+    track_lines(TrackingSession(tracker, generator=gen(1)), lines,
+                clean.append)
+    assert written == clean
+    with pytest.raises(ValueError, match=r'^line 2: .*unknown identifier '
+                       r'99'):
+        track_lines(TrackingSession(tracker, generator=gen(1)),
+                    lines[:1] + bad[1:], written.append)
+    with pytest.raises(ValueError, match="'on_error' must be one of"):
+        track_lines(TrackingSession(tracker), lines, written.append,
+                    'ignore')

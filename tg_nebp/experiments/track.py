@@ -1,0 +1,128 @@
+r"""Tracking live from the command line: behind :obj:`tg-nebp track`
+(:func:`track_stream`: JSON lines of measurements in, one line of
+estimates per step out), :obj:`tg-nebp record` (:func:`record_realization`:
+a scenario's realization as such a stream, its truth apart) and
+:obj:`tg-nebp score` (:func:`score_files`)."""
+import contextlib
+import sys
+from pathlib import Path
+from typing import Callable, Optional, Union
+
+import torch
+
+from tg_nebp.datasets import Scenario, load_datasets
+from tg_nebp.experiments.evaluate import method_tracker, scenario_of
+from tg_nebp.filters.session import TrackingSession
+from tg_nebp.io import write_text
+from tg_nebp.live import (read_lines, realization_lines, score, track_lines,
+                          truth_lines)
+
+__all__ = ['LIVE_METHODS', 'track_stream', 'record_realization',
+           'score_files']
+
+#: The methods that run live: every tracker of
+#: :data:`~tg_nebp.experiments.evaluate.METHODS` (the bound is not one).
+LIVE_METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'iekf')
+
+
+@contextlib.contextmanager
+def _opened(path: str, mode: str, standard):
+    # '-' is the standard stream (left open), else the file
+    if path == '-':
+        yield standard
+        return
+    with open(path, mode, encoding='utf-8') as stream:
+        yield stream
+
+
+def _kept_lines(path: str, count: int) -> None:
+    # a resumed run's output file: the lines of the saved steps only (a
+    # killed run may have written one more), rewritten atomically
+    if path == '-' or not Path(path).exists():
+        return
+    with open(path, encoding='utf-8') as stream:
+        lines = stream.readlines()[:count]
+    write_text(path, ''.join(lines))
+
+
+def track_stream(method: str, input: str = '-', output: str = '-',
+                 scenario: Union[str, Scenario] = 'paper_test',
+                 on_error: str = 'stop', save_state: Optional[str] = None,
+                 resume: Optional[str] = None, seed: int = 0,
+                 device: str = 'cpu',
+                 report: Optional[Callable[[str], None]] = None,
+                 **options) -> dict:
+    r"""Tracks a stream of measurement lines (:mod:`tg_nebp.live`) from
+    :obj:`input` (a path, or :obj:`"-"`: standard input, read line by
+    line as it arrives) with :obj:`method`'s tracker
+    (:func:`~tg_nebp.experiments.evaluate.method_tracker` with the models
+    of :obj:`scenario` and :obj:`options`), writing every step's estimate
+    line to :obj:`output` (:obj:`"-"`: standard output) at once, flushed.
+
+    :obj:`save_state` saves the session after every line (atomically);
+    :obj:`resume` continues a saved session: the lines it had read are
+    skipped (feed the same stream again), and an output file is cut to the
+    lines of the saved steps before the new ones are appended, so that it
+    ends as an uninterrupted run's. A bad line ends the run with a
+    :class:`ValueError` naming its line number (:obj:`on_error="stop"`) or
+    is reported by :obj:`report` (standard error by default) and skipped
+    (:obj:`"skip"`). Returns the counts of
+    :func:`~tg_nebp.live.track_lines`."""
+    if method not in LIVE_METHODS:
+        raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
+                         f"(the bound does not track), got {method!r}")
+    tracker, _ = method_tracker(method, scenario_of(scenario), **options)
+    tracker = tracker.to(device).eval()
+    done = written = 0
+    if resume is not None:
+        session = TrackingSession.load(resume, tracker, device=device)
+        progress = session.progress or {}
+        done, written = progress.get('lines', 0), progress.get('written', 0)
+        _kept_lines(output, written)
+    else:
+        session = TrackingSession(tracker, seed=seed, device=device)
+    if report is None:
+        def report(message: str):
+            sys.stderr.write(message + '\n')
+            sys.stderr.flush()
+    with _opened(input, 'r', sys.stdin) as source, \
+            _opened(output, 'a' if resume is not None else 'w',
+                    sys.stdout) as sink:
+        def write(line: str):
+            sink.write(line + '\n')
+            sink.flush()
+
+        with torch.no_grad():
+            return track_lines(session, read_lines(source), write, on_error,
+                               report, save_state, done, written)
+
+
+def record_realization(measurements: str, truth: str,
+                       scenario: Union[str, Scenario] = 'paper_test',
+                       index: int = 0, seed: int = 0,
+                       root: str = 'datasets') -> Scenario:
+    r"""Writes realization :obj:`index` of :obj:`scenario`'s test data of
+    :obj:`seed` (the realizations :obj:`tg-nebp evaluate --realizations
+    index + 1 --seed seed` tracks) as measurement lines
+    (:func:`~tg_nebp.live.realization_lines`, the scenario's measurement
+    features only) to :obj:`measurements` and its true states
+    (:func:`~tg_nebp.live.truth_lines`) to :obj:`truth`, each
+    atomically. Returns the scenario."""
+    scenario = scenario_of(scenario)
+    dataset, = load_datasets(root, (scenario, index + 1, seed))
+    data = dataset[index]
+    features = len(scenario.measurement_model.features)
+    write_text(measurements,
+               ''.join(line + '\n' for line in
+                       realization_lines(data, features)))
+    write_text(truth, ''.join(line + '\n' for line in truth_lines(data)))
+    return scenario
+
+
+def score_files(estimates: str, truth: str) -> dict:
+    r"""The accuracy of an estimate file (:obj:`tg-nebp track`'s output)
+    against a truth file (:obj:`tg-nebp record`'s):
+    :func:`~tg_nebp.live.score`."""
+    with open(estimates, encoding='utf-8') as e, \
+            open(truth, encoding='utf-8') as t:
+        return score(e, t)

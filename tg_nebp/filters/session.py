@@ -1,0 +1,569 @@
+r"""Tracking live: a session that feeds any tracker one time step at a time,
+as the measurements of a real network arrive, with nodes addressed by the
+user's own identifiers, agents that join and leave, a time step that
+differs per step, and a state that a restarted process continues from.
+
+The session holds the tracker's state between steps and calls the same
+:meth:`step <tg_nebp.filters.GaussianBP.step>` that the offline loop
+(:meth:`~tg_nebp.filters.Tracker.steps`) calls, so streaming a recorded
+realization gives what tracking it offline gives."""
+import hashlib
+import json
+import math
+import numbers
+from pathlib import Path
+from typing import (Any, Dict, Hashable, List, Mapping, NamedTuple,
+                    Optional, Sequence, Tuple, Union)
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_position_dim, check_state_dim
+from tg_nebp.filters.tracker import StepOutput, Tracker
+from tg_nebp.io import atomic_write, first_line, read_tensors
+
+__all__ = ['TrackingSession', 'AgentPrior', 'AnchorAt', 'SESSION_FORMAT',
+           'SESSION_VERSION']
+
+#: The :obj:`format` entry of a saved session.
+SESSION_FORMAT = 'tg_nebp-session'
+#: The version of the saved session's layout that this library writes and
+#: reads.
+SESSION_VERSION = 1
+#: How far a joined prior's covariance may be from symmetric, relative to
+#: its largest entry.
+_SYMMETRY_TOLERANCE = 1e-6
+
+Identifier = Union[str, int]
+
+
+class AgentPrior(NamedTuple):
+    r"""A joining agent: the prior :obj:`mean` :math:`(S)` and :obj:`cov`
+    :math:`(S, S)` of its state :math:`[\mathbf{p}, \mathbf{v}]` (a state
+    before the step it joins at, predicted like the prior of a
+    realization's first step)."""
+    mean: Sequence[float]
+    cov: Sequence[Sequence[float]]
+
+
+class AnchorAt(NamedTuple):
+    r"""A joining anchor at the known :obj:`position` :math:`(D)`."""
+    position: Sequence[float]
+
+
+def _identifier(value, where: str) -> Identifier:
+    # a user's identifier: a string or an integer (not a bool, whose JSON
+    # form is not an identifier)
+    if isinstance(value, str) or (isinstance(value, numbers.Integral)
+                                  and not isinstance(value, bool)):
+        return value if isinstance(value, str) else int(value)
+    raise ValueError(f"{where}: an identifier is a string or an integer, "
+                     f"got {value!r}")
+
+
+def _finite_rows(value, shape: Tuple[int, ...], where: str) -> Tensor:
+    # a list of finite numbers of the given shape, in float64
+    try:
+        tensor = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{where} must be a list of numbers of shape "
+                         f"{list(shape)}, got {value!r}") from None
+    if tuple(tensor.shape) != shape:
+        raise ValueError(f"{where} must have shape {list(shape)}, got "
+                         f"{list(tensor.shape)}")
+    if not bool(torch.isfinite(tensor).all()):
+        raise ValueError(f"{where} holds a non-finite value")
+    return tensor
+
+
+def _fingerprint(tracker: Tracker) -> str:
+    # the learned parameters and buffers, hashed: a session continues
+    # under the network it was run with only
+    digest = hashlib.sha256()
+    for name, value in sorted(tracker.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+class TrackingSession:
+    r"""A tracker run live, one time step at a time: created from the
+    prior of the agents and the anchors, then fed every step's links and
+    ranges by :meth:`update`, which returns that step's
+    :class:`~tg_nebp.filters.StepOutput` (rows in the order of
+    :attr:`ids`). Nodes are addressed by the user's identifiers (strings
+    or integers); agents join (:class:`AgentPrior`) and anchors are added
+    (:class:`AnchorAt`) before any step, and both leave; each step may
+    have its own time step :obj:`dt` (the motion model's
+    :meth:`~tg_nebp.models.MotionModel.with_time_step`).
+
+    Every step runs the tracker's own :meth:`step
+    <tg_nebp.filters.GaussianBP.step>`, the function of its offline loop:
+    a realization streamed step by step gives what
+    :meth:`~tg_nebp.filters.Tracker.steps` gives (bit for bit, and for
+    the particle trackers with the same generator). A step's input is
+    checked whole before anything changes; a step that fails leaves the
+    session (state, generator, clock, nodes) as it was.
+
+    :meth:`state_dict` and :meth:`save` hold everything to continue
+    (beliefs, particles, the generator's state, the clock, the nodes);
+    :meth:`load_state_dict` and :meth:`load` refuse, by name, a session of
+    another tracker, configuration, model or network, and never run code
+    from a file.
+
+    Args:
+        tracker (Tracker): The tracker (any of the library's, or a user's
+            with :meth:`~tg_nebp.filters.Tracker.initial_state` and
+            :meth:`~tg_nebp.filters.Tracker.step`).
+        nodes (mapping, optional): The nodes before the first step, by
+            identifier, in row order: :class:`AgentPrior` or
+            :class:`AnchorAt`. (default: none; join them with the first
+            :meth:`update`)
+        generator (torch.Generator, optional): The source of every draw
+            (particles, resampling); a new one seeded with :obj:`seed` if
+            :obj:`None`. (default: :obj:`None`)
+        seed (int, optional): The seed of the session's own generator.
+            (default: :obj:`0`)
+        time (float, optional): The time of the prior, in seconds.
+            (default: :obj:`0.0`)
+        dtype (torch.dtype, optional): The type of the priors and ranges
+            handed to the tracker (the Gaussian trackers compute in
+            float64 whatever it is). (default: :obj:`torch.float32`, a
+            generated realization's)
+        device (str, optional): Device. (default: :obj:`"cpu"`)
+    """
+    def __init__(self, tracker: Tracker,
+                 nodes: Optional[Mapping[Hashable, Any]] = None,
+                 generator: Optional[torch.Generator] = None, seed: int = 0,
+                 time: float = 0.0, dtype: torch.dtype = torch.float32,
+                 device='cpu'):
+        if not isinstance(tracker, Tracker):
+            raise TypeError(f"'tracker' must be a Tracker, got "
+                            f"{type(tracker).__name__}")
+        self.tracker = tracker
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.generator = (torch.Generator(self.device).manual_seed(seed)
+                          if generator is None else generator)
+        self.time = float(time)
+        if not math.isfinite(self.time):
+            raise ValueError(f"'time' must be finite, got {time}")
+        #: The time index of the next step (the steps done).
+        self.num_steps = 0
+        #: What the caller saved with the session (:meth:`save`), once
+        #: loaded (:meth:`load`).
+        self.progress = None
+        self._ids: List[Identifier] = []
+        self._row: Dict[Identifier, int] = {}
+        self.anchor = torch.zeros(0, dtype=torch.bool, device=self.device)
+        self.state = None
+        self.state_size: Optional[int] = None
+        if nodes:
+            self._commit(*self._changed(leave=(), join=nodes))
+
+    # ---- the nodes
+
+    @property
+    def ids(self) -> List[Identifier]:
+        r"""The identifiers of the nodes, in the order of the rows of every
+        :class:`~tg_nebp.filters.StepOutput` (agents and anchors)."""
+        return list(self._ids)
+
+    @property
+    def agent_ids(self) -> List[Identifier]:
+        r"""The identifiers of the agents, in row order."""
+        return [i for i, a in zip(self._ids, self.anchor.tolist()) if not a]
+
+    def estimates(self, output: StepOutput
+                  ) -> Dict[Identifier, Tuple[Tensor, Tensor]]:
+        r"""Every agent's mean :math:`(S)` and covariance :math:`(S, S)` of
+        a step's :obj:`output`, by identifier."""
+        return {i: (output.mean[r], output.cov[r])
+                for r, i in enumerate(self._ids) if not bool(self.anchor[r])}
+
+    # ---- a step
+
+    def update(self, links: Sequence[Sequence[Identifier]] = (),
+               ranges: Sequence = (), dt: Optional[float] = None,
+               time: Optional[float] = None,
+               join: Optional[Mapping[Hashable, Any]] = None,
+               leave: Sequence[Identifier] = ()) -> StepOutput:
+        r"""One time step: first the nodes of :obj:`leave` leave and those
+        of :obj:`join` join (:class:`AgentPrior`, :class:`AnchorAt`, in
+        that order, appended to the rows), then the tracker predicts over
+        the time step and updates with the links.
+
+        Args:
+            links (sequence): :obj:`(from, to)` identifier pairs: agent
+                :obj:`to` measured its range to node :obj:`from`.
+                (default: none: the step predicts only)
+            ranges (sequence): One measured range per link (or a row of
+                the measurement model's link features, the range first).
+            dt (float, optional): The time since the last step in seconds
+                (the motion model's own :obj:`dt` if neither it nor
+                :obj:`time` is given).
+            time (float, optional): The time of this step; :obj:`dt` is
+                then the time since the last.
+            join (mapping, optional): Joining nodes by identifier.
+            leave (sequence, optional): Identifiers of leaving nodes.
+
+        Returns:
+            The step's :class:`~tg_nebp.filters.StepOutput`, rows in the
+            order of :attr:`ids`.
+        """
+        dt, motion = self._time_step(dt, time)
+        # everything is checked and computed before anything changes; the
+        # generator (the joining particles' draws, the step's) is put back
+        # if anything fails
+        random = self.generator.get_state()
+        try:
+            nodes = self._changed(leave, join or {})
+            ids, row, anchor = nodes[:3]
+            if not ids or bool(anchor.all()):
+                raise ValueError("the session holds no agent to track: join "
+                                 "one (an AgentPrior) first")
+            edge_index, edge_attr = self._links(links, ranges, row, anchor)
+            output, state = self.tracker.step(nodes[3], edge_index,
+                                              edge_attr, anchor,
+                                              self.num_steps, self.generator,
+                                              motion=motion)
+        except BaseException:
+            self.generator.set_state(random)
+            raise
+        self._commit(ids, row, anchor, state, nodes[4])
+        self.num_steps += 1
+        self.time += dt
+        return output
+
+    def _time_step(self, dt: Optional[float], time: Optional[float]):
+        # the step's dt and the motion model over it: the tracker's own
+        # without dt or time (its clock advances by its own dt, or by one
+        # where it has none), else the model over that time step (a model
+        # that cannot says so)
+        motion = self.tracker.motion
+        if dt is not None and time is not None:
+            raise ValueError("give 'dt' or 'time', not both")
+        if dt is None and time is None:
+            return float(motion.params().get('dt', 1.0)), motion
+        if time is not None:
+            if isinstance(time, bool) or not isinstance(time, numbers.Real) \
+                    or not math.isfinite(time):
+                raise ValueError(f"'time' must be a finite number, got "
+                                 f"{time!r}")
+            if not time > self.time:
+                raise ValueError(f"'time' = {time} does not come after the "
+                                 f"last step's time {self.time}")
+            dt = float(time) - self.time
+        elif isinstance(dt, bool) or not isinstance(dt, numbers.Real) or \
+                not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"'dt' must be a finite number above 0, got "
+                             f"{dt!r}")
+        return float(dt), motion.with_time_step(float(dt))
+
+    def _links(self, links, ranges, row: Dict[Identifier, int],
+               anchor: Tensor) -> Tuple[Tensor, Tensor]:
+        # the step's links as rows, sorted by receiver (as a realization's
+        # edges_by_step gives them), and their features: checked in bulk
+        # (a dict lookup per end, then tensor comparisons), the first
+        # problem named by its position and its identifiers
+        links, ranges = list(links), list(ranges)
+        if len(links) != len(ranges):
+            raise ValueError(f"{len(links)} links but {len(ranges)} ranges: "
+                             f"one range per link")
+        features = self.tracker.measurement.features
+        try:
+            # a bool or a float equal to an integer identifier would find
+            # it in the dict: only strings and integers pass
+            if not {type(end) for link in links for end in link} <= \
+                    {str, int}:
+                raise TypeError
+            ends = torch.tensor([[row[a], row[b]] for a, b in links],
+                                dtype=torch.long).view(-1, 2)
+            if not {type(value) for value in ranges} <= {float, int}:
+                raise TypeError  # feature rows: checked one by one
+            values = torch.tensor(ranges, dtype=torch.float64).view(-1, 1)
+        except (KeyError, TypeError, ValueError):
+            ends, values = self._checked_links(links, ranges, row)
+        if values.size(1) < len(features):
+            raise ValueError(f"every link needs {len(features)} features "
+                             f"({', '.join(features)}), got "
+                             f"{values.size(1)}")
+
+        def first(bad: Tensor) -> int:
+            return int(bad.nonzero()[0, 0])
+
+        def where(k: int) -> str:
+            return f"'links[{k}]' {list(links[k])}"
+
+        sender, receiver = ends[:, 0], ends[:, 1]
+        if bool((sender == receiver).any()):
+            raise ValueError(f"{where(first(sender == receiver))}: a link "
+                             f"to itself")
+        into_anchor = anchor.cpu()[receiver]
+        if bool(into_anchor.any()):
+            k = first(into_anchor)
+            raise ValueError(f"{where(k)}: {links[k][1]!r} is an anchor, "
+                             f"and anchors never measure")
+        finite = torch.isfinite(values).all(1)
+        if not bool(finite.all()):
+            k = first(~finite)
+            raise ValueError(f"'ranges[{k}]' of {where(k)} is not finite: "
+                             f"{ranges[k]!r}")
+        if bool((values[:, 0] < 0).any()):
+            k = first(values[:, 0] < 0)
+            raise ValueError(f"'ranges[{k}]' of {where(k)} is negative: "
+                             f"{values[k, 0].item()!r}")
+        key = sender * max(len(row), 1) + receiver
+        if torch.unique(key).numel() < key.numel():
+            seen = {}
+            for k, pair in enumerate(key.tolist()):
+                if pair in seen:
+                    raise ValueError(f"{where(k)}: the same link as "
+                                     f"'links[{seen[pair]}]'")
+                seen[pair] = k
+        order = torch.argsort(receiver, stable=True)
+        return (ends[order].t().contiguous().to(self.device),
+                values[order].to(self.device, self.dtype))
+
+    def _checked_links(self, links, ranges, row) -> Tuple[Tensor, Tensor]:
+        # the links one by one: the first malformed link, unknown
+        # identifier or range that is not a number (row) is named
+        pairs, values = [], []
+        for k, (link, value) in enumerate(zip(links, ranges)):
+            shown = list(link) if isinstance(link, (list, tuple)) else link
+            where = f"'links[{k}]' {shown!r}"
+            if not isinstance(link, (list, tuple)) or len(link) != 2:
+                raise ValueError(f"{where}: a link is a pair [from, to]")
+            for end in link:
+                if _identifier(end, where) not in row:
+                    raise ValueError(f"{where}: unknown identifier {end!r} "
+                                     f"(join it first)")
+            pairs.append([row[link[0]], row[link[1]]])
+            value = value if isinstance(value, (list, tuple)) else [value]
+            if not value or not all(isinstance(v, numbers.Real) and
+                                    not isinstance(v, bool) for v in value):
+                raise ValueError(f"'ranges[{k}]' of {where} must be a "
+                                 f"number or a row of numbers, got "
+                                 f"{value!r}")
+            values.append([float(v) for v in value])
+        if len({len(v) for v in values}) > 1:
+            raise ValueError("every link must have the same number of "
+                             "features")
+        return (torch.tensor(pairs, dtype=torch.long).view(-1, 2),
+                torch.tensor(values, dtype=torch.float64).view(
+                    len(values), -1 if values else 1))
+
+    # ---- joining and leaving
+
+    def _changed(self, leave, join):
+        # the nodes and the tracker's state after the leaves and joins,
+        # computed without touching the session: (ids, rows, anchor,
+        # state, state size)
+        ids = list(self._ids)
+        leaving = set()
+        for k, node in enumerate(leave):
+            node = _identifier(node, f"'leave[{k}]'")
+            if node not in self._row or node in leaving:
+                raise ValueError(f"'leave[{k}]': unknown identifier "
+                                 f"{node!r}")
+            leaving.add(node)
+        state, anchor, size = self.state, self.anchor, self.state_size
+        if leaving:
+            keep = torch.tensor([i not in leaving for i in ids],
+                                dtype=torch.bool, device=self.device)
+            state = self.tracker.select_state(state, keep, anchor)
+            anchor = anchor[keep]
+            ids = [i for i in ids if i not in leaving]
+        if not isinstance(join, Mapping):
+            raise ValueError(f"'join' must map identifiers to an AgentPrior "
+                             f"or an AnchorAt, got {type(join).__name__}")
+        if join:
+            present = set(ids)
+            joined, size = self._joined(join, present, size)
+            ids += list(joined['ids'])
+            new_anchor = joined['anchor']
+            new_state = self._initial_state(joined)
+            state = (new_state if state is None else
+                     self.tracker.join_state(state, new_state, anchor,
+                                             new_anchor))
+            anchor = torch.cat([anchor, new_anchor])
+        row = {i: r for r, i in enumerate(ids)}
+        return ids, row, anchor, state, size
+
+    def _joined(self, join: Mapping, present: set, size: Optional[int]):
+        # the joining nodes checked: identifiers new, priors of one state
+        # size, finite, covariances symmetric positive semi-definite
+        ids, means, covs, anchors = [], [], [], []
+        for k, (node, prior) in enumerate(join.items()):
+            where = f"'join[{k}]' ({node!r})"
+            node = _identifier(node, where)
+            if node in present or node in ids:
+                raise ValueError(f"{where}: the identifier is already in "
+                                 f"use")
+            if isinstance(prior, AnchorAt):
+                dim = len(prior.position) if isinstance(
+                    prior.position, (list, tuple)) else -1
+                size = size or 2 * dim
+                position = _finite_rows(prior.position, (size // 2, ),
+                                        f"{where} position")
+                means.append(torch.cat([position, position.new_zeros(
+                    size // 2)]))
+                covs.append(position.new_zeros(size, size))
+                anchors.append(True)
+            elif isinstance(prior, AgentPrior):
+                dim = len(prior.mean) if isinstance(prior.mean,
+                                                    (list, tuple)) else -1
+                size = size or dim
+                mean = _finite_rows(prior.mean, (size, ), f"{where} mean")
+                cov = _finite_rows(prior.cov, (size, size), f"{where} cov")
+                scale = float(cov.abs().max()) or 1.0
+                if float((cov - cov.t()).abs().max()) > \
+                        _SYMMETRY_TOLERANCE * scale:
+                    raise ValueError(f"{where} cov is not symmetric")
+                if float(torch.linalg.eigvalsh(cov).min()) < \
+                        -_SYMMETRY_TOLERANCE * scale:
+                    raise ValueError(f"{where} cov is not positive "
+                                     f"semi-definite")
+                means.append(mean)
+                covs.append(cov)
+                anchors.append(False)
+            else:
+                raise ValueError(f"{where}: a joining node is an AgentPrior "
+                                 f"or an AnchorAt, got {prior!r}")
+            if size not in (4, 6):
+                raise ValueError(f"{where}: states have 4 or 6 entries (a "
+                                 f"2-D or 3-D position, then the velocity), "
+                                 f"got {size}")
+            ids.append(node)
+        check_state_dim(size, self.tracker.motion)
+        position_dim = getattr(self.tracker, 'position_dim', None)
+        if position_dim is not None:
+            check_position_dim(position_dim, size,
+                               type(self.tracker).__name__)
+        return dict(ids=ids, mean=torch.stack(means), cov=torch.stack(covs),
+                    anchor=torch.tensor(anchors, device=self.device)), size
+
+    def _initial_state(self, joined: dict):
+        # the tracker's state of the joining nodes, drawn (particles) from
+        # the session's generator
+        data = Realization(
+            prior_mean=joined['mean'].to(self.device, self.dtype),
+            prior_cov=joined['cov'].to(self.device, self.dtype),
+            anchor=joined['anchor'], num_nodes=len(joined['ids']))
+        return self.tracker.initial_state(data, self.generator)
+
+    def _commit(self, ids, row, anchor, state, size):
+        self._ids, self._row, self.anchor = ids, row, anchor
+        self.state, self.state_size = state, size
+
+    # ---- state that survives
+
+    def identity(self) -> Dict[str, str]:
+        r"""What a saved session must match to be loaded into this one:
+        the tracker's class, its settings, its motion and measurement
+        models (JSON) and a fingerprint of its parameters."""
+        return dict(
+            tracker=type(self.tracker).__name__,
+            settings=json.dumps(self.tracker.settings(), sort_keys=True),
+            motion=json.dumps(self.tracker.motion.config(), sort_keys=True),
+            measurement=json.dumps(self.tracker.measurement.config(),
+                                   sort_keys=True),
+            parameters=_fingerprint(self.tracker))
+
+    def state_dict(self) -> Dict[str, Any]:
+        r"""Everything to continue: the nodes, the clock, the tracker's
+        state and the generator's, as tensors and plain values only (so
+        :func:`torch.load` with :obj:`weights_only=True` reads it), with
+        :meth:`identity`."""
+        state = None
+        if self.state is not None:
+            state = {name: (list(value) if isinstance(value, tuple) else
+                            value)
+                     for name, value in self.state._asdict().items()}
+            state = {name: (value.detach().cpu() if isinstance(value, Tensor)
+                            else [v.detach().cpu() for v in value]
+                            if isinstance(value, list) else value)
+                     for name, value in state.items()}
+        return dict(format=SESSION_FORMAT, version=SESSION_VERSION,
+                    identity=self.identity(), ids=json.dumps(self._ids),
+                    anchor=self.anchor.cpu(), time=self.time,
+                    num_steps=self.num_steps, state_size=self.state_size,
+                    dtype=str(self.dtype).replace('torch.', ''),
+                    state=state,
+                    state_type=(None if self.state is None else
+                                type(self.state).__name__),
+                    generator=self.generator.get_state())
+
+    def load_state_dict(self, saved: Dict[str, Any]) -> None:
+        r"""Continues from a :meth:`state_dict`: refuses one of another
+        format or version, tracker, configuration, model or network,
+        naming what differs."""
+        if not isinstance(saved, dict) or \
+                saved.get('format') != SESSION_FORMAT:
+            raise ValueError("not a saved tg_nebp tracking session")
+        if saved.get('version') != SESSION_VERSION:
+            raise ValueError(f"a saved session of version "
+                             f"{saved.get('version')}; this tg_nebp reads "
+                             f"version {SESSION_VERSION}")
+        mine, theirs = self.identity(), saved.get('identity') or {}
+        for key, what in (('tracker', 'tracker'),
+                          ('motion', 'motion model'),
+                          ('measurement', 'measurement model'),
+                          ('settings', 'configuration'),
+                          ('parameters', 'network parameters')):
+            if theirs.get(key) != mine[key]:
+                held = (theirs.get(key) if key != 'parameters' else
+                        'other parameters')
+                here = mine[key] if key != 'parameters' else 'these'
+                raise ValueError(f"the session was saved by another "
+                                 f"{what}: {held} (this session: {here})")
+        state_type = self.tracker.state_type
+        if saved.get('state_type') not in (None, state_type.__name__):
+            raise ValueError(f"the saved state is a {saved['state_type']}, "
+                             f"not this tracker's {state_type.__name__}")
+        state = saved.get('state')
+        if state is not None:
+            try:
+                state = state_type(**{
+                    name: (value.to(self.device) if isinstance(value, Tensor)
+                           else tuple(v.to(self.device) for v in value)
+                           if isinstance(value, list) else value)
+                    for name, value in state.items()})
+            except (TypeError, AttributeError) as e:
+                raise ValueError(f"the saved state does not fit "
+                                 f"{state_type.__name__}: {first_line(e)}"
+                                 ) from None
+        ids = [_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
+        self.generator.set_state(saved['generator'])
+        self._commit(ids, {i: r for r, i in enumerate(ids)},
+                     saved['anchor'].to(self.device), state,
+                     saved.get('state_size'))
+        self.time = float(saved['time'])
+        self.num_steps = int(saved['num_steps'])
+        self.dtype = getattr(torch, saved.get('dtype', 'float32'))
+
+    def save(self, path: Union[str, Path],
+             progress: Optional[Dict[str, Any]] = None) -> None:
+        r"""Writes :meth:`state_dict` to :obj:`path` atomically (a killed
+        write leaves the previous file), with the caller's
+        :obj:`progress` (JSON values: how far its input was read), which
+        :meth:`load` gives back as :attr:`progress`."""
+        saved = dict(self.state_dict(), progress=json.dumps(progress))
+        atomic_write(path, lambda tmp: torch.save(saved, tmp))
+
+    @classmethod
+    def load(cls, path: Union[str, Path], tracker: Tracker,
+             generator: Optional[torch.Generator] = None,
+             device='cpu') -> 'TrackingSession':
+        r"""A session of :obj:`tracker` continued from the file that
+        :meth:`save` wrote; the file is read with
+        :obj:`weights_only=True` (no code runs)."""
+        saved = read_tensors(path, 'saved session')
+        session = cls(tracker, generator=generator, device=device)
+        try:
+            session.load_state_dict(saved)
+        except ValueError as e:
+            raise ValueError(f"'{path}': {e}") from None
+        session.progress = json.loads(saved.get('progress') or 'null')
+        return session

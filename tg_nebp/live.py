@@ -1,0 +1,265 @@
+r"""The JSON-lines format of live tracking (:obj:`tg-nebp track`): one
+time step per line in, one line of estimates per step out.
+
+A measurement line is a JSON object with any of
+
+* :obj:`"dt"` (seconds since the last step) or :obj:`"time"` (the step's
+  time; neither: the motion model's own time step),
+* :obj:`"join"`: nodes that join before the step, each
+  :obj:`{"id": ..., "mean": [...], "cov": [[...]]}` (an agent's prior
+  over its state :math:`[\mathbf{p}, \mathbf{v}]`) or
+  :obj:`{"id": ..., "anchor": [...]}` (an anchor's position),
+* :obj:`"leave"`: identifiers of nodes that leave before the step,
+* :obj:`"links"`: :obj:`[from, to, range]` (agent :obj:`to` measured its
+  range to node :obj:`from`; further link features of the measurement
+  model after the range).
+
+Identifiers are strings or integers. An estimate line is
+:obj:`{"t": ..., "time": ..., "estimates": [{"id": ..., "mean": [...],
+"cov": [[...]]}, ...]}` with every agent's mean and covariance.
+:func:`realization_lines` writes a recorded realization in that format
+(measurements only; :func:`truth_lines` the true states apart), so that
+it can be replayed through the live path and scored (:func:`score`)."""
+import json
+from typing import (Callable, Dict, Iterable, Iterator, List, NamedTuple,
+                    Optional, TextIO)
+
+import torch
+from torch_geometric.data import Data
+
+from tg_nebp import metrics
+from tg_nebp.evaluation import summarize
+from tg_nebp.filters.session import AgentPrior, AnchorAt, TrackingSession
+from tg_nebp.filters.tracker import StepOutput
+
+__all__ = ['StreamStep', 'parse_step', 'estimate_line', 'realization_lines',
+           'truth_lines', 'track_lines', 'score', 'read_lines', 'ON_ERROR']
+
+#: What :func:`track_lines` does with a bad line: report it and go on
+#: (:obj:`"skip"`) or end the run (:obj:`"stop"`).
+ON_ERROR = ('skip', 'stop')
+_KEYS = ('dt', 'time', 'join', 'leave', 'links')
+
+
+class StreamStep(NamedTuple):
+    r"""One measurement line, read: the arguments of
+    :meth:`TrackingSession.update <tg_nebp.filters.TrackingSession.update>`."""
+    links: List[tuple]
+    ranges: List
+    dt: Optional[float]
+    time: Optional[float]
+    join: Dict
+    leave: List
+
+
+def _list(value, where: str) -> list:
+    if not isinstance(value, list):
+        raise ValueError(f"{where} must be a list, got {value!r}")
+    return value
+
+
+def parse_step(text: str) -> StreamStep:
+    r"""Reads one measurement line (see the module docstring); a line that
+    is not a JSON object of the format is a :class:`ValueError` naming the
+    field and the entry. What the entries refer to (known identifiers,
+    ranges) is checked by the session."""
+    try:
+        line = json.loads(text)
+    except ValueError as e:
+        raise ValueError(f"not JSON: {e}") from None
+    if not isinstance(line, dict):
+        raise ValueError(f"a line is a JSON object, got "
+                         f"{type(line).__name__}")
+    unknown = sorted(set(line) - set(_KEYS))
+    if unknown:
+        raise ValueError(f"unknown field '{unknown[0]}' (a line holds "
+                         f"{', '.join(_KEYS)})")
+    join = {}
+    for k, entry in enumerate(_list(line.get('join', []), "'join'")):
+        if not isinstance(entry, dict) or 'id' not in entry:
+            raise ValueError(f"'join[{k}]' must be an object with an 'id', "
+                             f"got {entry!r}")
+        fields = set(entry) - {'id'}
+        if fields == {'anchor'}:
+            prior = AnchorAt(entry['anchor'])
+        elif fields == {'mean', 'cov'}:
+            prior = AgentPrior(entry['mean'], entry['cov'])
+        else:
+            raise ValueError(f"'join[{k}]' must hold 'mean' and 'cov' (an "
+                             f"agent) or 'anchor' (an anchor's position), "
+                             f"got {sorted(fields)}")
+        node = entry['id']
+        if isinstance(node, (list, dict)):
+            raise ValueError(f"'join[{k}]': the identifier {node!r} is not "
+                             f"a string or an integer")
+        if node in join:
+            raise ValueError(f"'join[{k}]': the identifier {node!r} is "
+                             f"repeated")
+        join[node] = prior
+    raw = _list(line.get('links', []), "'links'")
+    if not all(type(link) is list and len(link) >= 3 for link in raw):
+        k, link = next((k, link) for k, link in enumerate(raw)
+                       if not (isinstance(link, list) and len(link) >= 3))
+        raise ValueError(f"'links[{k}]' must be [from, to, range], got "
+                         f"{link!r}")
+    links = [link[:2] for link in raw]
+    ranges = [link[2:] if len(link) > 3 else link[2] for link in raw]
+    return StreamStep(links, ranges, line.get('dt'), line.get('time'), join,
+                      _list(line.get('leave', []), "'leave'"))
+
+
+def estimate_line(session: TrackingSession, output: StepOutput) -> str:
+    r"""The estimate line of a step's :obj:`output`: its time index, the
+    session's time and every agent's mean and covariance (floats written
+    exactly: they read back bit for bit)."""
+    agents = ~session.anchor
+    estimates = [dict(id=node, mean=mean, cov=cov) for node, mean, cov in zip(
+        session.agent_ids, output.mean[agents].tolist(),
+        output.cov[agents].tolist())]
+    return json.dumps(dict(t=output.t, time=session.time,
+                           estimates=estimates))
+
+
+def _node_ids(data: Data) -> List[int]:
+    return list(range(data.num_nodes))
+
+
+def realization_lines(data: Data, num_features: int = 1,
+                      dt: Optional[float] = None) -> Iterator[str]:
+    r"""The measurement lines of a single realization: the first joins
+    every node (identifier: its index; agents with their prior, anchors
+    at their position) and every line holds its time step's links in the
+    realization's order, with the first :obj:`num_features` link features
+    (the measurement model's: the true NLOS flag of generated data stays
+    out). :obj:`dt`, if given, is written on every line."""
+    ids = _node_ids(data)
+    dim = data.prior_mean.size(1) // 2
+    join = []
+    for i in ids:
+        if bool(data.anchor[i]):
+            join.append(dict(id=i, anchor=data.prior_mean[i, :dim].tolist()))
+        else:
+            join.append(dict(id=i, mean=data.prior_mean[i].tolist(),
+                             cov=data.prior_cov[i].tolist()))
+    for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        line = {} if dt is None else dict(dt=dt)
+        if t == 0:
+            line['join'] = join
+        line['links'] = [
+            [ids[j], ids[i], *features[:num_features]]
+            for (j, i), features in zip(edge_index.t().tolist(),
+                                        edge_attr.tolist())]
+        yield json.dumps(line)
+
+
+def truth_lines(data: Data) -> Iterator[str]:
+    r"""The true states of a realization's agents, one line per time step:
+    :obj:`{"t": ..., "states": [{"id": ..., "state": [...]}, ...]}`
+    (identifiers as :func:`realization_lines` writes them)."""
+    ids = _node_ids(data)
+    agents = (~data.anchor).nonzero().view(-1).tolist()
+    for t in range(data.num_time_steps):
+        yield json.dumps(dict(t=t, states=[
+            dict(id=ids[i], state=data.states[i, t].tolist())
+            for i in agents]))
+
+
+def track_lines(session: TrackingSession, lines: Iterable[str],
+                write: Callable[[str], None], on_error: str = 'stop',
+                report: Callable[[str], None] = print,
+                save_state: Optional[str] = None, done: int = 0,
+                written: int = 0) -> dict:
+    r"""Tracks a stream of measurement lines: every line is read
+    (:func:`parse_step`), stepped (:meth:`TrackingSession.update
+    <tg_nebp.filters.TrackingSession.update>`) and its estimate line
+    written by :obj:`write` before the next line is read. A bad line is a
+    :class:`ValueError` starting with its line number under
+    :obj:`on_error="stop"`, or is reported (:obj:`report`) and skipped
+    under :obj:`"skip"`; either way the session is as before it. With
+    :obj:`save_state` the session is saved after every line (atomically),
+    with the lines read and estimate lines written, which a resumed run
+    (:obj:`done`, :obj:`written`: the saved counts) skips and continues.
+    Blank lines are ignored. Returns the counts: :obj:`lines`,
+    :obj:`written`, :obj:`skipped`."""
+    if on_error not in ON_ERROR:
+        raise ValueError(f"'on_error' must be one of {list(ON_ERROR)}, got "
+                         f"{on_error!r}")
+    skipped, number = 0, 0
+    for number, text in enumerate(lines, 1):
+        if number <= done:
+            continue
+        if text.strip():
+            try:
+                step = parse_step(text)
+                output = session.update(step.links, step.ranges, step.dt,
+                                        step.time, step.join, step.leave)
+            except (ValueError, torch.linalg.LinAlgError) as e:
+                message = f"line {number}: {e}"
+                if on_error == 'stop':
+                    raise ValueError(message) from None
+                report(f"skipped {message}")
+                skipped += 1
+            else:
+                write(estimate_line(session, output))
+                written += 1
+        if save_state is not None:
+            session.save(save_state, progress=dict(lines=number,
+                                                   written=written))
+    return dict(lines=max(number, done), written=written, skipped=skipped)
+
+
+def _objects(lines: Iterable[str], what: str) -> Iterator[dict]:
+    for number, text in enumerate(lines, 1):
+        if not text.strip():
+            continue
+        try:
+            yield json.loads(text)
+        except ValueError as e:
+            raise ValueError(f"{what} line {number}: not JSON: {e}"
+                             ) from None
+
+
+def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
+    r"""The accuracy of estimate lines against truth lines
+    (:func:`truth_lines`), matched by time index and identifier: the
+    :obj:`metrics.json` entry of :func:`~tg_nebp.evaluation.summarize`
+    (RMSE, outage, P(accept)), computed as an evaluation computes it,
+    with the number of steps and estimates scored."""
+    states = {}
+    for line in _objects(truth, 'truth'):
+        states[line['t']] = {json.dumps(s['id']): s['state']
+                             for s in line['states']}
+    errors, nees, count, dim = [], [], 0, 2
+    for line in _objects(estimates, 'estimates'):
+        step = states.get(line['t'])
+        if step is None:
+            raise ValueError(f"estimates of time index {line['t']} have no "
+                             f"truth")
+        rows = [(e, step.get(json.dumps(e['id']))) for e in
+                line['estimates']]
+        missing = [e['id'] for e, s in rows if s is None]
+        if missing:
+            raise ValueError(f"time index {line['t']}: no true state of "
+                             f"{missing[0]!r}")
+        # the stored truth's float32, as an evaluation reads it
+        true = torch.tensor([s for _, s in rows], dtype=torch.float32)
+        mean = torch.tensor([e['mean'] for e, _ in rows],
+                            dtype=torch.float64)
+        cov = torch.tensor([e['cov'] for e, _ in rows], dtype=torch.float64)
+        dim = true.size(-1) // 2
+        errors.append(metrics.position_errors(mean[:, :dim],
+                                              true[:, :dim]))
+        nees.append(metrics.nees(mean[:, :dim], cov[:, :dim, :dim],
+                                 true[:, :dim]))
+        count += 1
+    if not count:
+        raise ValueError("no estimate lines to score")
+    entry = summarize(torch.cat(errors), torch.cat(nees), dof=dim)
+    entry.update(steps=count, estimates=int(sum(e.numel() for e in errors)))
+    return entry
+
+
+def read_lines(stream: TextIO) -> Iterator[str]:
+    r"""The lines of :obj:`stream` as they arrive (no read-ahead that
+    would wait for more input than one line)."""
+    return iter(stream.readline, '')
