@@ -4,7 +4,8 @@ by line through a :class:`~tg_nebp.filters.TrackingSession`, every line
 read, stepped and its estimate line formatted; the median, 90th
 percentile and largest of the 49 steps after the first (which joins every
 node), and the median of the session's update alone (no JSON), one torch
-thread. The methods are
+thread, with the objects made before the replay frozen out of the garbage
+collector's passes as ``tg-nebp track`` does (``gc.freeze``). The methods are
 those of ``tg-nebp track`` at their defaults (particle BP and the Gaussian
 NEBP as named below). The figures of the docs' page "Tracking live":
 
@@ -12,6 +13,7 @@ NEBP as named below). The figures of the docs' page "Tracking live":
     python benchmarks/track_latency.py --methods gbp iekf --threads 2
 """
 import argparse
+import gc
 import json
 import statistics
 import time
@@ -59,7 +61,11 @@ def main():
         tracker, _ = method_tracker(method, scenario,
                                     **OPTIONS.get(method, {}))
         replay(tracker, lines[:3])  # warm-up
+        # as tg-nebp track does: the objects made so far leave the
+        # collector's full passes
+        gc.freeze()
         seconds, updates = replay(tracker.eval(), lines)
+        gc.unfreeze()
         # the first line joins every node: apart
         ordered = sorted(seconds[1:])
         print(json.dumps(dict(

@@ -278,7 +278,10 @@ class TrackingSession:
             if not {type(end) for link in links for end in link} <= \
                     {str, int}:
                 raise TypeError
-            ends = torch.tensor([[row[a], row[b]] for a, b in links],
+            if any(len(link) != 2 for link in links):
+                raise TypeError
+            # one flat list: torch reads it far faster than pairs
+            ends = torch.tensor([row[end] for link in links for end in link],
                                 dtype=torch.long).view(-1, 2)
             if not {type(value) for value in ranges} <= {float, int}:
                 raise TypeError  # feature rows: checked one by one
