@@ -97,3 +97,40 @@ def test_bad_lines_are_numbered_and_skipped_or_stop_the_run(data):
     with pytest.raises(ValueError, match="'on_error' must be one of"):
         track_lines(TrackingSession(tracker), lines, written.append,
                     'ignore')
+
+
+def test_a_lost_line_is_a_longer_time_step_and_scores_by_time(data):
+    # the lines carry their step's time: without line 2 the session
+    # predicts over two steps at line 3, and the estimates are matched to
+    # the truth of their own times
+    lines = list(realization_lines(data, dt=0.5))
+    assert [json.loads(line)['time'] for line in lines] == [0.5, 1.0, 1.5,
+                                                            2.0]
+    written = []
+    track_lines(TrackingSession(GaussianBP()), lines[:1] + lines[2:],
+                written.append)
+    assert [json.loads(line)['time'] for line in written] == [0.5, 1.5, 2.0]
+    entry = score(written, truth_lines(data, dt=0.5))
+    assert entry['steps'] == 3 and entry['estimates'] == 9
+    # the second estimate is scored against the truth at 1.5 s (t = 2)
+    one = score(written[1:2], truth_lines(data, dt=0.5))
+    squared = [sum((m - s) ** 2 for m, s in zip(
+        e['mean'][:2], data.states[e['id'], 2, :2].tolist()))
+        for e in json.loads(written[1])['estimates']]
+    assert math.isclose(one['rmse'], math.sqrt(sum(squared) / 3),
+                        rel_tol=1e-6)
+
+
+@pytest.mark.parametrize('estimates, match', [
+    (['{"t": 0}'], "estimates line 1: no 'time'"),
+    (['{"time": 0.25, "estimates": []}'], 'no truth at that time'),
+    (['', '{"time": 1.0, "estimates": [{"id": 0}]}'],
+     r"estimates line 2 \(time 1.0\): an estimate without a 'mean'"),
+    (['{"time": 1.0, "estimates": [{"id": 99, "mean": [], "cov": []}]}'],
+     'no true state of 99'),
+    (['{"time": 1.0, "estimates": []}'] * 2, 'estimated twice'),
+    (['nope'], 'estimates line 1: not JSON'),
+])
+def test_score_names_the_line_it_cannot_read(data, estimates, match):
+    with pytest.raises(ValueError, match=match):
+        score(estimates, truth_lines(data))

@@ -22,7 +22,7 @@ Identifiers are strings or integers. An estimate line is
 it can be replayed through the live path and scored (:func:`score`)."""
 import json
 from typing import (Callable, Dict, Iterable, Iterator, List, NamedTuple,
-                    Optional, TextIO)
+                    Optional, TextIO, Tuple)
 
 import torch
 from torch_geometric.data import Data
@@ -31,6 +31,7 @@ from tg_nebp import metrics
 from tg_nebp.evaluation import summarize
 from tg_nebp.filters.session import AgentPrior, AnchorAt, TrackingSession
 from tg_nebp.filters.tracker import StepOutput
+from tg_nebp.io import first_line
 
 __all__ = ['StreamStep', 'parse_step', 'estimate_line', 'realization_lines',
            'truth_lines', 'track_lines', 'score', 'read_lines', 'ON_ERROR']
@@ -124,14 +125,26 @@ def _node_ids(data: Data) -> List[int]:
     return list(range(data.num_nodes))
 
 
+def _step_times(data: Data, dt: float) -> List[float]:
+    # the time of every step: dt summed, as a session's clock would
+    times, time = [], 0.0
+    for _ in range(data.num_time_steps):
+        time += dt
+        times.append(time)
+    return times
+
+
 def realization_lines(data: Data, num_features: int = 1,
-                      dt: Optional[float] = None) -> Iterator[str]:
-    r"""The measurement lines of a single realization: the first joins
-    every node (identifier: its index; agents with their prior, anchors
-    at their position) and every line holds its time step's links in the
-    realization's order, with the first :obj:`num_features` link features
-    (the measurement model's: the true NLOS flag of generated data stays
-    out). :obj:`dt`, if given, is written on every line."""
+                      dt: float = 1.0) -> Iterator[str]:
+    r"""The measurement lines of a single realization whose steps are
+    :obj:`dt` seconds apart (the motion model's): every line gives its
+    step's :obj:`"time"` (so that a lost or skipped line is a longer time
+    step for the next, and the estimates are matched to the truth by
+    time) and the step's links in the realization's order, with the first
+    :obj:`num_features` link features (the measurement model's: the true
+    NLOS flag of generated data stays out); the first line joins every
+    node (identifier: its index; agents with their prior, anchors at
+    their position)."""
     ids = _node_ids(data)
     dim = data.prior_mean.size(1) // 2
     join = []
@@ -141,8 +154,9 @@ def realization_lines(data: Data, num_features: int = 1,
         else:
             join.append(dict(id=i, mean=data.prior_mean[i].tolist(),
                              cov=data.prior_cov[i].tolist()))
+    times = _step_times(data, dt)
     for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
-        line = {} if dt is None else dict(dt=dt)
+        line = dict(time=times[t])
         if t == 0:
             line['join'] = join
         line['links'] = [
@@ -152,14 +166,15 @@ def realization_lines(data: Data, num_features: int = 1,
         yield json.dumps(line)
 
 
-def truth_lines(data: Data) -> Iterator[str]:
+def truth_lines(data: Data, dt: float = 1.0) -> Iterator[str]:
     r"""The true states of a realization's agents, one line per time step:
-    :obj:`{"t": ..., "states": [{"id": ..., "state": [...]}, ...]}`
-    (identifiers as :func:`realization_lines` writes them)."""
+    :obj:`{"t": ..., "time": ..., "states": [{"id": ..., "state": [...]},
+    ...]}` (identifiers and times as :func:`realization_lines` writes
+    them)."""
     ids = _node_ids(data)
     agents = (~data.anchor).nonzero().view(-1).tolist()
-    for t in range(data.num_time_steps):
-        yield json.dumps(dict(t=t, states=[
+    for t, time in enumerate(_step_times(data, dt)):
+        yield json.dumps(dict(t=t, time=time, states=[
             dict(id=ids[i], state=data.states[i, t].tolist())
             for i in agents]))
 
@@ -208,54 +223,76 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
     return dict(lines=max(number, done), written=written, skipped=skipped)
 
 
-def _objects(lines: Iterable[str], what: str) -> Iterator[dict]:
+def _objects(lines: Iterable[str], what: str, fields: tuple
+             ) -> Iterator[Tuple[int, dict]]:
+    # the JSON objects of a file's lines, each with the fields given and
+    # its line number; any other line is named
     for number, text in enumerate(lines, 1):
         if not text.strip():
             continue
         try:
-            yield json.loads(text)
+            line = json.loads(text)
         except ValueError as e:
             raise ValueError(f"{what} line {number}: not JSON: {e}"
                              ) from None
+        missing = [f for f in fields if not isinstance(line, dict) or
+                   f not in line]
+        if missing:
+            raise ValueError(f"{what} line {number}: no '{missing[0]}'")
+        yield number, line
 
 
 def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
     r"""The accuracy of estimate lines against truth lines
-    (:func:`truth_lines`), matched by time index and identifier: the
+    (:func:`truth_lines`), matched by time and identifier: the
     :obj:`metrics.json` entry of :func:`~tg_nebp.evaluation.summarize`
-    (RMSE, outage, P(accept)), computed as an evaluation computes it,
-    with the number of steps and estimates scored."""
+    (RMSE, outage, P(accept)), computed as an evaluation of a Gaussian
+    tracker computes it (positions in float64, the truth in the stored
+    float32), with the number of steps and estimates scored. A step
+    estimated twice, or one without truth, is a :class:`ValueError`
+    naming its line."""
     states = {}
-    for line in _objects(truth, 'truth'):
-        states[line['t']] = {json.dumps(s['id']): s['state']
-                             for s in line['states']}
-    errors, nees, count, dim = [], [], 0, 2
-    for line in _objects(estimates, 'estimates'):
-        step = states.get(line['t'])
+    for _, line in _objects(truth, 'truth', ('time', 'states')):
+        states[line['time']] = {json.dumps(s['id']): s['state']
+                                for s in line['states']}
+    errors, nees, seen, dim = [], [], set(), 2
+    for number, line in _objects(estimates, 'estimates',
+                                 ('time', 'estimates')):
+        where = f"estimates line {number} (time {line['time']})"
+        step = states.get(line['time'])
         if step is None:
-            raise ValueError(f"estimates of time index {line['t']} have no "
-                             f"truth")
-        rows = [(e, step.get(json.dumps(e['id']))) for e in
+            raise ValueError(f"{where}: no truth at that time")
+        if line['time'] in seen:
+            raise ValueError(f"{where}: that time is estimated twice")
+        seen.add(line['time'])
+        if not line['estimates']:  # no agent at that time
+            continue
+        rows = [(e, step.get(json.dumps(e.get('id')))) for e in
                 line['estimates']]
-        missing = [e['id'] for e, s in rows if s is None]
+        missing = [e.get('id') for e, s in rows if s is None]
         if missing:
-            raise ValueError(f"time index {line['t']}: no true state of "
-                             f"{missing[0]!r}")
-        # the stored truth's float32, as an evaluation reads it
-        true = torch.tensor([s for _, s in rows], dtype=torch.float32)
-        mean = torch.tensor([e['mean'] for e, _ in rows],
-                            dtype=torch.float64)
-        cov = torch.tensor([e['cov'] for e, _ in rows], dtype=torch.float64)
+            raise ValueError(f"{where}: no true state of {missing[0]!r}")
+        try:
+            # the stored truth's float32, as an evaluation reads it
+            true = torch.tensor([s for _, s in rows], dtype=torch.float32)
+            mean = torch.tensor([e['mean'] for e, _ in rows],
+                                dtype=torch.float64)
+            cov = torch.tensor([e['cov'] for e, _ in rows],
+                               dtype=torch.float64)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{where}: an estimate without a 'mean' and "
+                             f"'cov' of the truth's size ({first_line(e)})"
+                             ) from None
         dim = true.size(-1) // 2
         errors.append(metrics.position_errors(mean[:, :dim],
                                               true[:, :dim]))
         nees.append(metrics.nees(mean[:, :dim], cov[:, :dim, :dim],
                                  true[:, :dim]))
-        count += 1
-    if not count:
+    if not errors:
         raise ValueError("no estimate lines to score")
     entry = summarize(torch.cat(errors), torch.cat(nees), dof=dim)
-    entry.update(steps=count, estimates=int(sum(e.numel() for e in errors)))
+    entry.update(steps=len(errors),
+                 estimates=int(sum(e.numel() for e in errors)))
     return entry
 
 

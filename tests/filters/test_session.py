@@ -347,6 +347,10 @@ def _assert_same_state(a, b):
     (dict(join={'x': AgentPrior([0.0] * 6, torch.eye(6).tolist())}),
      r"'join\[0\]' \('x'\) mean must have shape \[4\]"),
     (dict(leave=['nobody']), r"'leave\[0\]': unknown identifier"),
+    (dict(leave=['n0', 'n0']), r"'leave\[1\]': 'n0' is repeated"),
+    (dict(links=['n0n1'], ranges=[3.0]), 'a link is a pair'),
+    (dict(links=[('n0', 1.0)], ranges=[3.0]),
+     'an identifier is a string or an integer, got 1.0'),
     (dict(dt=0.0), "'dt' must be a finite number above 0"),
     (dict(join={'x': AnchorAt([1.0, 2.0])}, links=[('x', 'n9')],
           ranges=[1.0]), "unknown identifier 'n9'"),
@@ -376,7 +380,9 @@ def test_a_step_that_fails_inside_the_tracker_changes_nothing(data):
 
     failed, clean = session(), session()
     before = _snapshot(failed)
-    with pytest.raises(ValueError, match='zero likelihood'):
+    # the tracker names the row: the session adds its identifier
+    with pytest.raises(ValueError, match=r"node 0 at time index 1: .*zero "
+                       r"likelihood.* \(node 0 is 'n0'\)"):
         failed.update([('n3', 'n0')], [1e14])
     _assert_same_state(_snapshot(failed), before)
     assert_same_outputs(stream_realization(failed, data, start=1, steps=2),
@@ -445,3 +451,85 @@ def test_links_in_any_order(data, name):
         out = session.update(links[::-1], ranges[::-1])
         torch.testing.assert_close(out.mean, offline[t].mean, rtol=1e-5,
                                    atol=1e-5)
+
+
+@pytest.mark.parametrize('make', [GaussianBP, CentralizedIEKF])
+def test_an_anchor_added_midway_informs_its_neighbours(data, make):
+    # an anchor joins at SPLIT where agent 0 truly is one step later, and
+    # agent 0 measures its range to it: it is reported at its position with
+    # no uncertainty, and agent 0's estimate is pulled by that range
+    tracker = make()
+    with_anchor, without = (TrackingSession(tracker) for _ in range(2))
+    for session in (with_anchor, without):
+        stream_realization(session, data, steps=SPLIT)
+    where = (data.states[0, SPLIT, :2] + torch.tensor([3.0, 4.0])).tolist()
+    links, ranges = _links(data, SPLIT)
+    out = with_anchor.update(links + [('beacon', 'n0')], ranges + [5.0],
+                             join={'beacon': AnchorAt(where)})
+    plain = without.update(links, ranges)
+    assert with_anchor.ids[-1] == 'beacon' and bool(with_anchor.anchor[-1])
+    assert torch.equal(out.mean[-1, :2].float(), torch.tensor(where))
+    assert float(out.cov[-1].abs().max()) == 0.0
+    assert float((out.mean[0] - plain.mean[0]).abs().max()) > 1e-4
+    assert 'beacon' not in with_anchor.estimates(out)
+
+
+def test_models_of_more_link_features_run_live():
+    # the NLOS model reads the range only, while generated data carry the
+    # true NLOS flag too: the live links hold the range alone, and particle
+    # BP's pair factors (ends='both') and the oracle model that reads the
+    # flag run on them; a step without links predicts with either
+    from tg_nebp.models import NLOSRange
+    nlos = NLOSRange(0.8, 0.3, 2.0)
+    data = tiny_scenario(4).replace(measurement=nlos).generate(gen(5))
+    tracker = ParticleBP(num_particles=20, ends='both', num_iterations=2,
+                         measurement=nlos)
+    offline = list(tracker.steps(data, gen(3)))
+    session = TrackingSession(tracker, generator=gen(3))
+    assert_same_outputs(stream_realization(session, data), offline,
+                        particles=True)
+    session.update(dt=1.0)
+    oracle = TrackingSession(GaussianBP(measurement=NLOSRange(
+        0.8, 0.3, 2.0, oracle=True)), _all_nodes(data))
+    edge_index, edge_attr = data.edges_by_step()[0]
+    oracle.update([(f'n{j}', f'n{i}') for j, i in edge_index.t().tolist()],
+                  edge_attr.tolist())
+    oracle.update()
+    with pytest.raises(ValueError, match='every link needs 2 features'):
+        oracle.update([('n3', 'n0')], [2.0])
+
+
+def test_a_damaged_saved_session_is_refused_whole(data, tmp_path):
+    session = TrackingSession(GaussianBP())
+    stream_realization(session, data, steps=1)
+    saved = session.state_dict()
+    fresh = TrackingSession(GaussianBP(), seed=5)
+    before = fresh.generator.get_state()
+    for damage, match in (
+            (dict(time=None), 'a damaged saved session'),
+            (dict(dtype='Tensor'), 'a damaged saved session'),
+            (dict(ids='["n0", "n1"]'), r'2 identifiers, 6 anchor flags and '
+             r'6 state rows'),
+            (dict(generator=torch.zeros(3, dtype=torch.uint8)),
+             'another kind of device')):
+        with pytest.raises(ValueError, match=match):
+            fresh.load_state_dict({**saved, **damage})
+        # nothing of it was loaded
+        assert fresh.ids == [] and fresh.state is None
+        assert torch.equal(fresh.generator.get_state(), before)
+    fresh.load_state_dict(saved)
+    assert fresh.ids == session.ids and fresh.num_steps == 1
+
+
+def test_joining_takes_any_sequence_of_numbers(data):
+    # lists, tensors and tuples alike; the first node sets the state size
+    session = TrackingSession(GaussianBP(), {
+        'a': AnchorAt(torch.tensor([0.0, 0.0])),
+        'b': AgentPrior(torch.tensor([1.0, 1.0, 0.0, 0.0]),
+                        torch.eye(4)),
+        'c': AgentPrior((2.0, 1.0, 0.0, 0.0), torch.eye(4).tolist())})
+    out = session.update([('a', 'b'), ('b', 'c')], [1.4, 1.0])
+    assert session.ids == ['a', 'b', 'c'] and out.mean.shape == (3, 4)
+    with pytest.raises(ValueError, match=r"'join\[0\]' \('d'\) mean must "
+                       r"have shape \[4\], got \[6\]"):
+        session.update(join={'d': AgentPrior(torch.zeros(6), torch.eye(6))})

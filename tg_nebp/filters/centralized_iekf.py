@@ -193,8 +193,8 @@ class CentralizedIEKF(Tracker):
         joint, = state.joints
         return JointState(state.mean[keep], (joint[stays][:, stays], ))
 
-    def join_state(self, state: JointState, joined: JointState,
-                   anchor: Tensor, joined_anchor: Tensor) -> JointState:
+    def join_state(self, state: JointState,
+                   joined: JointState) -> JointState:
         r"""The state of one graph's nodes followed by the joining ones
         (an :meth:`initial_state`): the joint extended by theirs, with no
         correlation between them."""

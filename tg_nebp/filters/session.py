@@ -11,6 +11,7 @@ import hashlib
 import json
 import math
 import numbers
+import re
 from pathlib import Path
 from typing import (Any, Dict, Hashable, List, Mapping, NamedTuple,
                     Optional, Sequence, Tuple, Union)
@@ -36,6 +37,10 @@ SESSION_VERSION = 1
 _SYMMETRY_TOLERANCE = 1e-6
 
 Identifier = Union[str, int]
+#: The types a session hands its tracker, by the name a saved one stores.
+_DTYPES = {str(t).replace('torch.', ''): t
+           for t in (torch.float16, torch.bfloat16, torch.float32,
+                     torch.float64)}
 
 
 class AgentPrior(NamedTuple):
@@ -62,19 +67,33 @@ def _identifier(value, where: str) -> Identifier:
                      f"got {value!r}")
 
 
-def _finite_rows(value, shape: Tuple[int, ...], where: str) -> Tensor:
-    # a list of finite numbers of the given shape, in float64
+def _finite_rows(value, shape: Tuple[Optional[int], ...],
+                 where: str) -> Tensor:
+    # finite numbers (a list, an array, a tensor) of the given shape (None:
+    # any size), in float64
     try:
-        tensor = torch.tensor(value, dtype=torch.float64)
+        tensor = torch.as_tensor(value, dtype=torch.float64).cpu()
     except (TypeError, ValueError, RuntimeError):
         raise ValueError(f"{where} must be a list of numbers of shape "
                          f"{list(shape)}, got {value!r}") from None
-    if tuple(tensor.shape) != shape:
+    if tensor.dim() != len(shape) or any(
+            n is not None and n != m for n, m in zip(shape, tensor.shape)):
         raise ValueError(f"{where} must have shape {list(shape)}, got "
                          f"{list(tensor.shape)}")
     if not bool(torch.isfinite(tensor).all()):
         raise ValueError(f"{where} holds a non-finite value")
     return tensor
+
+
+def _identified(message: str, ids: List[Identifier]) -> str:
+    # a tracker's error names nodes by their rows ('node 7'): the
+    # identifiers of those rows added
+    rows = sorted({int(row) for row in re.findall(r'\bnode (\d+)', message)
+                   if int(row) < len(ids)})
+    if not rows:
+        return message
+    return message + ' (' + ', '.join(f'node {row} is {ids[row]!r}'
+                                      for row in rows) + ')'
 
 
 def _fingerprint(tracker: Tracker) -> str:
@@ -141,6 +160,9 @@ class TrackingSession:
         if not isinstance(tracker, Tracker):
             raise TypeError(f"'tracker' must be a Tracker, got "
                             f"{type(tracker).__name__}")
+        if dtype not in _DTYPES.values():
+            raise ValueError(f"'dtype' must be one of "
+                             f"{sorted(_DTYPES)}, got {dtype}")
         self.tracker = tracker
         self.device = torch.device(device)
         self.dtype = dtype
@@ -217,6 +239,7 @@ class TrackingSession:
         # generator (the joining particles' draws, the step's) is put back
         # if anything fails
         random = self.generator.get_state()
+        ids = self._ids
         try:
             nodes = self._changed(leave, join or {})
             ids, row, anchor = nodes[:3]
@@ -224,16 +247,19 @@ class TrackingSession:
                 raise ValueError("the session holds no agent to track: join "
                                  "one (an AgentPrior) first")
             edge_index, edge_attr = self._links(links, ranges, row, anchor)
-            output, state = self.tracker.step(nodes[3], edge_index,
-                                              edge_attr, anchor,
-                                              self.num_steps, self.generator,
-                                              motion=motion)
+            output, state = self.tracker.step(
+                nodes[3], edge_index, edge_attr, anchor, self.num_steps,
+                self.generator, motion=motion)
+        except ValueError as e:
+            self.generator.set_state(random)
+            raise ValueError(_identified(str(e), ids)) from None
         except BaseException:
             self.generator.set_state(random)
             raise
         self._commit(ids, row, anchor, state, nodes[4])
         self.num_steps += 1
-        self.time += dt
+        # a given time is kept as given (no drift of summed time steps)
+        self.time = float(time) if time is not None else self.time + dt
         return output
 
     def _time_step(self, dt: Optional[float], time: Optional[float]):
@@ -278,14 +304,16 @@ class TrackingSession:
             if not {type(end) for link in links for end in link} <= \
                     {str, int}:
                 raise TypeError
-            if any(len(link) != 2 for link in links):
+            if any(type(link) not in (list, tuple) or len(link) != 2
+                   for link in links):
                 raise TypeError
             # one flat list: torch reads it far faster than pairs
             ends = torch.tensor([row[end] for link in links for end in link],
                                 dtype=torch.long).view(-1, 2)
             if not {type(value) for value in ranges} <= {float, int}:
                 raise TypeError  # feature rows: checked one by one
-            values = torch.tensor(ranges, dtype=torch.float64).view(-1, 1)
+            values = torch.tensor(ranges, dtype=torch.float64).view(
+                -1, 1 if links else len(features))
         except (KeyError, TypeError, ValueError):
             ends, values = self._checked_links(links, ranges, row)
         if values.size(1) < len(features):
@@ -350,9 +378,11 @@ class TrackingSession:
                                  f"number or a row of numbers, got "
                                  f"{value!r}")
             values.append([float(v) for v in value])
-        if len({len(v) for v in values}) > 1:
-            raise ValueError("every link must have the same number of "
-                             "features")
+            if len(values[-1]) != len(values[0]):
+                raise ValueError(f"'ranges[{k}]' of {where} has "
+                                 f"{len(values[-1])} features, 'ranges[0]' "
+                                 f"{len(values[0])}: every link has the "
+                                 f"same")
         return (torch.tensor(pairs, dtype=torch.long).view(-1, 2),
                 torch.tensor(values, dtype=torch.float64).view(
                     len(values), -1 if values else 1))
@@ -367,7 +397,9 @@ class TrackingSession:
         leaving = set()
         for k, node in enumerate(leave):
             node = _identifier(node, f"'leave[{k}]'")
-            if node not in self._row or node in leaving:
+            if node in leaving:
+                raise ValueError(f"'leave[{k}]': {node!r} is repeated")
+            if node not in self._row:
                 raise ValueError(f"'leave[{k}]': unknown identifier "
                                  f"{node!r}")
             leaving.add(node)
@@ -388,8 +420,7 @@ class TrackingSession:
             new_anchor = joined['anchor']
             new_state = self._initial_state(joined)
             state = (new_state if state is None else
-                     self.tracker.join_state(state, new_state, anchor,
-                                             new_anchor))
+                     self.tracker.join_state(state, new_state))
             anchor = torch.cat([anchor, new_anchor])
         row = {i: r for r, i in enumerate(ids)}
         return ids, row, anchor, state, size
@@ -405,20 +436,17 @@ class TrackingSession:
                 raise ValueError(f"{where}: the identifier is already in "
                                  f"use")
             if isinstance(prior, AnchorAt):
-                dim = len(prior.position) if isinstance(
-                    prior.position, (list, tuple)) else -1
-                size = size or 2 * dim
-                position = _finite_rows(prior.position, (size // 2, ),
-                                        f"{where} position")
+                position = _finite_rows(
+                    prior.position, (None if size is None else size // 2, ),
+                    f"{where} position")
+                size = size or 2 * position.numel()
                 means.append(torch.cat([position, position.new_zeros(
                     size // 2)]))
                 covs.append(position.new_zeros(size, size))
                 anchors.append(True)
             elif isinstance(prior, AgentPrior):
-                dim = len(prior.mean) if isinstance(prior.mean,
-                                                    (list, tuple)) else -1
-                size = size or dim
                 mean = _finite_rows(prior.mean, (size, ), f"{where} mean")
+                size = size or mean.numel()
                 cov = _finite_rows(prior.cov, (size, size), f"{where} cov")
                 scale = float(cov.abs().max()) or 1.0
                 if float((cov - cov.t()).abs().max()) > \
@@ -454,7 +482,13 @@ class TrackingSession:
             prior_mean=joined['mean'].to(self.device, self.dtype),
             prior_cov=joined['cov'].to(self.device, self.dtype),
             anchor=joined['anchor'], num_nodes=len(joined['ids']))
-        return self.tracker.initial_state(data, self.generator)
+        try:
+            return self.tracker.initial_state(data, self.generator)
+        except ValueError as e:
+            # the tracker's checks name rows of the joining nodes
+            raise ValueError(f"joining {joined['ids']} (rows 0-"
+                             f"{len(joined['ids']) - 1} below): {e}"
+                             ) from None
 
     def _commit(self, ids, row, anchor, state, size):
         self._ids, self._row, self.anchor = ids, row, anchor
@@ -525,26 +559,46 @@ class TrackingSession:
         if saved.get('state_type') not in (None, state_type.__name__):
             raise ValueError(f"the saved state is a {saved['state_type']}, "
                              f"not this tracker's {state_type.__name__}")
-        state = saved.get('state')
-        if state is not None:
-            try:
-                state = state_type(**{
-                    name: (value.to(self.device) if isinstance(value, Tensor)
-                           else tuple(v.to(self.device) for v in value)
-                           if isinstance(value, list) else value)
-                    for name, value in state.items()})
-            except (TypeError, AttributeError) as e:
-                raise ValueError(f"the saved state does not fit "
-                                 f"{state_type.__name__}: {first_line(e)}"
-                                 ) from None
-        ids = [_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
-        self.generator.set_state(saved['generator'])
+        try:
+            state = self._saved_state(saved.get('state'), state_type)
+            ids = [_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
+            anchor = saved['anchor']
+            time, steps = float(saved['time']), int(saved['num_steps'])
+            size, random = saved['state_size'], saved['generator']
+            dtype = _DTYPES[saved['dtype']]
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise ValueError(f"a damaged saved session: {first_line(e)}"
+                             ) from None
+        held = 0 if state is None else state[0].size(0)
+        if len({len(ids), anchor.numel(), held}) != 1 or \
+                len(set(ids)) != len(ids):
+            raise ValueError(f"a damaged saved session: {len(ids)} "
+                             f"identifiers, {anchor.numel()} anchor flags "
+                             f"and {held} state rows")
+        if random.numel() != self.generator.get_state().numel():
+            raise ValueError(f"the session's generator was saved on another "
+                             f"kind of device than this session's "
+                             f"{self.device}")
+        # all read and checked: nothing is half-loaded
+        self.generator.set_state(random)
         self._commit(ids, {i: r for r, i in enumerate(ids)},
-                     saved['anchor'].to(self.device), state,
-                     saved.get('state_size'))
-        self.time = float(saved['time'])
-        self.num_steps = int(saved['num_steps'])
-        self.dtype = getattr(torch, saved.get('dtype', 'float32'))
+                     anchor.to(self.device, torch.bool), state, size)
+        self.time, self.num_steps, self.dtype = time, steps, dtype
+
+    def _saved_state(self, state: Optional[dict], state_type: type):
+        # the tracker's state of a state_dict, on this session's device
+        if state is None:
+            return None
+        try:
+            return state_type(**{
+                name: (value.to(self.device) if isinstance(value, Tensor)
+                       else tuple(v.to(self.device) for v in value)
+                       if isinstance(value, list) else value)
+                for name, value in state.items()})
+        except (TypeError, AttributeError) as e:
+            raise ValueError(f"the saved state does not fit "
+                             f"{state_type.__name__}: {first_line(e)}"
+                             ) from None
 
     def save(self, path: Union[str, Path],
              progress: Optional[Dict[str, Any]] = None) -> None:

@@ -105,12 +105,10 @@ class Tracker(torch.nn.Module):
         return type(state)(*(None if field is None else field[keep]
                              for field in state))
 
-    def join_state(self, state, joined, anchor: Tensor,
-                   joined_anchor: Tensor):
+    def join_state(self, state, joined):
         r"""The state of the nodes of :obj:`state` followed by those of
         :obj:`joined` (an :meth:`initial_state`): every field's rows
-        concatenated, here. :obj:`anchor` and :obj:`joined_anchor` are
-        their anchor masks."""
+        concatenated, here."""
         return type(state)(*(None if old is None else torch.cat([old, new])
                              for old, new in zip(state, joined)))
 

@@ -679,15 +679,19 @@ class LinkPairRange(RangeModel):
     def __init__(self, model: RangeModel):
         super().__init__(model.max_range)
         self.model = model
-        self.width = len(model.generated_features)
-        self.features = ('range', ) + ('feature', ) * (2 * self.width)
+        # at least the features the model reads, twice, and the flag; a
+        # realization's further columns (generated data's true NLOS flag)
+        # ride along
+        self.features = ('range', ) + ('feature', ) * (
+            2 * len(model.features))
 
     def params(self) -> dict:
         return dict(model=self.model.config())
 
     def log_likelihood_of_distance(self, z: Tensor,
                                    distances: Tensor) -> Tensor:
-        width = self.width
+        # the links' feature count F, from the pair's 2 F + 1 columns
+        width = (z.size(1) - 1) // 2
         first = self.model.log_likelihood_of_distance(z[:, :width],
                                                       distances)
         second = self.model.log_likelihood_of_distance(
