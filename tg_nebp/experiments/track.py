@@ -21,8 +21,8 @@ from tg_nebp.live import (read_lines, realization_lines, score, track_lines,
 __all__ = ['LIVE_METHODS', 'track_stream', 'record_realization',
            'score_files']
 
-#: The methods that run live: every tracker of
-#: :data:`~tg_nebp.experiments.evaluate.METHODS` (the bound is not one).
+#: Every tracker of :data:`~tg_nebp.experiments.evaluate.METHODS` runs
+#: live (the bound, which is not a tracker, does not).
 LIVE_METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'iekf')
 
 

@@ -2,10 +2,10 @@ from .resampling import (RESAMPLERS, effective_sample_size, multinomial_resample
                          residual_resample, silverman_bandwidth,
                          stratified_resample, systematic_resample)
 from .tracker import StepOutput, Tracker, TrackOutput
-from .particle_bp import ParticleBP
+from .particle_bp import ParticleBP, ParticleState
 from .nebp import NEBP
-from .centralized_iekf import CentralizedIEKF
-from .gaussian_bp import GBP_RECOMMENDED, GaussianBP
+from .centralized_iekf import CentralizedIEKF, JointState
+from .gaussian_bp import GBP_RECOMMENDED, GaussianBP, GaussianState
 from .gaussian_nebp import GaussianNEBP
 from .session import AgentPrior, AnchorAt, TrackingSession
 from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
@@ -22,6 +22,9 @@ __all__ = [
     'GaussianNEBP',
     'PartitionedGaussianBP',
     'TrackingSession',
+    'GaussianState',
+    'JointState',
+    'ParticleState',
     'AgentPrior',
     'AnchorAt',
     'Partition',

@@ -109,12 +109,13 @@ def _fingerprint(tracker: Tracker) -> str:
 class TrackingSession:
     r"""A tracker run live, one time step at a time: created from the
     prior of the agents and the anchors, then fed every step's links and
-    ranges by :meth:`update`, which returns that step's
-    :class:`~tg_nebp.filters.StepOutput` (rows in the order of
-    :attr:`ids`). Nodes are addressed by the user's identifiers (strings
-    or integers); agents join (:class:`AgentPrior`) and anchors are added
-    (:class:`AnchorAt`) before any step, and both leave; each step may
-    have its own time step :obj:`dt` (the motion model's
+    ranges by :meth:`~tg_nebp.filters.TrackingSession.update`, which
+    returns that step's :class:`~tg_nebp.filters.StepOutput` (rows in the
+    order of :attr:`~tg_nebp.filters.TrackingSession.ids`). Nodes are
+    addressed by the user's identifiers (strings or integers); agents join
+    (:class:`AgentPrior`) and anchors are added (:class:`AnchorAt`) before
+    any step, and both leave; each step may have its own time step
+    :obj:`dt` (the motion model's
     :meth:`~tg_nebp.models.MotionModel.with_time_step`).
 
     Every step runs the tracker's own :meth:`step
@@ -135,7 +136,7 @@ class TrackingSession:
         tracker (Tracker): The tracker (any of the library's, or a user's
             with :meth:`~tg_nebp.filters.Tracker.initial_state` and
             :meth:`~tg_nebp.filters.Tracker.step`).
-        nodes (mapping, optional): The nodes before the first step, by
+        nodes (dict, optional): The nodes before the first step, by
             identifier, in row order: :class:`AgentPrior` or
             :class:`AnchorAt`. (default: none; join them with the first
             :meth:`update`)
@@ -227,7 +228,7 @@ class TrackingSession:
                 :obj:`time` is given).
             time (float, optional): The time of this step; :obj:`dt` is
                 then the time since the last.
-            join (mapping, optional): Joining nodes by identifier.
+            join (dict, optional): Joining nodes by identifier.
             leave (sequence, optional): Identifiers of leaving nodes.
 
         Returns:
