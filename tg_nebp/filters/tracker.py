@@ -3,7 +3,10 @@ for a whole sequence, the checks of a realization against its models, and
 the fields it reports in :obj:`metrics.json`. A new inference method is a
 :class:`Tracker` whose :meth:`~Tracker.steps` yields :class:`StepOutput`:
 every metric, figure, :func:`~tg_nebp.evaluation.track_dataset`, the
-compare table and the CLI then work with it unchanged."""
+compare table and the CLI then work with it unchanged. With
+:meth:`~Tracker.initial_state`, :meth:`~Tracker.step` and its
+:attr:`~Tracker.state_type` it also runs live
+(:class:`~tg_nebp.filters.TrackingSession`, :obj:`tg-nebp track`)."""
 from typing import Any, Dict, Iterator, NamedTuple, Optional
 
 import torch
