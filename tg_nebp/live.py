@@ -121,10 +121,6 @@ def estimate_line(session: TrackingSession, output: StepOutput) -> str:
                            estimates=estimates))
 
 
-def _node_ids(data: Data) -> List[int]:
-    return list(range(data.num_nodes))
-
-
 def _step_times(data: Data, dt: float) -> List[float]:
     # the time of every step: dt summed, as a session's clock would
     times, time = [], 0.0
@@ -145,10 +141,9 @@ def realization_lines(data: Data, num_features: int = 1,
     NLOS flag of generated data stays out); the first line joins every
     node (identifier: its index; agents with their prior, anchors at
     their position)."""
-    ids = _node_ids(data)
     dim = data.prior_mean.size(1) // 2
     join = []
-    for i in ids:
+    for i in range(data.num_nodes):
         if bool(data.anchor[i]):
             join.append(dict(id=i, anchor=data.prior_mean[i, :dim].tolist()))
         else:
@@ -160,7 +155,7 @@ def realization_lines(data: Data, num_features: int = 1,
         if t == 0:
             line['join'] = join
         line['links'] = [
-            [ids[j], ids[i], *features[:num_features]]
+            [j, i, *features[:num_features]]
             for (j, i), features in zip(edge_index.t().tolist(),
                                         edge_attr.tolist())]
         yield json.dumps(line)
@@ -171,11 +166,10 @@ def truth_lines(data: Data, dt: float = 1.0) -> Iterator[str]:
     :obj:`{"t": ..., "time": ..., "states": [{"id": ..., "state": [...]},
     ...]}` (identifiers and times as :func:`realization_lines` writes
     them)."""
-    ids = _node_ids(data)
     agents = (~data.anchor).nonzero().view(-1).tolist()
     for t, time in enumerate(_step_times(data, dt)):
         yield json.dumps(dict(t=t, time=time, states=[
-            dict(id=ids[i], state=data.states[i, t].tolist())
+            dict(id=i, state=data.states[i, t].tolist())
             for i in agents]))
 
 

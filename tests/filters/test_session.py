@@ -213,7 +213,6 @@ def test_a_time_step_per_step_equals_the_model_of_that_time_step(data):
         dt=0.5)).steps(data, gen(2)))
     assert_same_outputs(particle, offline, particles=True)
     # a dt of the model's own is the model itself
-    assert GaussianBP().motion.with_time_step(1.0) is not None
     motion = ConstantVelocityDrag()
     assert motion.with_time_step(1.0) is motion
 
@@ -344,6 +343,11 @@ def _assert_same_state(a, b):
      'cov is not symmetric'),
     (dict(join={'x': AgentPrior([0.0] * 4, (-torch.eye(4)).tolist())}),
      'not positive semi-definite'),
+    (dict(join={'x': AgentPrior([0.0, float('nan'), 0.0, 0.0],
+                                torch.eye(4).tolist())}),
+     r"'join\[0\]' \('x'\) mean: non-finite prior mean"),
+    (dict(join={'x': AnchorAt([1e30, 0.0])}),
+     r"'join\[0\]' \('x'\) mean holds a position beyond"),
     (dict(join={'x': AgentPrior([0.0] * 6, torch.eye(6).tolist())}),
      r"'join\[0\]' \('x'\) mean must have shape \[4\]"),
     (dict(leave=['nobody']), r"'leave\[0\]': unknown identifier"),

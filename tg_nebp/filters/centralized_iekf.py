@@ -9,8 +9,7 @@ from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
                               check_dense_joint, check_predicted_prior,
-                              graph_index, marginal_blocks, predict_joint,
-                              scope_index)
+                              marginal_blocks, predict_joint, scope_index)
 from tg_nebp.models import MeasurementModel, MotionModel
 
 __all__ = ['CentralizedIEKF', 'JointState']
@@ -122,13 +121,12 @@ class CentralizedIEKF(Tracker):
                 (default: :obj:`None`)
         """
         self.check(data)
-        graph_of = graph_index(data)
-        num_graphs = int(graph_of.max()) + 1
         state = self.initial_state(data)
+        # the nodes stay: one layout for every step
+        layout = GraphLayout.of(data)
         for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
             output, state = self.step(state, edge_index, edge_attr,
-                                      data.anchor, t, graph_of=graph_of,
-                                      num_graphs=num_graphs)
+                                      data.anchor, t, layout=layout)
             yield output
 
     def initial_state(self, data: Realization,
@@ -151,7 +149,7 @@ class CentralizedIEKF(Tracker):
     def step(self, state: JointState, edge_index: Tensor, edge_attr: Tensor,
              anchor: Tensor, t: int, generator=None,
              motion: Optional[MotionModel] = None,
-             graph_of: Optional[Tensor] = None, num_graphs: int = 1
+             layout: Optional[GraphLayout] = None
              ) -> Tuple[StepOutput, JointState]:
         r"""One time step of every graph, the arithmetic that the offline
         loop (:meth:`steps`) and a live session
@@ -161,9 +159,11 @@ class CentralizedIEKF(Tracker):
         :obj:`edge_attr` :math:`(E, F)`. Returns the step's
         :class:`~tg_nebp.filters.StepOutput` (time index :obj:`t`:
         every node's mean and marginal covariance) and the state after
-        it. :obj:`graph_of` :math:`(N)` gives every node's graph of a
-        batch of :obj:`num_graphs` (one graph by default)."""
-        layout = GraphLayout.of_nodes(anchor, graph_of, num_graphs)
+        it. :obj:`layout` places the agents of every graph of a batch
+        (:meth:`GraphLayout.of <tg_nebp.gaussian.GraphLayout.of>`; one
+        graph by default)."""
+        if layout is None:
+            layout = GraphLayout.of_nodes(anchor)
         size = state.mean.size(1)
         src, dst = edge_index
         edge_graph = layout.graph_of[dst]

@@ -512,6 +512,7 @@ class ParticleBP(Tracker):
         :obj:`t`) and the state after it. With one generator per graph,
         :obj:`counts` gives the graphs' node counts; :obj:`describe`
         names a node's measurements in the error of a zero belief."""
+        motion = self.motion if motion is None else motion
         particles, log_weights = state.particles, state.log_weights
         if not bool(state.fresh.all()):
             moved, carried = self.resample_step(particles, log_weights,
@@ -527,8 +528,7 @@ class ParticleBP(Tracker):
                                sort_order='col')
         particles = _draw(functools.partial(self.predict, motion=motion),
                           generator, counts, particles, anchor)
-        _check_prediction(particles, self.motion if motion is None else
-                          motion, t)
+        _check_prediction(particles, motion, t)
         # the M-sample offsets, per graph from its generator (none drawn
         # for the paper's pairing: its random stream is as is)
         offsets = None

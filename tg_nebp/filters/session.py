@@ -20,7 +20,8 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_position_dim, check_state_dim
+from tg_nebp.data.validation import (check_position_dim, check_prior,
+                                     check_state_dim)
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.io import atomic_write, first_line, read_tensors
 
@@ -32,9 +33,6 @@ SESSION_FORMAT = 'tg_nebp-session'
 #: The version of the saved session's layout that this library writes and
 #: reads.
 SESSION_VERSION = 1
-#: How far a joined prior's covariance may be from symmetric, relative to
-#: its largest entry.
-_SYMMETRY_TOLERANCE = 1e-6
 
 Identifier = Union[str, int]
 #: The types a session hands its tracker, by the name a saved one stores.
@@ -67,10 +65,10 @@ def _identifier(value, where: str) -> Identifier:
                      f"got {value!r}")
 
 
-def _finite_rows(value, shape: Tuple[Optional[int], ...],
-                 where: str) -> Tensor:
-    # finite numbers (a list, an array, a tensor) of the given shape (None:
-    # any size), in float64
+def _numbers(value, shape: Tuple[Optional[int], ...],
+             where: str) -> Tensor:
+    # numbers (a list, an array, a tensor) of the given shape (None: any
+    # size), in float64
     try:
         tensor = torch.as_tensor(value, dtype=torch.float64).cpu()
     except (TypeError, ValueError, RuntimeError):
@@ -80,8 +78,6 @@ def _finite_rows(value, shape: Tuple[Optional[int], ...],
             n is not None and n != m for n, m in zip(shape, tensor.shape)):
         raise ValueError(f"{where} must have shape {list(shape)}, got "
                          f"{list(tensor.shape)}")
-    if not bool(torch.isfinite(tensor).all()):
-        raise ValueError(f"{where} holds a non-finite value")
     return tensor
 
 
@@ -203,7 +199,9 @@ class TrackingSession:
         r"""Every agent's mean :math:`(S)` and covariance :math:`(S, S)` of
         a step's :obj:`output`, by identifier."""
         return {i: (output.mean[r], output.cov[r])
-                for r, i in enumerate(self._ids) if not bool(self.anchor[r])}
+                for r, (i, a) in enumerate(zip(self._ids,
+                                               self.anchor.tolist()))
+                if not a}
 
     # ---- a step
 
@@ -394,6 +392,9 @@ class TrackingSession:
         # the nodes and the tracker's state after the leaves and joins,
         # computed without touching the session: (ids, rows, anchor,
         # state, state size)
+        if not leave and not join:  # the usual step: nothing to redo
+            return (self._ids, self._row, self.anchor, self.state,
+                    self.state_size)
         ids = list(self._ids)
         leaving = set()
         for k, node in enumerate(leave):
@@ -437,7 +438,7 @@ class TrackingSession:
                 raise ValueError(f"{where}: the identifier is already in "
                                  f"use")
             if isinstance(prior, AnchorAt):
-                position = _finite_rows(
+                position = _numbers(
                     prior.position, (None if size is None else size // 2, ),
                     f"{where} position")
                 size = size or 2 * position.numel()
@@ -446,17 +447,9 @@ class TrackingSession:
                 covs.append(position.new_zeros(size, size))
                 anchors.append(True)
             elif isinstance(prior, AgentPrior):
-                mean = _finite_rows(prior.mean, (size, ), f"{where} mean")
+                mean = _numbers(prior.mean, (size, ), f"{where} mean")
                 size = size or mean.numel()
-                cov = _finite_rows(prior.cov, (size, size), f"{where} cov")
-                scale = float(cov.abs().max()) or 1.0
-                if float((cov - cov.t()).abs().max()) > \
-                        _SYMMETRY_TOLERANCE * scale:
-                    raise ValueError(f"{where} cov is not symmetric")
-                if float(torch.linalg.eigvalsh(cov).min()) < \
-                        -_SYMMETRY_TOLERANCE * scale:
-                    raise ValueError(f"{where} cov is not positive "
-                                     f"semi-definite")
+                cov = _numbers(prior.cov, (size, size), f"{where} cov")
                 means.append(mean)
                 covs.append(cov)
                 anchors.append(False)
@@ -473,8 +466,22 @@ class TrackingSession:
         if position_dim is not None:
             check_position_dim(position_dim, size,
                                type(self.tracker).__name__)
-        return dict(ids=ids, mean=torch.stack(means), cov=torch.stack(covs),
-                    anchor=torch.tensor(anchors, device=self.device)), size
+        mean, cov = torch.stack(means), torch.stack(covs)
+        anchor = torch.tensor(anchors)
+        try:
+            # a realization's checks: finite, symmetric PSD, positions
+            # within the compute type's distances
+            check_prior(mean.to(self.dtype), cov.to(self.dtype), anchor)
+        except ValueError as e:
+            # named by the joining entry, not the row of the check
+            def entry(found) -> str:
+                k = int(found.group(2))
+                return f"'join[{k}]' ({ids[k]!r}) {found.group(1)}"
+
+            raise ValueError(re.sub(r"'prior_(mean|cov)\[(\d+)\]'", entry,
+                                    str(e))) from None
+        return dict(ids=ids, mean=mean, cov=cov,
+                    anchor=anchor.to(self.device)), size
 
     def _initial_state(self, joined: dict):
         # the tracker's state of the joining nodes, drawn (particles) from
