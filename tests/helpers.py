@@ -185,14 +185,19 @@ def linear_offset_model():
     return LinearOffset
 
 
-def linear_kalman_filter(data, motion, measurement, inflation=1.0):
+def linear_kalman_filter(data, motion, measurement, inflation=1.0,
+                         marginal=False):
     r"""The Kalman filter of a realization with a linear motion model and
     :func:`linear_offset_model`'s measurements, written independently of
     the library: one joint state over the agents, float64 numpy, one
     vector measurement at a time in a plain loop, Joseph-form updates; the
     covariance multiplied by :obj:`inflation` before every prediction but
-    the first. Returns the agents' means :math:`(A, T, S)`, their marginal
-    covariances :math:`(A, T, S, S)` and the agents' node indices."""
+    the first. A realization's known inputs (:obj:`control`) enter as
+    :math:`\mathbf{F} \mathbf{x} + f(\mathbf{0}, \mathbf{u})` (the model
+    is linear). With :obj:`marginal`, the cross-agent covariances are
+    dropped after every step (what a filter of marginals keeps). Returns
+    the agents' means :math:`(A, T, S)`, their marginal covariances
+    :math:`(A, T, S, S)` and the agents' node indices."""
     import numpy as np
     anchor = data.anchor.numpy()
     agents = np.flatnonzero(~anchor)
@@ -216,6 +221,11 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0):
             P = inflation * P
         Fj = np.kron(np.eye(count), F)
         x = Fj @ x
+        control = getattr(data, 'control', None)
+        if control is not None:  # the inputs' move, f(0, u)
+            x = x + motion.mean(torch.zeros(count, size, dtype=torch.float64),
+                                control=control[agents, t].double()
+                                ).numpy().reshape(-1)
         P = Fj @ P @ Fj.T + np.kron(np.eye(count), Q)
         for e in np.flatnonzero(data.edge_time.numpy() == t):
             j, i = (int(v) for v in data.edge_index[:, e])
@@ -232,6 +242,8 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0):
             x = x + K @ (z - H @ x - constant)
             A = np.eye(count * size) - K @ H
             P = A @ P @ A.T + sigma2 * K @ K.T
+        if marginal:
+            P = np.kron(np.eye(count), np.ones((size, size))) * P
         means.append(x.reshape(count, size).copy())
         covs.append(np.stack([P[a * size:(a + 1) * size,
                                 a * size:(a + 1) * size]
@@ -248,6 +260,53 @@ def linear_scenario(steps=4, num_agents=4, sigma=0.5):
                     agent_start_low=2.0, agent_start_high=10.0,
                     num_steps=steps, motion=ConstantVelocity(0.1),
                     measurement=linear_offset_model()(sigma))
+
+
+def simulate_robots(motion, measurement, true_control, anchors, start,
+                    prior_var, seed=0, recorded=None):
+    r"""A realization of robots moved by :obj:`motion`'s own draws with
+    the true inputs :obj:`true_control` :math:`(A, T, C)` from the true
+    states :obj:`start` :math:`(A, S)`, measured by :obj:`measurement`
+    (links by its :meth:`connect_states`) to the anchors at
+    :obj:`anchors` :math:`(M, D)` and each other; the inputs recorded are
+    :obj:`recorded` (the true ones by default), the prior centred on the
+    truth with the variances :obj:`prior_var` :math:`(S)`."""
+    from tg_nebp.data import Realization
+    from tg_nebp.models import resolve_models
+    motion, measurement = resolve_models(motion, measurement)
+    g = gen(seed)
+    count, steps, _ = true_control.shape
+    size = start.size(1)
+    anchor_states = torch.cat([anchors, anchors.new_zeros(
+        anchors.size(0), size - anchors.size(1))], 1).double()
+    anchor = torch.arange(count + anchors.size(0)) >= count
+    state = start.double()
+    states, edge_index, edge_attr, edge_time = [], [], [], []
+    for t in range(steps):
+        state = motion.sample(state, g, control=true_control[:, t].double())
+        # the truth stored with its angles wrapped, as a report is
+        every = motion.layout(size).wrap(torch.cat([state, anchor_states]))
+        edges = measurement.connect_states(every, ~anchor)
+        states.append(every)
+        edge_index.append(edges)
+        edge_attr.append(measurement.sample_features(
+            every[edges[0]], every[edges[1]], None, edges, g))
+        edge_time.append(torch.full((edges.size(1), ), t))
+    control = true_control if recorded is None else recorded
+    prior_cov = torch.diag_embed(torch.tensor(prior_var).double().expand(
+        count + anchors.size(0), size)).clone()
+    prior_cov[anchor] = 0
+    return Realization(
+        states=torch.stack(states, 1),
+        control=torch.cat([control.double(), control.new_full(
+            (anchors.size(0), ) + control.shape[1:], math.nan).double()]),
+        position_dim=anchors.size(1),
+        edge_index=torch.cat(edge_index, 1),
+        edge_attr=torch.cat(edge_attr).double(),
+        edge_time=torch.cat(edge_time), anchor=anchor,
+        prior_mean=torch.cat([start.double(), anchor_states]),
+        prior_cov=prior_cov, num_steps=steps,
+        num_nodes=count + anchors.size(0))
 
 
 def embed_in_3d(data, height_var=4.0):

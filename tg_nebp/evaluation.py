@@ -11,6 +11,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp import metrics
 from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.data.realization import position_dim_of
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.filters import Tracker
 from tg_nebp.io import read_json, write_json
@@ -103,14 +104,19 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
                 derive_seed(seed, r)) for r in indices]
             agents = ~batch.anchor
             holds_first = indices[0] == 0  # its estimates go to the plots
-            errors, nees, means = [], [], []
-            dim = dof = batch.states.size(-1) // 2
+            errors, nees, means, headings = [], [], [], []
+            dim = dof = position_dim_of(batch)
+            angles = list(tracker.motion.layout(batch.states.size(-1)).angles)
             for step in tracker.steps(batch, generator):
                 truth = batch.states[:, step.t, :dim]
                 est = step.mean[:, :dim]
                 errors.append(metrics.position_errors(est, truth)[agents])
                 nees.append(
                     metrics.nees(est, step.cov[:, :dim, :dim], truth)[agents])
+                if angles:
+                    headings.append(metrics.angle_errors(
+                        step.mean[:, angles],
+                        batch.states[:, step.t, angles])[agents])
                 if holds_first:
                     means.append(step.mean)
                 if progress is not None:  # realization-steps
@@ -118,10 +124,14 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
             # [agents, T]: row-major flattening is agent, then time step
             errors = torch.stack(errors, 1).cpu()
             nees = torch.stack(nees, 1).cpu()
+            # [agents, T, angles]: the errors of the angles (headings)
+            headings = (torch.stack(headings, 1).cpu() if angles else
+                        errors.new_zeros(errors.shape + (0, )))
             owner = batch.batch[agents].cpu()
             for g, r in enumerate(indices):
                 tracked[r] = (errors[owner == g].flatten(),
-                              nees[owner == g].flatten())
+                              nees[owner == g].flatten(),
+                              headings[owner == g].flatten(0, 1))
             if holds_first:
                 nodes = slice(0, int(batch.ptr[1]))
                 first = {
@@ -130,8 +140,10 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
                     'first_anchor': batch.anchor[nodes].cpu(),
                 }
     tracked, first = _gathered(tracked, first)
-    return dict(_by_realization(tracked, ('errors', 'nees')), dof=dof,
-                **first)
+    out = _by_realization(tracked, ('errors', 'nees', 'angle_errors'))
+    if out['angle_errors'].size(-1) == 0:  # no angle in the state
+        del out['angle_errors']
+    return dict(out, dof=dof, **first)
 
 
 def _by_realization(tracked: Dict[int, tuple], names: Sequence[str]
@@ -150,19 +162,25 @@ def _by_realization(tracked: Dict[int, tuple], names: Sequence[str]
 def summarize(errors: torch.Tensor, nees: torch.Tensor,
               thresholds: Sequence[float] = OUTAGE_THRESHOLDS,
               confidence: Sequence[float] = CONFIDENCE,
-              dof: int = 2) -> dict:
+              dof: int = 2,
+              angle_errors: Optional[torch.Tensor] = None) -> dict:
     r"""The :obj:`metrics.json` entry of a method: RMSE, outage
     probabilities keyed by threshold (:obj:`"0.5"`, ...) and
     :math:`\mathbb{P}(\text{accept } H_0)` keyed by confidence level
     (:obj:`"0.95"`, ...), the NEES tested with :obj:`dof` degrees of
-    freedom (the position dimension)."""
+    freedom (the position dimension); with the errors of a state's angles
+    :obj:`angle_errors` :math:`(V, A)` (wrapped, radians), their RMSE
+    :obj:`"heading_rmse"` (over all angles)."""
     outage = metrics.outage_from_errors(errors, thresholds)
     accept = metrics.consistency_curve(nees, confidence, dof=dof)
-    return {
+    entry = {
         'rmse': metrics.rmse_from_errors(errors),
         'outage': {f'{t:.1f}': float(p) for t, p in zip(thresholds, outage)},
         'accept': {f'{c:.2f}': float(p) for c, p in zip(confidence, accept)},
     }
+    if angle_errors is not None:
+        entry['heading_rmse'] = metrics.rmse_from_errors(angle_errors)
+    return entry
 
 
 def bound_dataset(bound: PosteriorCRB, dataset: Sequence,
@@ -188,27 +206,37 @@ def bound_dataset(bound: PosteriorCRB, dataset: Sequence,
             generator = torch.Generator(device).manual_seed(
                 derive_seed(seed, indices[0]))
             agents = ~batch.anchor
-            dim = batch.states.size(-1) // 2
-            squared, outage = [], []
+            dim = position_dim_of(batch)
+            angles = list(bound.motion.layout(batch.states.size(-1)).angles)
+            squared, outage, angle_var = [], [], []
             for step in bound.steps(batch, generator):
                 cov = step.cov[agents, :dim, :dim]
                 squared.append(cov.diagonal(dim1=-2, dim2=-1).sum(-1))
                 outage.append(metrics.gaussian_outage(cov, thresholds))
+                angle_var.append(step.cov[agents][:, angles, angles])
                 if progress is not None:
                     progress(batch.num_graphs)
             squared = torch.stack(squared, 1).cpu()  # [agents, T]
             outage = torch.stack(outage, 1).cpu()  # [agents, T, R]
+            angle_var = torch.stack(angle_var, 1).cpu()  # [agents, T, A]
             owner = batch.batch[agents].cpu()
             for g, r in enumerate(indices):
                 tracked[r] = (squared[owner == g].flatten(),
-                              outage[owner == g].flatten(0, 1))
+                              outage[owner == g].flatten(0, 1),
+                              angle_var[owner == g].flatten(0, 1))
     tracked, _ = _gathered(tracked, {})
-    return _by_realization(tracked, ('squared_error', 'outage'))
+    out = _by_realization(tracked, ('squared_error', 'outage',
+                                    'angle_squared_error'))
+    if out['angle_squared_error'].size(-1) == 0:  # no angle in the state
+        del out['angle_squared_error']
+    return out
 
 
 def summarize_bound(squared_error: torch.Tensor, outage: torch.Tensor,
                     thresholds: Sequence[float] = OUTAGE_THRESHOLDS,
-                    confidence: Sequence[float] = CONFIDENCE) -> dict:
+                    confidence: Sequence[float] = CONFIDENCE,
+                    angle_squared_error: Optional[torch.Tensor] = None
+                    ) -> dict:
     r"""The :obj:`metrics.json` entry of the bound, with the fields of
     :func:`summarize`: :obj:`"rmse"` is the RMSE floor
     :math:`\sqrt{\operatorname{mean} \operatorname{tr} \mathbf{B}}`,
@@ -216,12 +244,16 @@ def summarize_bound(squared_error: torch.Tensor, outage: torch.Tensor,
     :obj:`"accept"` its :math:`\mathbb{P}(\text{accept } H_0)`: the
     confidence level itself (its NEES is :math:`\chi^2`-distributed)."""
     mean_outage = outage.double().mean(0)
-    return {
+    entry = {
         'rmse': float(squared_error.double().mean().sqrt()),
         'outage': {f'{t:.1f}': float(p)
                    for t, p in zip(thresholds, mean_outage)},
         'accept': {f'{c:.2f}': float(c) for c in confidence},
     }
+    if angle_squared_error is not None:  # the floor of the angles' RMSE
+        entry['heading_rmse'] = float(
+            angle_squared_error.double().mean().sqrt())
+    return entry
 
 
 def summarize_result(result: Dict[str, torch.Tensor]) -> dict:
@@ -230,13 +262,17 @@ def summarize_result(result: Dict[str, torch.Tensor]) -> dict:
     (:func:`summarize_bound`)."""
     if 'errors' in result:
         return summarize(result['errors'], result['nees'],
-                         dof=result.get('dof', 2))
-    return summarize_bound(result['squared_error'], result['outage'])
+                         dof=result.get('dof', 2),
+                         angle_errors=result.get('angle_errors'))
+    return summarize_bound(result['squared_error'], result['outage'],
+                           angle_squared_error=result.get(
+                               'angle_squared_error'))
 
 
 def _select(result: Dict[str, torch.Tensor], mask: torch.Tensor) -> dict:
     selected = {key: result[key][mask]
-                for key in ('errors', 'nees', 'squared_error', 'outage')
+                for key in ('errors', 'nees', 'squared_error', 'outage',
+                            'angle_errors', 'angle_squared_error')
                 if key in result}
     if 'dof' in result:
         selected['dof'] = result['dof']

@@ -100,9 +100,13 @@ def check_predicted_prior(data, motion, what: str) -> None:
     agent whose whole state is known is an anchor."""
     agents = ~data.anchor
     mean = data.prior_mean[agents].double()
-    jacobian = motion.jacobian(mean)
+    control = getattr(data, 'control', None)
+    given = {} if control is None else {
+        'control': control[agents, 0].double()}
+    jacobian = motion.jacobian(mean, **given)
     predicted = (jacobian @ data.prior_cov[agents].double() @
-                 jacobian.transpose(-1, -2) + motion.noise_covariance(mean))
+                 jacobian.transpose(-1, -2) +
+                 motion.noise_covariance(mean, **given))
     _, failed = torch.linalg.cholesky_ex(predicted)
     if bool(failed.any()):
         first = int(failed.nonzero()[0, 0])

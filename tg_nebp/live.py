@@ -12,7 +12,11 @@ A measurement line is a JSON object with any of
 * :obj:`"leave"`: identifiers of nodes that leave before the step,
 * :obj:`"links"`: :obj:`[from, to, range]` (agent :obj:`to` measured its
   range to node :obj:`from`; further link features of the measurement
-  model after the range).
+  model after the range, such as a bearing),
+* :obj:`"control"`: agents' known inputs of the step (odometry) for a
+  motion model that takes them, :obj:`{"r1": [...], ...}` by identifier
+  (an integer identifier as its decimal string); an agent without one
+  gets the model's input-free prediction.
 
 Identifiers are strings or integers. An estimate line is
 :obj:`{"t": ..., "time": ..., "estimates": [{"id": ..., "mean": [...],
@@ -28,6 +32,7 @@ import torch
 from torch_geometric.data import Data
 
 from tg_nebp import metrics
+from tg_nebp.data.realization import position_dim_of
 from tg_nebp.evaluation import summarize
 from tg_nebp.filters.session import AgentPrior, AnchorAt, TrackingSession
 from tg_nebp.filters.tracker import StepOutput
@@ -39,7 +44,7 @@ __all__ = ['StreamStep', 'parse_step', 'estimate_line', 'realization_lines',
 #: What :func:`track_lines` does with a bad line: report it and go on
 #: (:obj:`"skip"`) or end the run (:obj:`"stop"`).
 ON_ERROR = ('skip', 'stop')
-_KEYS = ('dt', 'time', 'join', 'leave', 'links')
+_KEYS = ('dt', 'time', 'join', 'leave', 'links', 'control')
 
 
 class StreamStep(NamedTuple):
@@ -51,6 +56,7 @@ class StreamStep(NamedTuple):
     time: Optional[float]
     join: Dict
     leave: List
+    control: Dict = {}
 
 
 def _list(value, where: str) -> list:
@@ -105,8 +111,12 @@ def parse_step(text: str) -> StreamStep:
                          f"{link!r}")
     links = [link[:2] for link in raw]
     ranges = [link[2:] if len(link) > 3 else link[2] for link in raw]
+    control = line.get('control', {})
+    if not isinstance(control, dict):
+        raise ValueError(f"'control' must be an object of inputs by "
+                         f"identifier, got {control!r}")
     return StreamStep(links, ranges, line.get('dt'), line.get('time'), join,
-                      _list(line.get('leave', []), "'leave'"))
+                      _list(line.get('leave', []), "'leave'"), control)
 
 
 def estimate_line(session: TrackingSession, output: StepOutput) -> str:
@@ -140,8 +150,9 @@ def realization_lines(data: Data, num_features: int = 1,
     :obj:`num_features` link features (the measurement model's: the true
     NLOS flag of generated data stays out); the first line joins every
     node (identifier: its index; agents with their prior, anchors at
-    their position)."""
-    dim = data.prior_mean.size(1) // 2
+    their position). A realization with known inputs gives every step's
+    :obj:`"control"` of the agents that have one."""
+    dim = position_dim_of(data)
     join = []
     for i in range(data.num_nodes):
         if bool(data.anchor[i]):
@@ -150,10 +161,15 @@ def realization_lines(data: Data, num_features: int = 1,
             join.append(dict(id=i, mean=data.prior_mean[i].tolist(),
                              cov=data.prior_cov[i].tolist()))
     times = _step_times(data, dt)
-    for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+    for t, ((edge_index, edge_attr), control) in enumerate(zip(
+            data.edges_by_step(), data.controls_by_step())):
         line = dict(time=times[t])
         if t == 0:
             line['join'] = join
+        if control is not None:
+            given = ~torch.isnan(control).any(-1)
+            line['control'] = {str(i): control[i].tolist()
+                               for i in given.nonzero().view(-1).tolist()}
         line['links'] = [
             [j, i, *features[:num_features]]
             for (j, i), features in zip(edge_index.t().tolist(),
@@ -165,10 +181,13 @@ def truth_lines(data: Data, dt: float = 1.0) -> Iterator[str]:
     r"""The true states of a realization's agents, one line per time step:
     :obj:`{"t": ..., "time": ..., "states": [{"id": ..., "state": [...]},
     ...]}` (identifiers and times as :func:`realization_lines` writes
-    them)."""
+    them), with :obj:`"position_dim"` where the realization declares it
+    (a state layout other than :math:`[\mathbf{p}, \mathbf{v}]`)."""
     agents = (~data.anchor).nonzero().view(-1).tolist()
+    extra = ({} if getattr(data, 'position_dim', None) is None else
+             dict(position_dim=position_dim_of(data)))
     for t, time in enumerate(_step_times(data, dt)):
-        yield json.dumps(dict(t=t, time=time, states=[
+        yield json.dumps(dict(t=t, time=time, **extra, states=[
             dict(id=i, state=data.states[i, t].tolist())
             for i in agents]))
 
@@ -201,7 +220,8 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
             try:
                 step = parse_step(text)
                 output = session.update(step.links, step.ranges, step.dt,
-                                        step.time, step.join, step.leave)
+                                        step.time, step.join, step.leave,
+                                        step.control)
             except (ValueError, torch.linalg.LinAlgError) as e:
                 message = f"line {number}: {e}"
                 if on_error == 'stop':
@@ -245,10 +265,11 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
     float32), with the number of steps and estimates scored. A step
     estimated twice, or one without truth, is a :class:`ValueError`
     naming its line."""
-    states = {}
+    states, position_dims = {}, {}
     for _, line in _objects(truth, 'truth', ('time', 'states')):
         states[line['time']] = {json.dumps(s['id']): s['state']
                                 for s in line['states']}
+        position_dims[line['time']] = line.get('position_dim')
     errors, nees, seen, dim = [], [], set(), 2
     for number, line in _objects(estimates, 'estimates',
                                  ('time', 'estimates')):
@@ -277,7 +298,7 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
             raise ValueError(f"{where}: an estimate without a 'mean' and "
                              f"'cov' of the truth's size ({first_line(e)})"
                              ) from None
-        dim = true.size(-1) // 2
+        dim = position_dims[line['time']] or true.size(-1) // 2
         errors.append(metrics.position_errors(mean[:, :dim],
                                               true[:, :dim]))
         nees.append(metrics.nees(mean[:, :dim], cov[:, :dim, :dim],

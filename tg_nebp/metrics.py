@@ -17,8 +17,11 @@ import torch
 from scipy.stats import chi2
 from torch import Tensor
 
+from tg_nebp.models.base import wrap_angle
+
 __all__ = [
     'position_errors',
+    'angle_errors',
     'rmse',
     'rmse_from_errors',
     'outage_probability',
@@ -53,6 +56,15 @@ def position_errors(est_pos: Tensor, true_pos: Tensor) -> Tensor:
     :math:`(*)`."""
     _check_positions(est_pos, true_pos)
     return torch.linalg.vector_norm((est_pos - true_pos).double(), dim=-1)
+
+
+def angle_errors(est: Tensor, truth: Tensor) -> Tensor:
+    r"""The errors :math:`|\hat{\theta} - \theta|` :math:`(*)` of
+    angles (a heading), the difference wrapped to :math:`(-\pi, \pi]`
+    first, in float64: an estimate just across the cut at :math:`\pm \pi`
+    from the truth is off by its true small angle, not by a turn."""
+    _check_positions(est, truth)
+    return wrap_angle((est - truth).double()).abs()
 
 
 def _check_positions(est_pos: Tensor, true_pos: Tensor) -> None:

@@ -61,12 +61,20 @@ def test_fingerprint_covers_every_generation_parameter():
                    sigma_v0=0.2, motion=ConstantVelocityDrag(dt=0.5).config(),
                    measurement=GaussianRange(max_range=19.0).config(),
                    prior_var=(9.0, 10.0, 0.01, 0.01), name='other')
+    # a drive needs a motion model with inputs: robots_train's below
     assert set(changes) == {f.name for f in dataclasses.fields(Scenario)
-                            } - {'description'}
+                            } - {'description', 'drive'}
     prints = {base.fingerprint()}
     for key, value in changes.items():
         prints.add(base.replace(**{key: value}).fingerprint())
     assert len(prints) == len(changes) + 1
+    robots = Scenario.load('robots_train')
+    assert robots.replace(drive={**robots.drive, 'turn_back': 0.1}
+                          ).fingerprint() != robots.fingerprint()
+    # the fingerprints of the scenarios without a drive are those from
+    # before drives existed (their datasets' file names)
+    assert base.fingerprint() == '622693114a'
+    assert Scenario.load('paper_test').fingerprint() == 'dea8836272'
     # the description is free text
     assert base.replace(description='x').fingerprint() == base.fingerprint()
     assert base.replace().fingerprint() == base.fingerprint()

@@ -4,12 +4,15 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_realization, check_state_dim
+from tg_nebp.data.realization import position_dim_of
+from tg_nebp.data.validation import (check_control, check_realization,
+                                     check_state_dim)
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
                               check_dense_joint, check_predicted_prior,
                               marginal_blocks, predict_joint, scope_index)
-from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
+from tg_nebp.models import (MeasurementModel, MotionModel, inputs,
+                            resolve_models)
 
 __all__ = ['PosteriorCRB', 'BoundStep']
 
@@ -41,7 +44,9 @@ class PosteriorCRB(torch.nn.Module):
     (:meth:`~tg_nebp.models.MotionModel.jacobian`; the first step's at the
     prior mean, as a realization does not store the true initial state),
     :math:`\mathbf{Q}_n` its driving-noise covariance
-    (:meth:`~tg_nebp.models.MotionModel.noise_covariance`) and
+    (:meth:`~tg_nebp.models.MotionModel.noise_covariance`; both with the
+    step's known inputs where the realization carries them: for odometry,
+    the input noise propagated by the Jacobian in the input) and
     :math:`\mathbf{J}_{z,n}` the Fisher information of every link measured
     at step :math:`n`
     (:meth:`~tg_nebp.models.MeasurementModel.fisher_information`): for a
@@ -103,7 +108,8 @@ class PosteriorCRB(torch.nn.Module):
             raise ValueError("the posterior CRB needs the true 'states' of "
                              "the realization")
         size = states.size(-1)
-        check_state_dim(size, self.motion)
+        check_state_dim(size, self.motion, position_dim_of(data))
+        check_control(data, self.motion)
         check_predicted_prior(data, self.motion, 'the posterior CRB')
         layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
@@ -117,7 +123,8 @@ class PosteriorCRB(torch.nn.Module):
         both = torch.cat([read, size + read])
         covs = [block_diagonal(prior_cov[nodes]) for nodes in layout.agents]
         previous = data.prior_mean.double()
-        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        for t, ((edge_index, edge_attr), control) in enumerate(zip(
+                data.edges_by_step(), data.controls_by_step())):
             truth = states[:, t]
             src, dst = edge_index
             blocks = self.measurement.fisher_information(
@@ -125,10 +132,13 @@ class PosteriorCRB(torch.nn.Module):
             edge_graph = layout.graph_of[dst]
             out = truth.new_zeros(data.num_nodes, size, size)
             for g, nodes in enumerate(layout.agents):
+                given = inputs(None if control is None else
+                               control[nodes].double())
                 cov = predict_joint(covs[g],
-                                    self.motion.jacobian(previous[nodes]),
+                                    self.motion.jacobian(previous[nodes],
+                                                         **given),
                                     self.motion.noise_covariance(
-                                        previous[nodes]))
+                                        previous[nodes], **given))
                 mine = edge_graph == g
                 count = nodes.numel()
                 info = cov.new_zeros(count * len(scope), count * len(scope))

@@ -1,7 +1,7 @@
-from .realization import Realization, num_steps_of
+from .realization import Realization, num_steps_of, position_dim_of
 from .validation import (check_graph, check_link_features, check_particles,
                          check_prior, check_realization, check_anchor,
-                         check_state_dim)
+                         check_state_dim, check_control)
 
 __all__ = [
     'Realization',
@@ -13,4 +13,6 @@ __all__ = [
     'check_realization',
     'check_anchor',
     'check_state_dim',
+    'check_control',
+    'position_dim_of',
 ]

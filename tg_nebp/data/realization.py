@@ -30,7 +30,14 @@ batches realizations of different sizes into one disjoint graph:
   :obj:`prior_cov` :obj:`[N, 2D, 2D]`: the prior at time 0 (an anchor's prior
   mean is its known position with zero velocity and zero covariance),
 * :obj:`num_steps`: :math:`T` (a tensor :obj:`[B]` in a batch; all graphs of
-  a batch share :math:`T`).
+  a batch share :math:`T`),
+* optionally :obj:`control` :obj:`[N, T, C]`: every agent's known input
+  (odometry) of every step, for a motion model that takes one (a row of NaN:
+  no input for that agent and step; anchors' rows are NaN),
+* optionally :obj:`position_dim`: :math:`D` for a state layout other than
+  :math:`[\mathbf{p}, \mathbf{v}]` (a robot's :math:`[x, y, \theta]`:
+  :obj:`position_dim = 2`, the first :math:`D` entries being the position;
+  without it the position is the first half of a state).
 
 :meth:`Realization.snapshot` returns the snapshot at time :obj:`t` of a
 single or a batched realization.
@@ -40,7 +47,21 @@ import numbers
 import torch
 from torch_geometric.data import Data
 
-__all__ = ['Realization', 'num_steps_of']
+__all__ = ['Realization', 'num_steps_of', 'position_dim_of']
+
+
+def position_dim_of(data: Data) -> int:
+    r"""The dimension :math:`D` of the positions of a single or batched
+    realization: its :obj:`position_dim` where it declares one (equal
+    across a batch), else half its state size."""
+    declared = getattr(data, 'position_dim', None)
+    if declared is None:
+        return data.prior_mean.size(-1) // 2
+    dims = torch.as_tensor(declared).view(-1)
+    if dims.numel() == 0 or bool((dims != dims[0]).any()):
+        raise ValueError(f"'position_dim' must be equal across a batch, got "
+                         f"{dims.tolist()}")
+    return int(dims[0])
 
 
 def num_steps_of(data: Data) -> int:
@@ -78,7 +99,8 @@ class Realization(Data):
     def __setattr__(self, key, value):
         # one type everywhere (a [1] tensor, as collation and slicing give),
         # so generated, loaded and hand-built realizations batch together
-        if key == 'num_steps' and isinstance(value, numbers.Integral) \
+        if key in ('num_steps', 'position_dim') and isinstance(
+                value, numbers.Integral) \
                 and not isinstance(value, bool):
             value = torch.tensor([int(value)])
         super().__setattr__(key, value)
@@ -94,7 +116,8 @@ class Realization(Data):
         r"""Returns the snapshot at time index :obj:`t` (time step
         :math:`t + 1`) as a :class:`~torch_geometric.data.Data` with
         :obj:`edge_index`, :obj:`edge_attr`, :obj:`anchor`, :obj:`pos` (if
-        true states are stored) and :obj:`batch` (if batched).
+        true states are stored), :obj:`control` :math:`(N, C)` (if known
+        inputs are) and :obj:`batch` (if batched).
 
         Args:
             t (int): Time index in :math:`[0, T)`.
@@ -115,12 +138,24 @@ class Realization(Data):
                     num_nodes=self.num_nodes)
         states = getattr(self, 'states', None)
         if states is not None:
-            snap.pos = states[:, t, :states.size(-1) // 2]
+            snap.pos = states[:, t, :position_dim_of(self)]
+        control = getattr(self, 'control', None)
+        if control is not None:
+            snap.control = control[:, t]
         batch = getattr(self, 'batch', None)
         if batch is not None:
             snap.batch = batch
             snap.ptr = self.ptr
         return snap
+
+    def controls_by_step(self) -> list:
+        r"""The known inputs of every time step, a list of :math:`T`
+        tensors :math:`(N, C)` (:obj:`control` split by step), or of
+        :math:`T` :obj:`None` for a realization without inputs."""
+        control = getattr(self, 'control', None)
+        if control is None:
+            return [None] * num_steps_of(self)
+        return list(control.unbind(1))
 
     def edges_by_step(self) -> list:
         r"""Splits the edges by time step in one pass: a list of :math:`T`

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex
 
-from tg_nebp.data.realization import num_steps_of
+from tg_nebp.data.realization import num_steps_of, position_dim_of
 from tg_nebp.utils import compute_dtype
 
 if TYPE_CHECKING:  # the models import this module
@@ -35,6 +35,7 @@ __all__ = [
     'check_edge_log_weights',
     'is_integer',
     'check_state_dim',
+    'check_control',
 ]
 
 
@@ -254,9 +255,12 @@ def check_anchor(anchor: Tensor, num_nodes: int) -> None:
 
 
 def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
-                atol: float = 1e-6) -> None:
+                atol: float = 1e-6,
+                position_dim: Optional[int] = None) -> None:
     r"""Checks the prior: finite means (an anchor's mean is its known
-    position), symmetric positive semi-definite covariances."""
+    position; the first :obj:`position_dim` entries are the position, the
+    first half of a state by default), symmetric positive semi-definite
+    covariances."""
     n, d = prior_mean.shape
     if not prior_cov.is_floating_point():
         raise ValueError(f"'prior_cov' must be a floating point tensor, got "
@@ -270,7 +274,9 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
         what = ('anchor without a known position' if bool(anchor[i]) else
                 'non-finite prior mean')
         raise ValueError(f"'prior_mean[{i}]': {what}")
-    big = _too_large(prior_mean[:, :d // 2]).any(-1)
+    if position_dim is None:
+        position_dim = d // 2
+    big = _too_large(prior_mean[:, :position_dim]).any(-1)
     if bool(big.any()):
         raise ValueError(f"'prior_mean[{_first(big)}]' holds a position "
                          f"beyond {magnitude_limit(prior_mean.dtype):.3g}, "
@@ -299,14 +305,61 @@ def _check_symmetric_psd(matrices: Tensor, name: str, atol: float) -> None:
                          f"(smallest eigenvalue {float(min_eig[i]):.3g})")
 
 
-def check_state_dim(size: int, motion: 'MotionModel') -> None:
+def check_state_dim(size: int, motion: 'MotionModel',
+                    position_dim: Optional[int] = None) -> None:
     r"""A :class:`ValueError` if states of size :obj:`size` are not what the
     motion model is for (a model that states its
-    :attr:`~tg_nebp.models.MotionModel.state_dim`)."""
+    :attr:`~tg_nebp.models.MotionModel.state_dim`), or, with
+    :obj:`position_dim` (a realization's,
+    :func:`~tg_nebp.data.realization.position_dim_of`), if the model's
+    layout puts another number of position entries first."""
     if motion.state_dim is not None and size != motion.state_dim:
         raise ValueError(f"'prior_mean' holds states of size {size} but the "
                          f"motion model {motion} has state dimension "
                          f"{motion.state_dim}")
+    if position_dim is not None and \
+            motion.layout(size).position_dim != position_dim:
+        raise ValueError(f"the realization's positions have "
+                         f"{position_dim} entries but the motion model "
+                         f"{motion} reads {motion.layout(size).position_dim}"
+                         f" of a state of size {size}")
+
+
+def check_control(data, motion: 'MotionModel') -> None:
+    r"""Checks a realization's known inputs against its motion model:
+    none for a model that takes none; else :obj:`control` :math:`(N, T,
+    C)`, floating point, :math:`C` the model's
+    :attr:`~tg_nebp.models.MotionModel.control_dim`, finite or NaN (a NaN
+    row: no input for that agent and step). A realization without
+    :obj:`control` is fine for any model (every step without input)."""
+    control = getattr(data, 'control', None)
+    if control is None:
+        return
+    if motion.control_dim == 0:
+        raise ValueError(f"the realization carries known inputs "
+                         f"('control') but the motion model {motion} takes "
+                         f"none")
+    n, steps = data.num_nodes, num_steps_of(data)
+    shape = (n, steps, motion.control_dim)
+    if not (isinstance(control, Tensor) and tuple(control.shape) == shape):
+        raise ValueError(f"'control' must have shape {list(shape)} (the "
+                         f"motion model {motion} takes inputs of "
+                         f"{motion.control_dim}), got "
+                         f"{list(getattr(control, 'shape', []))}")
+    if not control.is_floating_point():
+        raise ValueError(f"'control' must be a floating point tensor, got "
+                         f"{control.dtype}")
+    bad = torch.isinf(control).flatten(1).any(-1)
+    if bool(bad.any()):
+        i = _first(bad)
+        t = int(torch.isinf(control[i]).any(-1).nonzero()[0, 0])
+        raise ValueError(f"'control[{i}, {t}]' holds an infinite value (a "
+                         f"step without input is a row of NaN)")
+    partial = torch.isnan(control).any(-1) & ~torch.isnan(control).all(-1)
+    if bool(partial.any()):
+        i, t = partial.nonzero()[0].tolist()
+        raise ValueError(f"'control[{i}, {t}]' is partly NaN: an input is "
+                         f"given whole or not at all (a row of NaN)")
 
 
 def check_position_dim(position_dim: int, state_size: Optional[int] = None,
@@ -364,15 +417,31 @@ def check_realization(data, features: Sequence[str] = ('range', )
         raise ValueError(f"'edge_time[{e}]' = {int(t[e])} is outside "
                          f"[0, {steps})")
     mean = data.prior_mean
-    if not (isinstance(mean, Tensor) and mean.dim() == 2
-            and mean.size(0) == n and mean.size(1) in (4, 6)):
-        raise ValueError(f"'prior_mean' must have shape [{n}, 4] or [{n}, "
-                         f"6] (a 2-D or 3-D position, then the velocity), "
-                         f"got {list(getattr(mean, 'shape', []))}")
+    declared = getattr(data, 'position_dim', None)
+    if declared is None:
+        if not (isinstance(mean, Tensor) and mean.dim() == 2
+                and mean.size(0) == n and mean.size(1) in (4, 6)):
+            raise ValueError(f"'prior_mean' must have shape [{n}, 4] or "
+                             f"[{n}, 6] (a 2-D or 3-D position, then the "
+                             f"velocity; another layout declares its "
+                             f"'position_dim'), got "
+                             f"{list(getattr(mean, 'shape', []))}")
+        position_dim = mean.size(1) // 2
+    else:
+        position_dim = position_dim_of(data)
+        if position_dim not in (2, 3):
+            raise ValueError(f"'position_dim' must be 2 or 3, got "
+                             f"{position_dim}")
+        if not (isinstance(mean, Tensor) and mean.dim() == 2
+                and mean.size(0) == n and mean.size(1) >= position_dim):
+            raise ValueError(f"'prior_mean' must have shape [{n}, S] with "
+                             f"S >= {position_dim} (the position first), "
+                             f"got {list(getattr(mean, 'shape', []))}")
     if not data.prior_mean.is_floating_point():
         raise ValueError(f"'prior_mean' must be a floating point tensor, got "
                          f"{data.prior_mean.dtype}")
-    check_prior(data.prior_mean, data.prior_cov, anchor)
+    check_prior(data.prior_mean, data.prior_cov, anchor,
+                position_dim=position_dim)
     states = getattr(data, 'states', None)
     if states is not None and (states.dim() != 3 or states.size(0) != n
                                or states.size(1) != steps

@@ -16,7 +16,7 @@ from tg_nebp.io import read_json
 from tg_nebp.utils import free_memory_bytes
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, Model, MotionModel,
-                            model_from_config)
+                            model_from_config, resolve_models, wrap_angle)
 
 __all__ = ['Scenario']
 
@@ -63,8 +63,23 @@ class Scenario:
             model that draws the graph and the link features.
             (default: the paper's :class:`~tg_nebp.models.GaussianRange`)
         prior_var (tuple, optional): Diagonal of the prior covariance
-            :math:`\boldsymbol{\Sigma}_0`, :math:`2D` entries (positions,
-            then velocities). (default: :obj:`(10.0, 10.0, 0.01, 0.01)`)
+            :math:`\boldsymbol{\Sigma}_0`, one entry per state entry
+            (:math:`2D` for :math:`[\mathbf{p}, \mathbf{v}]`: positions,
+            then velocities; 3 for a robot's :math:`[x, y, \theta]`).
+            (default: :obj:`(10.0, 10.0, 0.01, 0.01)`)
+        drive (dict, optional): For a motion model that takes known inputs
+            (:class:`~tg_nebp.models.UnicycleOdometry`), how the robots are
+            driven: every agent keeps a forward distance per step drawn
+            uniformly in :obj:`[speed_low, speed_high]` metres, and turns
+            by a smooth random amount, an autoregressive sequence of
+            standard deviation :obj:`turn_sigma` radians per step and
+            correlation :obj:`turn_correlation` between steps; a robot
+            outside the start box turns back toward its centre by at most
+            :obj:`turn_back` radians per step. The motion model's
+            :meth:`~tg_nebp.models.MotionModel.measure` turns the true
+            inputs into the recorded odometry (:obj:`control`). Headings
+            start uniform; :obj:`sigma_v0` is unused.
+            (default: :obj:`None`, for a model without inputs)
         description (str, optional): Free text, not part of the
             fingerprint. (default: :obj:`""`)
     """
@@ -80,6 +95,7 @@ class Scenario:
     measurement: Dict[str, Any] = dataclasses.field(
         default_factory=lambda: GaussianRange().config())
     prior_var: Tuple[float, ...] = (10.0, 10.0, 0.01, 0.01)
+    drive: Optional[Dict[str, float]] = None
     description: str = ''
 
     def __post_init__(self):
@@ -112,14 +128,42 @@ class Scenario:
             raise ValueError(f"'agent_start_low' ({self.agent_start_low}) "
                              f"must be below 'agent_start_high' "
                              f"({self.agent_start_high}) on every axis")
-        if len(self.prior_var) != 2 * dim or any(
+        size = self.state_size
+        if len(self.prior_var) != size or any(
                 not (math.isfinite(v) and v > 0) for v in self.prior_var):
-            raise ValueError(f"'prior_var' must hold {2 * dim} positive "
-                             f"variances ({dim}-D positions, then "
-                             f"velocities), got {self.prior_var}")
+            raise ValueError(f"'prior_var' must hold {size} positive "
+                             f"variances (one per state entry: {dim}-D "
+                             f"positions first), got {self.prior_var}")
+        self._check_drive()
         if not self.sigma_v0 >= 0:
             raise ValueError(f"'sigma_v0' must be non-negative, got "
                              f"{self.sigma_v0}")
+
+    #: The keys of :obj:`drive`.
+    DRIVE_KEYS = ('speed_low', 'speed_high', 'turn_sigma',
+                  'turn_correlation', 'turn_back')
+
+    def _check_drive(self):
+        takes_inputs = self.motion_model.control_dim > 0
+        if self.drive is None:
+            if takes_inputs:
+                raise ValueError(f"the motion model {self.motion_model} "
+                                 f"takes known inputs: the scenario needs a "
+                                 f"'drive' {{{', '.join(self.DRIVE_KEYS)}}}")
+            return
+        if not takes_inputs:
+            raise ValueError(f"'drive' is for a motion model that takes "
+                             f"known inputs; {self.motion_model} takes none")
+        if not isinstance(self.drive, dict) or \
+                set(self.drive) != set(self.DRIVE_KEYS) or not all(
+                    _is_real(v) and math.isfinite(v) and v >= 0
+                    for v in self.drive.values()):
+            raise ValueError(f"'drive' must map {list(self.DRIVE_KEYS)} to "
+                             f"non-negative numbers, got {self.drive!r}")
+        if not (self.drive['speed_low'] <= self.drive['speed_high']
+                and self.drive['turn_correlation'] < 1):
+            raise ValueError(f"'drive' needs speed_low <= speed_high and "
+                             f"turn_correlation < 1, got {self.drive!r}")
 
     def _check_types(self):
         # JSON gives any type: a wrong one must name its field, not fail
@@ -250,6 +294,8 @@ class Scenario:
         r"""A short hash of every generation parameter."""
         params = dataclasses.asdict(self)
         del params['description']
+        if params['drive'] is None:  # the fingerprints from before drives
+            del params['drive']
         blob = json.dumps(params, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:10]
 
@@ -284,6 +330,12 @@ class Scenario:
         return corners[0], corners[1]
 
     @property
+    def state_size(self) -> int:
+        r"""The size :math:`S` of a state: the motion model's where it
+        declares one (a robot's 3), else :math:`2D`."""
+        return self.motion_model.state_dim or 2 * self.position_dim
+
+    @property
     def motion_model(self) -> MotionModel:
         r"""The scenario's motion model, built from :obj:`motion`."""
         return model_from_config(self.motion, 'motion')
@@ -300,7 +352,7 @@ class Scenario:
         simulation) and float32 (what is stored), the prior, and one link
         per agent and step (a network within range has more)."""
         nodes, steps = self.num_agents + self.num_anchors, self.num_steps
-        size = 2 * self.position_dim
+        size = self.state_size
         states = nodes * steps * size * (8 + 4)
         prior = nodes * (size + size * size) * (8 + 4)
         links = self.num_agents * steps * (2 * 8 + 4 + 8)
@@ -329,18 +381,24 @@ class Scenario:
         self.check_memory()
         f64 = dict(dtype=torch.float64, generator=generator)
         num_agents, num_anchors = self.num_agents, self.num_anchors
-        motion, measurement = self.motion_model, self.measurement_model
+        motion, measurement = resolve_models(self.motion_model,
+                                             self.measurement_model)
         dim = self.position_dim
         low, high = self.start_box()
 
         agent_pos = low + (high - low) * torch.rand(num_agents, dim, **f64)
-        agent_vel = self.sigma_v0 * torch.randn(num_agents, dim, **f64)
         anchors = torch.tensor(self.anchor_positions,
                                dtype=torch.float64).view(-1, dim)
-        initial = torch.cat([
-            torch.cat([agent_pos, agent_vel], dim=1),
-            torch.cat([anchors, torch.zeros_like(anchors)], dim=1),
-        ])
+        if self.drive is None:  # [p, v]
+            agent_rest = self.sigma_v0 * torch.randn(num_agents, dim, **f64)
+            anchor_rest = torch.zeros_like(anchors)
+        else:  # a robot's heading (a landmark's is 0 and never read)
+            agent_rest = math.pi - 2 * math.pi * torch.rand(num_agents, 1,
+                                                            **f64)
+            anchor_rest = anchors.new_zeros(num_anchors,
+                                            self.state_size - dim)
+        initial = torch.cat([torch.cat([agent_pos, agent_rest], dim=1),
+                             torch.cat([anchors, anchor_rest], dim=1)])
         anchor = torch.arange(num_agents + num_anchors) >= num_agents
 
         prior_std = torch.tensor(self.prior_var, dtype=torch.float64).sqrt()
@@ -360,11 +418,24 @@ class Scenario:
         # without one draw nothing
         links = measurement.sample_links(num_agents + num_anchors, generator)
         states, edge_index, edge_attr, edge_time = [], [], [], []
+        layout = motion.layout(self.state_size)
+        driver = None if self.drive is None else _Driver(
+            self.drive, low, high, num_agents, generator)
+        controls = []
         state = initial
         for t in range(self.num_steps):
             if t > 0:
                 links = measurement.step_links(links, generator)
-            moved = motion.sample(state, generator=generator)
+            if driver is None:
+                moved = motion.sample(state, generator=generator)
+            else:  # driven by the true inputs, the odometry recorded
+                true = driver.inputs(state[:num_agents])
+                moved = torch.cat([motion.mean(state[:num_agents],
+                                               control=true),
+                                   state[num_agents:]])
+                controls.append(torch.cat([
+                    motion.measure(true, generator),
+                    true.new_full((num_anchors, true.size(1)), math.nan)]))
             state = torch.where(anchor.view(-1, 1), state, moved)
             # the model's parameters are to blame, not the data checks later
             if not bool((state.abs() <= limit).all()):
@@ -372,14 +443,23 @@ class Scenario:
                                  f"{motion} drives the states beyond "
                                  f"{limit:.2g} by step {t + 1}; check its "
                                  f"parameters and 'sigma_v0'")
-            edges = measurement.connect(state[:, :dim], receiver=~anchor)
-            states.append(state)
+            edges = measurement.connect_states(state, receiver=~anchor)
+            # the true angles stored wrapped (the simulation goes on in
+            # the lift: nothing else changes)
+            states.append(layout.wrap(state))
             edge_index.append(edges)
             edge_attr.append(measurement.sample_features(
                 state[edges[0]], state[edges[1]], links, edges, generator))
             edge_time.append(torch.full((edges.size(1), ), t))
 
+        extra = {}
+        if driver is not None:
+            extra['control'] = torch.stack(controls, dim=1).float()
+        size = self.state_size
+        if motion.layout(size).position_dim != size // 2:
+            extra['position_dim'] = dim
         return Realization(
+            **extra,
             states=torch.stack(states, dim=1).float(),
             edge_index=torch.cat(edge_index, dim=1),
             edge_attr=torch.cat(edge_attr).float().view(
@@ -391,3 +471,36 @@ class Scenario:
             num_steps=self.num_steps,
             num_nodes=num_agents + num_anchors,
         )
+
+
+class _Driver:
+    # the true inputs of driven robots (Scenario.drive): a speed per
+    # agent, an autoregressive turn, and a turn back toward the start box's
+    # centre for a robot outside the box
+    def __init__(self, drive: Dict[str, float], low: torch.Tensor,
+                 high: torch.Tensor, num_agents: int,
+                 generator: Optional[torch.Generator]):
+        self.drive, self.generator = drive, generator
+        self.low, self.high = low, high
+        f64 = dict(dtype=torch.float64, generator=generator)
+        self.speed = drive['speed_low'] + (
+            drive['speed_high'] - drive['speed_low']) * torch.rand(
+                num_agents, **f64)
+        self.turn = drive['turn_sigma'] * torch.randn(num_agents, **f64)
+
+    def inputs(self, states: torch.Tensor) -> torch.Tensor:
+        drive = self.drive
+        rho = drive['turn_correlation']
+        self.turn = rho * self.turn + math.sqrt(1 - rho**2) * \
+            drive['turn_sigma'] * torch.randn(
+                self.turn.shape, dtype=torch.float64,
+                generator=self.generator)
+        pos = states[:, :2]
+        outside = ((pos < self.low[:2]) | (pos > self.high[:2])).any(-1)
+        to_centre = 0.5 * (self.low[:2] + self.high[:2]) - pos
+        back = wrap_angle(torch.atan2(to_centre[:, 1], to_centre[:, 0]) -
+                          states[:, 2]).clamp(-drive['turn_back'],
+                                              drive['turn_back'])
+        turn = torch.where(outside, back, self.turn)
+        return torch.stack([self.speed, turn], -1)
+

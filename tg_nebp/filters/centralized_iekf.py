@@ -10,7 +10,7 @@ from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
                               check_dense_joint, check_predicted_prior,
                               marginal_blocks, predict_joint, scope_index)
-from tg_nebp.models import MeasurementModel, MotionModel
+from tg_nebp.models import MeasurementModel, MotionModel, inputs
 
 __all__ = ['CentralizedIEKF', 'JointState']
 
@@ -124,9 +124,11 @@ class CentralizedIEKF(Tracker):
         state = self.initial_state(data)
         # the nodes stay: one layout for every step
         layout = GraphLayout.of(data)
-        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        for t, ((edge_index, edge_attr), control) in enumerate(zip(
+                data.edges_by_step(), data.controls_by_step())):
             output, state = self.step(state, edge_index, edge_attr,
-                                      data.anchor, t, layout=layout)
+                                      data.anchor, t, layout=layout,
+                                      control=control)
             yield output
 
     def initial_state(self, data: Realization,
@@ -149,17 +151,20 @@ class CentralizedIEKF(Tracker):
     def step(self, state: JointState, edge_index: Tensor, edge_attr: Tensor,
              anchor: Tensor, t: int, generator=None,
              motion: Optional[MotionModel] = None,
-             layout: Optional[GraphLayout] = None
+             layout: Optional[GraphLayout] = None,
+             control: Optional[Tensor] = None
              ) -> Tuple[StepOutput, JointState]:
         r"""One time step of every graph, the arithmetic that the offline
         loop (:meth:`steps`) and a live session
         (:class:`~tg_nebp.filters.TrackingSession`) share: the prediction
         by :obj:`motion` (the tracker's by default) and the update with
         the links :obj:`edge_index` :math:`(2, E)`, features
-        :obj:`edge_attr` :math:`(E, F)`. Returns the step's
+        :obj:`edge_attr` :math:`(E, F)`, and every node's known input
+        :obj:`control` :math:`(N, C)` (see
+        :class:`~tg_nebp.models.MotionModel`). Returns the step's
         :class:`~tg_nebp.filters.StepOutput` (time index :obj:`t`:
-        every node's mean and marginal covariance) and the state after
-        it. :obj:`layout` places the agents of every graph of a batch
+        every node's mean, its angles wrapped, and marginal covariance)
+        and the state after it. :obj:`layout` places the agents of every graph of a batch
         (:meth:`GraphLayout.of <tg_nebp.gaussian.GraphLayout.of>`; one
         graph by default)."""
         if layout is None:
@@ -175,12 +180,14 @@ class CentralizedIEKF(Tracker):
             # the senders' known positions where they are anchors
             known = state.mean[src[mine]]
             mean[nodes], joint = self.update(
-                *self.predict(state.mean[nodes], state.joints[g], motion),
+                *self.predict(state.mean[nodes], state.joints[g], motion,
+                              None if control is None else control[nodes]),
                 edge_attr[mine].double(), layout.agent_index[src[mine]],
                 layout.agent_index[dst[mine]], known)
             cov[nodes] = marginal_blocks(joint, size)
             joints.append(block_diagonal(cov[nodes]) if self.marginal else
                           joint)
+        mean = self.motion.layout(size).wrap(mean)
         return StepOutput(t, mean, cov), JointState(mean, tuple(joints))
 
     def select_state(self, state: JointState, keep: Tensor,
@@ -210,14 +217,17 @@ class CentralizedIEKF(Tracker):
                           (extended, ))
 
     def predict(self, mean: Tensor, cov: Tensor,
-                motion: Optional[MotionModel] = None):
+                motion: Optional[MotionModel] = None,
+                control: Optional[Tensor] = None):
         r"""The prediction of the agents' means :math:`(A, S)` and joint
         covariance :math:`(AS, AS)` by :obj:`motion` (the tracker's motion
-        model by default)."""
+        model by default) with the agents' known inputs :obj:`control`
+        :math:`(A, C)`."""
         motion = self.motion if motion is None else motion
-        return (motion.mean(mean),
-                predict_joint(cov, motion.jacobian(mean),
-                              motion.noise_covariance(mean)))
+        given = inputs(None if control is None else control.to(mean))
+        return (motion.mean(mean, **given),
+                predict_joint(cov, motion.jacobian(mean, **given),
+                              motion.noise_covariance(mean, **given)))
 
     @staticmethod
     def _ends(state: Tensor, sender: Tensor, receiver: Tensor,

@@ -7,7 +7,7 @@ from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import check_predicted_prior, graph_index
-from tg_nebp.models import MeasurementModel, MotionModel
+from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
 
@@ -164,17 +164,21 @@ class GaussianBP(Tracker):
         return cls(**{**GBP_RECOMMENDED, **overrides})
 
     def predict(self, mean: Tensor, cov: Tensor, anchor: Tensor,
-                motion: Optional[MotionModel] = None):
+                motion: Optional[MotionModel] = None,
+                control: Optional[Tensor] = None):
         r"""The prediction of every agent's mean :math:`(N, S)` and
         covariance :math:`(N, S, S)` by :obj:`motion` (the tracker's motion
-        model by default); anchors keep theirs."""
+        model by default) with every node's known input :obj:`control`
+        :math:`(N, C)`; anchors keep theirs."""
         motion = self.motion if motion is None else motion
         agents = ~anchor
         mean, cov = mean.clone(), cov.clone()
-        jacobian = motion.jacobian(mean[agents])
+        given = inputs(None if control is None else
+                       control[agents].to(mean))
+        jacobian = motion.jacobian(mean[agents], **given)
         cov[agents] = (jacobian @ cov[agents] @ jacobian.transpose(-1, -2) +
-                       motion.noise_covariance(mean[agents]))
-        mean[agents] = motion.mean(mean[agents])
+                       motion.noise_covariance(mean[agents], **given))
+        mean[agents] = motion.mean(mean[agents], **given)
         return mean, cov
 
     def steps(self, data: Realization,
@@ -196,11 +200,13 @@ class GaussianBP(Tracker):
         graph_of = graph_index(data)
         num_graphs = int(graph_of.max()) + 1
         state = self.initial_state(data)
-        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        for t, ((edge_index, edge_attr), control) in enumerate(zip(
+                data.edges_by_step(), data.controls_by_step())):
             output, state = self.step(state, edge_index, edge_attr,
                                       data.anchor, t, generator,
                                       graph_of=graph_of,
-                                      num_graphs=num_graphs)
+                                      num_graphs=num_graphs,
+                                      control=control)
             yield output
 
     def initial_state(self, data: Realization,
@@ -222,7 +228,8 @@ class GaussianBP(Tracker):
     def step(self, state: GaussianState, edge_index: Tensor,
              edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
              motion: Optional[MotionModel] = None,
-             graph_of: Optional[Tensor] = None, num_graphs: int = 1
+             graph_of: Optional[Tensor] = None, num_graphs: int = 1,
+             control: Optional[Tensor] = None
              ) -> Tuple[StepOutput, GaussianState]:
         r"""One time step, the arithmetic that the offline loop
         (:meth:`steps`), a live session
@@ -230,7 +237,8 @@ class GaussianBP(Tracker):
         share: the last step's beliefs handed on (:meth:`carry`) and
         inflated (:meth:`inflate`; a :obj:`fresh` prior is not), predicted
         by :obj:`motion` (the tracker's by default; a session's time step
-        differs per step), then the iterations on the links
+        differs per step) with every node's known input :obj:`control`
+        :math:`(N, C)`, then the iterations on the links
         :obj:`edge_index` :math:`(2, E)` with features :obj:`edge_attr`
         :math:`(E, F)`, sorted by receiver. Returns the step's
         :class:`~tg_nebp.filters.StepOutput` (time index :obj:`t`) and
@@ -243,7 +251,7 @@ class GaussianBP(Tracker):
             # the filter's own beliefs are inflated, not a given prior
             cov = torch.where(state.fresh.view(-1, 1, 1), cov,
                               self.inflate(cov, memory, anchor))
-        mean, cov = self.predict(mean, cov, anchor, motion)
+        mean, cov = self.predict(mean, cov, anchor, motion, control)
         agents = ~anchor
         info = torch.zeros_like(cov)
         info[agents] = _inverse(cov[agents])
@@ -257,7 +265,9 @@ class GaussianBP(Tracker):
                     prior, prior, edge_index, edge_attr, anchor, None,
                     self.conv.factors(edge_index, anchor, mean.size(-1)),
                     memory, graph_of), num_graphs, generator)
-        mean = belief.mean
+        # every step's messages start afresh: wrapping the angles between
+        # steps changes nothing but the report
+        mean = self.motion.layout(belief.mean.size(-1)).wrap(belief.mean)
         cov = torch.zeros_like(belief.info)
         cov[agents] = _inverse(belief.info[agents])
         return StepOutput(t, mean, cov), GaussianState(

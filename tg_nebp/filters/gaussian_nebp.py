@@ -3,6 +3,7 @@ from typing import Optional
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization
+from tg_nebp.data.realization import position_dim_of
 from tg_nebp.data.validation import check_position_dim
 from tg_nebp.filters.gaussian_bp import GBP_RECOMMENDED, GaussianBP
 from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
@@ -82,8 +83,11 @@ class GaussianNEBP(GaussianBP):
         positions have the dimension this correction was built (trained)
         for."""
         super().check(data)
-        check_position_dim(self.position_dim, data.prior_mean.size(1),
-                           'this Gaussian NEBP')
+        dim = position_dim_of(data)
+        if dim != self.position_dim:
+            raise ValueError(f"this Gaussian NEBP was built for "
+                             f"{self.position_dim}-D positions, but the "
+                             f"realization's are {dim}-D")
 
     def initial_memory(self, num_nodes: int, device=None) -> Tensor:
         return self.conv.initial_memory(num_nodes, device)

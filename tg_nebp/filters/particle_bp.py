@@ -16,7 +16,7 @@ from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
                                         silverman_bandwidth)
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.models import (LinkPairRange, MeasurementModel, MotionModel,
-                            RangeModel)
+                            RangeModel, inputs)
 from tg_nebp.nn.conv import ParticleBPConv
 from tg_nebp.nn.conv.gaussian_bp_conv import ENDS
 from tg_nebp.utils import (compute_dtype, free_memory_bytes, link_factors,
@@ -331,11 +331,16 @@ class ParticleBP(Tracker):
 
     def predict(self, particles: Tensor, anchor: Tensor,
                 generator: Optional[torch.Generator] = None,
-                motion: Optional[MotionModel] = None) -> Tensor:
+                motion: Optional[MotionModel] = None,
+                control: Optional[Tensor] = None) -> Tensor:
         r"""The prediction step by :obj:`motion` (the tracker's motion
-        model by default); anchors keep their particles."""
+        model by default) with every node's known input :obj:`control`
+        :math:`(N, C)` (each particle draws its own noise on it); anchors
+        keep their particles."""
         motion = self.motion if motion is None else motion
-        moved = motion.sample(particles, generator=generator)
+        given = inputs(None if control is None else
+                       control.unsqueeze(1).to(particles.dtype))
+        moved = motion.sample(particles, generator=generator, **given)
         return torch.where(anchor.view(-1, 1, 1), particles, moved)
 
     def update(self, particles: Tensor, log_weights: Tensor,
@@ -463,11 +468,13 @@ class ParticleBP(Tracker):
         # one dtype for the whole loop: half precision is promoted
         state = self.initial_state(data, generator, compute_dtype(
             data.prior_mean, data.prior_cov, data.edge_attr))
-        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        for t, ((edge_index, edge_attr), control) in enumerate(zip(
+                data.edges_by_step(), data.controls_by_step())):
             output, state = self.step(state, edge_index, edge_attr,
                                       data.anchor, t, generator,
                                       counts=counts,
-                                      describe=_realization_ranges(data, t))
+                                      describe=_realization_ranges(data, t),
+                                      control=control)
             yield output
 
     def initial_state(self, data: Realization,
@@ -498,14 +505,16 @@ class ParticleBP(Tracker):
              generator: Generators = None,
              motion: Optional[MotionModel] = None,
              counts: Optional[List[int]] = None,
-             describe: Optional[Callable] = None
+             describe: Optional[Callable] = None,
+             control: Optional[Tensor] = None
              ) -> Tuple[StepOutput, ParticleState]:
         r"""One time step, the arithmetic that the offline loop
         (:meth:`steps`) and a live session
         (:class:`~tg_nebp.filters.TrackingSession`) share: the last
         step's particles resampled (:meth:`resample_step`; not a
         :obj:`fresh` prior's), predicted by :obj:`motion` (the tracker's
-        by default), weighted by the iterations on the links
+        by default) with every node's known input :obj:`control`
+        :math:`(N, C)`, weighted by the iterations on the links
         :obj:`edge_index` :math:`(2, E)`, features :obj:`edge_attr`
         :math:`(E, F)`, sorted by receiver, and summarized. Returns the
         step's :class:`~tg_nebp.filters.StepOutput` (time index
@@ -526,8 +535,14 @@ class ParticleBP(Tracker):
         edge_index = EdgeIndex(edge_index.long(),
                                sparse_size=(num_nodes, num_nodes),
                                sort_order='col')
-        particles = _draw(functools.partial(self.predict, motion=motion),
-                          generator, counts, particles, anchor)
+        if control is None:
+            particles = _draw(functools.partial(self.predict, motion=motion),
+                              generator, counts, particles, anchor)
+        else:  # the inputs split by graph with the particles
+            particles = _draw(
+                lambda part, mask, given, g: self.predict(part, mask, g,
+                                                          motion, given),
+                generator, counts, particles, anchor, control)
         _check_prediction(particles, motion, t)
         # the M-sample offsets, per graph from its generator (none drawn
         # for the paper's pairing: its random stream is as is)
@@ -539,9 +554,13 @@ class ParticleBP(Tracker):
                                   validate=False, sample_offsets=offsets)
         _check_belief(log_weights, t, edge_index, edge_attr, describe)
         mean, cov = weighted_moments(particles, log_weights)
+        # the particles' angles stay on the real line (one belief's cloud
+        # is contiguous there, so its moments are the arithmetic ones); the
+        # reported mean is wrapped
+        report = self.motion.layout(mean.size(-1)).wrap(mean)
         # the gradient is cut between steps (resampling): weights carry
         # over as values
-        return (StepOutput(t, mean, cov, particles, log_weights),
+        return (StepOutput(t, report, cov, particles, log_weights),
                 ParticleState(particles, log_weights.detach(), cov.detach(),
                               torch.zeros_like(state.fresh)))
 

@@ -209,7 +209,9 @@ class TrackingSession:
                ranges: Sequence = (), dt: Optional[float] = None,
                time: Optional[float] = None,
                join: Optional[Mapping[Hashable, Any]] = None,
-               leave: Sequence[Identifier] = ()) -> StepOutput:
+               leave: Sequence[Identifier] = (),
+               control: Optional[Mapping[Hashable, Any]] = None
+               ) -> StepOutput:
         r"""One time step: first the nodes of :obj:`leave` leave and those
         of :obj:`join` join (:class:`AgentPrior`, :class:`AnchorAt`, in
         that order, appended to the rows), then the tracker predicts over
@@ -228,6 +230,13 @@ class TrackingSession:
                 then the time since the last.
             join (dict, optional): Joining nodes by identifier.
             leave (sequence, optional): Identifiers of leaving nodes.
+            control (dict, optional): Agents' known inputs of the step
+                (odometry) by identifier, :math:`C` numbers each, for a
+                motion model that takes them
+                (:attr:`~tg_nebp.models.MotionModel.control_dim`); an
+                agent without one gets the model's input-free prediction.
+                A key that is the decimal string of an integer identifier
+                names it (JSON object keys are strings).
 
         Returns:
             The step's :class:`~tg_nebp.filters.StepOutput`, rows in the
@@ -246,9 +255,10 @@ class TrackingSession:
                 raise ValueError("the session holds no agent to track: join "
                                  "one (an AgentPrior) first")
             edge_index, edge_attr = self._links(links, ranges, row, anchor)
+            inputs = self._control(control, row, anchor)
             output, state = self.tracker.step(
                 nodes[3], edge_index, edge_attr, anchor, self.num_steps,
-                self.generator, motion=motion)
+                self.generator, motion=motion, control=inputs)
         except ValueError as e:
             self.generator.set_state(random)
             raise ValueError(_identified(str(e), ids)) from None
@@ -285,6 +295,38 @@ class TrackingSession:
             raise ValueError(f"'dt' must be a finite number above 0, got "
                              f"{dt!r}")
         return float(dt), motion.with_time_step(float(dt))
+
+    def _control(self, control: Optional[Mapping], row: Dict[Identifier, int],
+                 anchor: Tensor) -> Optional[Tensor]:
+        # the step's inputs as rows (N, C), NaN for an agent without one;
+        # checked whole: known agents, C finite numbers each
+        if not control:
+            return None
+        motion = self.tracker.motion
+        if motion.control_dim == 0:
+            raise ValueError(f"'control': the motion model {motion} takes "
+                             f"no known inputs")
+        if not isinstance(control, Mapping):
+            raise ValueError(f"'control' must map identifiers to inputs, "
+                             f"got {control!r}")
+        rows = torch.full((anchor.numel(), motion.control_dim), math.nan,
+                          dtype=torch.float64)
+        for node, values in control.items():
+            where = f"'control[{node!r}]'"
+            if node not in row and isinstance(node, str) and \
+                    node.isdecimal() and int(node) in row:
+                node = int(node)
+            if isinstance(node, (list, dict)) or node not in row:
+                raise ValueError(f"{where}: unknown identifier")
+            if bool(anchor[row[node]]):
+                raise ValueError(f"{where}: {node!r} is an anchor, which "
+                                 f"does not move")
+            value = _numbers(values, (motion.control_dim, ), where)
+            if not bool(torch.isfinite(value).all()):
+                raise ValueError(f"{where} must be finite, got "
+                                 f"{value.tolist()}")
+            rows[row[node]] = value
+        return rows.to(self.device, self.dtype)
 
     def _links(self, links, ranges, row: Dict[Identifier, int],
                anchor: Tensor) -> Tuple[Tensor, Tensor]:
@@ -431,6 +473,9 @@ class TrackingSession:
         # the joining nodes checked: identifiers new, priors of one state
         # size, finite, covariances symmetric positive semi-definite
         ids, means, covs, anchors = [], [], [], []
+        motion = self.tracker.motion
+        # a motion model of one state size (a robot's [x, y, heading])
+        size = size or motion.state_dim
         for k, (node, prior) in enumerate(join.items()):
             where = f"'join[{k}]' ({node!r})"
             node = _identifier(node, where)
@@ -439,11 +484,12 @@ class TrackingSession:
                                  f"use")
             if isinstance(prior, AnchorAt):
                 position = _numbers(
-                    prior.position, (None if size is None else size // 2, ),
+                    prior.position, (None if size is None else
+                                     motion.layout(size).position_dim, ),
                     f"{where} position")
                 size = size or 2 * position.numel()
                 means.append(torch.cat([position, position.new_zeros(
-                    size // 2)]))
+                    size - position.numel())]))
                 covs.append(position.new_zeros(size, size))
                 anchors.append(True)
             elif isinstance(prior, AgentPrior):
@@ -456,7 +502,7 @@ class TrackingSession:
             else:
                 raise ValueError(f"{where}: a joining node is an AgentPrior "
                                  f"or an AnchorAt, got {prior!r}")
-            if size not in (4, 6):
+            if motion.state_dim is None and size not in (4, 6):
                 raise ValueError(f"{where}: states have 4 or 6 entries (a "
                                  f"2-D or 3-D position, then the velocity), "
                                  f"got {size}")
@@ -471,7 +517,8 @@ class TrackingSession:
         try:
             # a realization's checks: finite, symmetric PSD, positions
             # within the compute type's distances
-            check_prior(mean.to(self.dtype), cov.to(self.dtype), anchor)
+            check_prior(mean.to(self.dtype), cov.to(self.dtype), anchor,
+                        position_dim=motion.layout(size).position_dim)
         except ValueError as e:
             # named by the joining entry, not the row of the check
             def entry(found) -> str:

@@ -12,8 +12,9 @@ from typing import Any, Dict, Iterator, NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_realization, check_state_dim
+from tg_nebp.data.realization import Realization, position_dim_of
+from tg_nebp.data.validation import (check_control, check_realization,
+                                     check_state_dim)
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
 __all__ = ['Tracker', 'StepOutput', 'TrackOutput']
@@ -61,11 +62,14 @@ class Tracker(torch.nn.Module):
 
     def check(self, data: Realization) -> None:
         r"""Checks a realization (:func:`~tg_nebp.data.check_realization`
-        with the link features the measurement model reads) and that its
+        with the link features the measurement model reads), that its
         states have the motion model's dimension
-        (:func:`~tg_nebp.data.check_state_dim`)."""
+        (:func:`~tg_nebp.data.check_state_dim`) and that its known inputs,
+        if any, are the motion model's (:func:`~tg_nebp.data.check_control`)."""
         check_realization(data, self.measurement.features)
-        check_state_dim(data.prior_mean.size(1), self.motion)
+        check_state_dim(data.prior_mean.size(1), self.motion,
+                        position_dim_of(data))
+        check_control(data, self.motion)
 
     def steps(self, data: Realization,
               generator=None) -> Iterator[StepOutput]:
@@ -85,11 +89,14 @@ class Tracker(torch.nn.Module):
 
     def step(self, state, edge_index: Tensor, edge_attr: Tensor,
              anchor: Tensor, t: int, generator=None,
-             motion: Optional[MotionModel] = None):
+             motion: Optional[MotionModel] = None,
+             control: Optional[Tensor] = None):
         r"""One time step from :obj:`state` with the links
         :obj:`edge_index` :math:`(2, E)` (sorted by receiver) and their
         features :obj:`edge_attr` :math:`(E, F)`, predicting by
-        :obj:`motion` (the tracker's by default): the step's
+        :obj:`motion` (the tracker's by default) with every node's known
+        input :obj:`control` :math:`(N, C)` (a motion model's that takes
+        one; NaN rows for none): the step's
         :class:`StepOutput` (time index :obj:`t`) and the state after it.
         The offline loop (:meth:`steps`) and a live session call it
         alike."""

@@ -1,8 +1,11 @@
 from .base import (MODELS, LinkPairRange, MeasurementModel, Model,
-                   MotionModel, RangeModel, model_from_config, model_like,
-                   redraw_negative, resolve_models)
-from .motion import ConstantVelocity, ConstantVelocityDrag
+                   MotionModel, RangeModel, StateLayout, inputs,
+                   links_within_range, model_from_config, model_like,
+                   redraw_negative, resolve_models, wrap_angle)
+from .motion import ConstantVelocity, ConstantVelocityDrag, UnicycleOdometry
 from .measurement import GaussianRange, NLOSRange, StudentTRange
+from .range_bearing import (GaussianRangeBearing, RangeBearingModel,
+                            StudentTRangeBearing)
 
 __all__ = [
     'Model',
@@ -20,4 +23,12 @@ __all__ = [
     'GaussianRange',
     'StudentTRange',
     'NLOSRange',
+    'StateLayout',
+    'wrap_angle',
+    'inputs',
+    'links_within_range',
+    'UnicycleOdometry',
+    'RangeBearingModel',
+    'GaussianRangeBearing',
+    'StudentTRangeBearing',
 ]

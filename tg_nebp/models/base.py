@@ -28,9 +28,10 @@ the fast piece, so a subclass that overrides the likelihood alone can never
 reach a fast path that computes another formula; it gets the generic
 (autograd) path.
 """
+import copy
 import inspect
 import math
-from typing import Any, ClassVar, Dict, Optional, Tuple
+from typing import Any, ClassVar, Dict, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -49,11 +50,60 @@ __all__ = [
     'model_like',
     'resolve_models',
     'redraw_negative',
+    'StateLayout',
+    'wrap_angle',
+    'inputs',
+    'links_within_range',
 ]
 
 #: The registered models by role (:obj:`"motion"`, :obj:`"measurement"`)
 #: and name. Naming a subclass registers it.
 MODELS: Dict[str, Dict[str, type]] = {'motion': {}, 'measurement': {}}
+
+
+def wrap_angle(angles: Tensor) -> Tensor:
+    r"""Angles wrapped to :math:`(-\pi, \pi]` (the gradient is one
+    everywhere, so a wrapped residual differentiates as the raw one)."""
+    return math.pi - torch.remainder(math.pi - angles, 2 * math.pi)
+
+
+class StateLayout(NamedTuple):
+    r"""What the entries of a state are, as a motion model declares them
+    (:meth:`MotionModel.layout`): :obj:`size` entries, the first
+    :obj:`position_dim` of which are the position (what metrics, figures,
+    link search and the range geometry read) and :obj:`angles` the indices
+    of the entries that are angles (a robot's heading), which wrap.
+
+    Inside the trackers an angle lives on the real line (a lift: a state
+    and its prediction, the particles of one belief, never differ by a
+    turn), so that sums and means of one belief's angles are the
+    arithmetic ones; every residual of an angle is wrapped
+    (:func:`wrap_angle`), and so is every angle that a tracker reports
+    (:meth:`wrap`)."""
+    size: int
+    position_dim: int
+    angles: Tuple[int, ...] = ()
+
+    def positions(self, states: Tensor) -> Tensor:
+        r"""The positions :math:`(*, D)` of states :math:`(*, S)`."""
+        return states[..., :self.position_dim]
+
+    def wrap(self, states: Tensor) -> Tensor:
+        r"""The states :math:`(*, S)` with their angles wrapped to
+        :math:`(-\pi, \pi]` (the same tensor where there is none)."""
+        if not self.angles:
+            return states
+        out = states.clone()
+        index = list(self.angles)
+        out[..., index] = wrap_angle(states[..., index])
+        return out
+
+
+def inputs(control: Optional[Tensor]) -> Dict[str, Tensor]:
+    r"""The keyword arguments that hand a step's known input
+    :obj:`control` to a motion model's methods: none without one, so that
+    a model that takes no input keeps its signature."""
+    return {} if control is None else {'control': control}
 
 
 def _definer(cls: type, attribute: str) -> Optional[type]:
@@ -132,7 +182,9 @@ def resolve_models(motion: Optional['MotionModel'] = None,
     r"""The motion and measurement models of a tracker or bound: the given
     ones, checked to be of their roles, or the paper's
     (:class:`~tg_nebp.models.ConstantVelocityDrag`,
-    :class:`~tg_nebp.models.GaussianRange`)."""
+    :class:`~tg_nebp.models.GaussianRange`); the measurement model bound
+    to the motion model's state layout where that model declares one
+    (:meth:`MeasurementModel.bind`)."""
     from tg_nebp.models import ConstantVelocityDrag, GaussianRange
     models = (motion or ConstantVelocityDrag(),
               measurement or GaussianRange())
@@ -141,7 +193,12 @@ def resolve_models(motion: Optional['MotionModel'] = None,
         if not isinstance(model, role):
             raise TypeError(f"'{name}' must be a {role.__name__}, got "
                             f"{model!r}")
-    return models
+    motion, measurement = models
+    # a motion model of its own layout tells the measurement model where
+    # the position (and heading) are
+    if motion.state_dim is not None:
+        measurement = measurement.bind(motion.layout(motion.state_dim))
+    return motion, measurement
 
 
 def model_like(name: str, role: str, like: Optional[Model] = None
@@ -193,65 +250,114 @@ def model_from_config(config: Any, role: str) -> 'Model':
 
 class MotionModel(Model):
     r"""The motion role: :meth:`~tg_nebp.models.MotionModel.sample` draws
-    :math:`\mathbf{x}_n \sim p(\mathbf{x}_n | \mathbf{x}_{n-1})` for
-    states :math:`(*, S)`, a state being :math:`[\mathbf{p}, \mathbf{v}]`
-    (position, then velocity, :math:`D` entries each, :math:`S = 2D`). The
-    library's models move positions of any dimension (read from the
-    states' size); a model for one dimension only states it in
+    :math:`\mathbf{x}_n \sim p(\mathbf{x}_n | \mathbf{x}_{n-1},
+    \mathbf{u}_n)` for states :math:`(*, S)` and, for a model that takes
+    one (:attr:`control_dim` :math:`C > 0`), the step's known input
+    :math:`\mathbf{u}_n` :math:`(*, C)` (odometry).
+
+    **The state layout** is the model's to declare (:meth:`layout`): the
+    first :math:`D` entries are the position, and some entries may be
+    angles. The default is :math:`[\mathbf{p}, \mathbf{v}]` (position,
+    then velocity, :math:`D` entries each, :math:`S = 2D`, any :math:`D`,
+    read from the states' size); a model for one size only states it in
     :attr:`~tg_nebp.models.MotionModel.state_dim`, and the trackers check
-    realizations against it."""
+    realizations against it.
+
+    **Known inputs.** A realization may carry every agent's input of every
+    step (:obj:`control` :math:`(N, T, C)`); every method passes an
+    agent's input to :meth:`sample`, :meth:`mean`, :meth:`jacobian` and
+    :meth:`noise_covariance` (keyword :obj:`control`, broadcast against
+    the states' leading dimensions). A row of NaN is a step without input
+    for that agent: the model's input-free prediction (its own to define,
+    documented by the model). A model that takes no input (:math:`C = 0`)
+    is never handed one, so its methods need no :obj:`control`
+    argument."""
     role = 'motion'
     formula = 'sample'
     #: The state dimension :math:`S` the model is for; :obj:`None` for any
     #: (even) size.
     state_dim: ClassVar[Optional[int]] = None
+    #: The width :math:`C` of the known input per agent and step; :obj:`0`
+    #: for a model that takes none.
+    control_dim: ClassVar[int] = 0
+
+    def layout(self, size: int) -> StateLayout:
+        r"""The layout of states of :obj:`size` entries: here the
+        position in the first half (:math:`[\mathbf{p}, \mathbf{v}]`), no
+        angle. A model of another state overrides it."""
+        return StateLayout(size, size // 2)
 
     def sample(self, states: Tensor,
-               generator: Optional[torch.Generator] = None) -> Tensor:
-        r"""Draws the next states :math:`(*, D)` given the states
-        :obj:`states` :math:`(*, D)` one time step earlier."""
+               generator: Optional[torch.Generator] = None,
+               control: Optional[Tensor] = None) -> Tensor:
+        r"""Draws the next states :math:`(*, S)` given the states
+        :obj:`states` :math:`(*, S)` one time step earlier (and the step's
+        input :obj:`control` :math:`(*, C)`, for a model that takes
+        one)."""
         raise NotImplementedError
 
-    def mean(self, states: Tensor) -> Tensor:
-        r"""The transition function :math:`f(\mathbf{x})` :math:`(*, D)` of
-        a model with additive Gaussian driving noise, :math:`\mathbf{x}_n =
-        f(\mathbf{x}_{n-1}) + \mathbf{w}_n`, :math:`\mathbf{w}_n \sim
-        \mathcal{N}(\mathbf{0}, \mathbf{Q}(\mathbf{x}_{n-1}))`: what the
-        Gaussian trackers predict with and the bound is computed from. A
-        model that has no such form does not define it, and those methods
-        refuse it with this error."""
+    def mean(self, states: Tensor,
+             control: Optional[Tensor] = None) -> Tensor:
+        r"""The transition function :math:`f(\mathbf{x}, \mathbf{u})`
+        :math:`(*, S)` of a model with additive Gaussian noise,
+        :math:`\mathbf{x}_n = f(\mathbf{x}_{n-1}, \mathbf{u}_n) +
+        \mathbf{w}_n`, :math:`\mathbf{w}_n \sim \mathcal{N}(\mathbf{0},
+        \mathbf{Q}(\mathbf{x}_{n-1}, \mathbf{u}_n))` (noise on a known
+        input enters as its linearization, :math:`\mathbf{Q} = \mathbf{G}
+        \mathbf{M} \mathbf{G}^\top`): what the Gaussian trackers predict
+        with and the bound is computed from. A model that has no such form
+        does not define it, and those methods refuse it with this
+        error."""
         raise NotImplementedError(
             f"the motion model {self} has no additive-Gaussian-noise form "
             f"(mean() and noise_covariance()): the posterior CRB and the "
             f"Gaussian trackers need one")
 
-    def jacobian(self, states: Tensor) -> Tensor:
+    def jacobian(self, states: Tensor,
+                 control: Optional[Tensor] = None) -> Tensor:
         r"""The Jacobian :math:`\partial f / \partial \mathbf{x}`
-        :math:`(*, D, D)` of :meth:`mean` at :obj:`states` :math:`(*, D)`,
-        by forward-mode automatic differentiation of the model's own
-        :meth:`mean` (one pass over :math:`D` copies of the states, each
-        with one unit tangent: every state moves on its own)."""
+        :math:`(*, S, S)` of :meth:`mean` at :obj:`states` :math:`(*, S)`
+        (and :obj:`control`), by forward-mode automatic differentiation of
+        the model's own :meth:`mean` (one pass over :math:`S` copies of the
+        states, each with one unit tangent: every state moves on its
+        own)."""
         import torch.autograd.forward_ad as forward_ad
         size = states.size(-1)
         flat = states.reshape(-1, size)
         tangents = torch.eye(size, dtype=flat.dtype,
                              device=flat.device).repeat(flat.size(0), 1)
+        if control is not None:
+            control = torch.broadcast_to(
+                control, states.shape[:-1] + control.shape[-1:]).reshape(
+                    flat.size(0), -1).repeat_interleave(size, 0)
         with forward_ad.dual_level():
             moved = self.mean(forward_ad.make_dual(
-                flat.repeat_interleave(size, 0), tangents))
+                flat.repeat_interleave(size, 0), tangents),
+                **inputs(control))
             columns = forward_ad.unpack_dual(moved).tangent
         # row (state b, tangent k) holds column k of state b's Jacobian
         jac = columns.view(flat.size(0), size, size).transpose(1, 2)
         return jac.reshape(states.shape + (size, ))
 
-    def noise_covariance(self, states: Tensor) -> Tensor:
-        r"""The covariance :math:`\mathbf{Q}` :math:`(*, D, D)` of the
-        additive driving noise at :obj:`states` :math:`(*, D)` (see
-        :meth:`mean`)."""
+    def noise_covariance(self, states: Tensor,
+                         control: Optional[Tensor] = None) -> Tensor:
+        r"""The covariance :math:`\mathbf{Q}` :math:`(*, S, S)` of the
+        additive noise at :obj:`states` :math:`(*, S)` (and
+        :obj:`control`; see :meth:`mean`)."""
         raise NotImplementedError(
             f"the motion model {self} has no additive-Gaussian-noise form "
             f"(mean() and noise_covariance()): the posterior CRB and the "
             f"Gaussian trackers need one")
+
+    def measure(self, control: Tensor,
+                generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""The known inputs :math:`(*, C)` that a sensor (odometry)
+        reports for the true inputs :obj:`control` :math:`(*, C)`, with the
+        model's own input noise: what a scenario of a model that takes
+        inputs records (:meth:`~tg_nebp.datasets.Scenario.generate`)."""
+        raise NotImplementedError(f"the motion model {self} takes no "
+                                  f"inputs, or does not say how they are "
+                                  f"measured (measure())")
 
     def with_time_step(self, dt: float) -> 'MotionModel':
         r"""The same model over a time step of :obj:`dt` seconds, for a
@@ -297,6 +403,28 @@ class MeasurementModel(Model):
     #: The state entries that the likelihood reads; :obj:`None` for all
     #: (see :meth:`scope`).
     state_entries: ClassVar[Optional[Tuple[int, ...]]] = None
+    #: The state layout the model reads positions by (:meth:`bind`);
+    #: :obj:`None` for :math:`[\mathbf{p}, \mathbf{v}]`, the position in
+    #: the first half of a state.
+    layout: Optional[StateLayout] = None
+
+    def bind(self, layout: StateLayout) -> 'MeasurementModel':
+        r"""The model reading states of :obj:`layout` (the motion model's,
+        :meth:`MotionModel.layout`): itself where the layout is the
+        default :math:`[\mathbf{p}, \mathbf{v}]`, else a copy that knows
+        where the position is. The trackers and the bound bind their
+        models (:func:`resolve_models`); the configuration is the
+        model's own either way."""
+        if layout.position_dim == layout.size // 2 and self.layout is None:
+            return self
+        bound = copy.copy(self)
+        bound.layout = layout
+        return bound
+
+    def position_dim(self, size: int) -> int:
+        r"""The number :math:`D` of leading entries of a state of
+        :obj:`size` entries that are its position (see :meth:`bind`)."""
+        return size // 2 if self.layout is None else self.layout.position_dim
 
     def log_likelihood(self, z: Tensor, sender: Tensor,
                        receiver: Tensor) -> Tensor:
@@ -311,6 +439,15 @@ class MeasurementModel(Model):
         between nodes at positions :obj:`pos` :math:`(N, D)`, into the
         nodes of the bool mask :obj:`receiver` :math:`(N)`."""
         raise NotImplementedError
+
+    def connect_states(self, states: Tensor, receiver: Tensor) -> Tensor:
+        r"""The measurement edges :obj:`[2, E]` between nodes in the true
+        states :obj:`states` :math:`(N, S)`, into the :obj:`receiver`
+        nodes: :meth:`connect` at their positions. A model whose links
+        depend on more than the positions (a sensor's field of view about
+        the receiver's heading) overrides it."""
+        return self.connect(states[:, :self.position_dim(states.size(-1))],
+                            receiver)
 
     def sample_links(self, num_nodes: int,
                      generator: Optional[torch.Generator] = None):
@@ -442,7 +579,7 @@ class RangeModel(MeasurementModel):
 
     def log_likelihood(self, z: Tensor, sender: Tensor,
                        receiver: Tensor) -> Tensor:
-        dim = sender.size(-1) // 2  # the positions
+        dim = self.position_dim(sender.size(-1))
         return self.log_likelihood_of_distance(
             z, torch.linalg.vector_norm(sender[..., :dim] -
                                         receiver[..., :dim], dim=-1))
@@ -464,9 +601,9 @@ class RangeModel(MeasurementModel):
         return score
 
     def scope(self, state_dim: int) -> Tuple[int, ...]:
-        r"""The positions, the first half of a state: all that a range
-        reads."""
-        return tuple(range(state_dim // 2))
+        r"""The positions (:meth:`~MeasurementModel.position_dim`): all
+        that a range reads."""
+        return tuple(range(self.position_dim(state_dim)))
 
     def linearize(self, z: Tensor, sender: Tensor, receiver: Tensor,
                   generator: Optional[torch.Generator] = None
@@ -495,7 +632,7 @@ class RangeModel(MeasurementModel):
         between :obj:`sender` and :obj:`receiver` :math:`(E, D)`. Every
         factor is rank one along :math:`\mathbf{u}`, which lets Gaussian BP
         send scalar messages (:class:`~tg_nebp.nn.conv.RangeMessages`)."""
-        dim = sender.size(-1) // 2
+        dim = self.position_dim(sender.size(-1))
         distances, unit = unit_vectors(sender[:, :dim] - receiver[:, :dim])
         score, weights = self.robust_weights(z, distances.view(-1, 1))
         return unit, score.view(-1), weights.view(-1)
@@ -571,17 +708,17 @@ class RangeModel(MeasurementModel):
         \mathbf{u}^\top` on the two position blocks, negated off the
         diagonal, with :math:`\mathbf{u}` the unit vector between the
         positions and :math:`I` from :meth:`range_information`."""
-        dim = sender.size(-1)
-        distances, unit = unit_vectors(sender[:, :dim // 2] -
-                                       receiver[:, :dim // 2])
+        size = sender.size(-1)
+        dim = self.position_dim(size)
+        distances, unit = unit_vectors(sender[:, :dim] - receiver[:, :dim])
         return range_blocks(unit, self.range_information(z, distances,
-                                                         generator), dim)
+                                                         generator), size)
 
     def sample_features(self, states_j: Tensor, states_i: Tensor,
                         link_state, edge_index: Tensor,
                         generator: Optional[torch.Generator] = None
                         ) -> Tensor:
-        dim = states_j.size(-1) // 2
+        dim = self.position_dim(states_j.size(-1))
         distances = torch.linalg.vector_norm(
             states_j[:, :dim] - states_i[:, :dim], dim=-1)
         return self.sample_ranges(distances, link_state, edge_index,
@@ -600,71 +737,11 @@ class RangeModel(MeasurementModel):
     def connect(self, pos: Tensor, receiver: Tensor,
                 block_size: int = 65536) -> Tensor:
         r"""Returns the measurement edges :obj:`[2, E]` (:math:`j \to i`)
-        from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
-        j` within :obj:`max_range` of it, for positions :obj:`pos`
-        :math:`(N, D)`, ordered by sender, then receiver.
-
-        A cell list: the nodes are binned into cells a little wider than
-        :obj:`max_range`, so that a pair within range lies in the same or
-        adjacent cells, and only those pairs are measured: time and memory
-        grow linearly with :math:`N` at a fixed density (a dense distance
-        matrix grows quadratically). Receivers are handled
-        :obj:`block_size` at a time. Every candidate pair's distance is
-        computed as :func:`torch.cdist` computes it without its
-        matrix-multiplication shortcut (which cancels catastrophically, so
-        that pairs at the boundary would flip), so the links are those of
-        the dense search exactly."""
-        num_nodes, dim = pos.shape
-        device = pos.device
-        receivers = receiver.nonzero().view(-1)
-        if num_nodes == 0 or receivers.numel() == 0:
-            return torch.empty(2, 0, dtype=torch.long, device=device)
-        # the cell of every node, in float64 with 1 % to spare: rounding
-        # never puts a pair within range two cells apart
-        width = self.max_range * 1.01
-        scaled = pos.double()
-        scaled = scaled - scaled.min(0).values
-        if math.isfinite(width):
-            scaled = scaled / width
-        else:  # one cell holds every node
-            scaled = torch.zeros_like(scaled)
-        cell = torch.floor(scaled).long() + 1  # +1: room for offset -1
-        extent = cell.max(0).values + 2
-        strides = torch.cumprod(torch.cat([extent.new_ones(1),
-                                           extent[:-1]]), 0)
-        key = (cell * strides).sum(-1)
-        order = torch.argsort(key, stable=True)
-        cells, counts = torch.unique_consecutive(key[order],
-                                                 return_counts=True)
-        starts = torch.cumsum(counts, 0) - counts
-        offsets = torch.cartesian_prod(*[torch.tensor(
-            [-1, 0, 1], device=device)] * dim).view(-1, dim)
-        neighbours = (offsets * strides).sum(-1)  # [3^D]
-        blocks = []
-        for first in range(0, receivers.numel(), block_size):
-            targets = receivers[first:first + block_size]
-            wanted = key[targets].unsqueeze(1) + neighbours  # [R, 3^D]
-            slot = torch.searchsorted(cells, wanted).clamp_max(
-                cells.numel() - 1)
-            present = cells[slot] == wanted
-            count = torch.where(present, counts[slot], 0).view(-1)
-            begin = starts[slot].view(-1)
-            # every (receiver, neighbouring cell) run of nodes, expanded
-            total = int(count.sum())
-            run = torch.repeat_interleave(
-                torch.arange(count.numel(), device=device), count)
-            within = torch.arange(total, device=device) - (
-                torch.cumsum(count, 0) - count)[run]
-            senders = order[begin[run] + within]
-            ends = targets[run // neighbours.numel()]
-            distance = torch.cdist(
-                pos[senders].unsqueeze(1), pos[ends].unsqueeze(1),
-                compute_mode='donot_use_mm_for_euclid_dist').view(-1)
-            keep = (distance <= self.max_range) & (senders != ends)
-            blocks.append(torch.stack([senders[keep], ends[keep]]))
-        edges = torch.cat(blocks, dim=1)
-        # ordered by sender, then receiver
-        return edges[:, torch.argsort(edges[0] * num_nodes + edges[1])]
+        from every node :math:`j` to every :obj:`receiver` node :math:`i
+        \neq j` within :obj:`max_range` of it, for positions :obj:`pos`
+        :math:`(N, D)`, ordered by sender, then receiver
+        (:func:`links_within_range`)."""
+        return links_within_range(pos, receiver, self.max_range, block_size)
 
 
 class LinkPairRange(RangeModel):
@@ -679,6 +756,7 @@ class LinkPairRange(RangeModel):
     def __init__(self, model: RangeModel):
         super().__init__(model.max_range)
         self.model = model
+        self.layout = model.layout
         # at least the features the model reads, twice, and the flag; a
         # realization's further columns (generated data's true NLOS flag)
         # ride along
@@ -728,6 +806,76 @@ def redraw_negative(draw, distances: Tensor) -> Tensor:
         ranges = torch.where(todo, distances + draw(distances.shape), ranges)
         todo = ranges < 0
     return ranges
+
+
+def links_within_range(pos: Tensor, receiver: Tensor, max_range: float,
+                       block_size: int = 65536) -> Tensor:
+    r"""The measurement edges :obj:`[2, E]` (:math:`j \to i`)
+    from every node :math:`j` to every :obj:`receiver` node :math:`i \neq
+    j` within :obj:`max_range` of it, for positions :obj:`pos`
+    :math:`(N, D)`, ordered by sender, then receiver.
+
+    A cell list: the nodes are binned into cells a little wider than
+    :obj:`max_range`, so that a pair within range lies in the same or
+    adjacent cells, and only those pairs are measured: time and memory
+    grow linearly with :math:`N` at a fixed density (a dense distance
+    matrix grows quadratically). Receivers are handled
+    :obj:`block_size` at a time. Every candidate pair's distance is
+    computed as :func:`torch.cdist` computes it without its
+    matrix-multiplication shortcut (which cancels catastrophically, so
+    that pairs at the boundary would flip), so the links are those of
+    the dense search exactly."""
+    num_nodes, dim = pos.shape
+    device = pos.device
+    receivers = receiver.nonzero().view(-1)
+    if num_nodes == 0 or receivers.numel() == 0:
+        return torch.empty(2, 0, dtype=torch.long, device=device)
+    # the cell of every node, in float64 with 1 % to spare: rounding
+    # never puts a pair within range two cells apart
+    width = max_range * 1.01
+    scaled = pos.double()
+    scaled = scaled - scaled.min(0).values
+    if math.isfinite(width):
+        scaled = scaled / width
+    else:  # one cell holds every node
+        scaled = torch.zeros_like(scaled)
+    cell = torch.floor(scaled).long() + 1  # +1: room for offset -1
+    extent = cell.max(0).values + 2
+    strides = torch.cumprod(torch.cat([extent.new_ones(1),
+                                       extent[:-1]]), 0)
+    key = (cell * strides).sum(-1)
+    order = torch.argsort(key, stable=True)
+    cells, counts = torch.unique_consecutive(key[order],
+                                             return_counts=True)
+    starts = torch.cumsum(counts, 0) - counts
+    offsets = torch.cartesian_prod(*[torch.tensor(
+        [-1, 0, 1], device=device)] * dim).view(-1, dim)
+    neighbours = (offsets * strides).sum(-1)  # [3^D]
+    blocks = []
+    for first in range(0, receivers.numel(), block_size):
+        targets = receivers[first:first + block_size]
+        wanted = key[targets].unsqueeze(1) + neighbours  # [R, 3^D]
+        slot = torch.searchsorted(cells, wanted).clamp_max(
+            cells.numel() - 1)
+        present = cells[slot] == wanted
+        count = torch.where(present, counts[slot], 0).view(-1)
+        begin = starts[slot].view(-1)
+        # every (receiver, neighbouring cell) run of nodes, expanded
+        total = int(count.sum())
+        run = torch.repeat_interleave(
+            torch.arange(count.numel(), device=device), count)
+        within = torch.arange(total, device=device) - (
+            torch.cumsum(count, 0) - count)[run]
+        senders = order[begin[run] + within]
+        ends = targets[run // neighbours.numel()]
+        distance = torch.cdist(
+            pos[senders].unsqueeze(1), pos[ends].unsqueeze(1),
+            compute_mode='donot_use_mm_for_euclid_dist').view(-1)
+        keep = (distance <= max_range) & (senders != ends)
+        blocks.append(torch.stack([senders[keep], ends[keep]]))
+    edges = torch.cat(blocks, dim=1)
+    # ordered by sender, then receiver
+    return edges[:, torch.argsort(edges[0] * num_nodes + edges[1])]
 
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)

@@ -4,9 +4,9 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
-from tg_nebp.models.base import MotionModel
+from tg_nebp.models.base import MotionModel, StateLayout
 
-__all__ = ['ConstantVelocityDrag', 'ConstantVelocity']
+__all__ = ['ConstantVelocityDrag', 'ConstantVelocity', 'UnicycleOdometry']
 
 
 class ConstantVelocityDrag(MotionModel, name='constant-velocity-drag'):
@@ -115,3 +115,189 @@ class ConstantVelocity(ConstantVelocityDrag, name='constant-velocity'):
 
     def params(self) -> dict:
         return dict(sigma_a=self.sigma_a, dt=self.dt)
+
+
+class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
+    r"""A wheeled robot moved by its odometry: the state :math:`\mathbf{x}
+    = [x, y, \theta]` (position, heading), the known input of a step
+    :math:`\mathbf{u} = [\delta_d, \delta_\theta]` (the distance driven
+    forward and the change of heading that the odometry measured over the
+    step), and
+
+    .. math::
+        \mathbf{x}_n = f(\mathbf{x}_{n-1}, \mathbf{u}_n - \mathbf{m}_n)
+        = \begin{bmatrix} x + \tilde{\delta}_d \cos(\theta +
+        \tilde{\delta}_\theta / 2) \\ y + \tilde{\delta}_d \sin(\theta +
+        \tilde{\delta}_\theta / 2) \\ \theta + \tilde{\delta}_\theta
+        \end{bmatrix}, \quad \mathbf{m}_n \sim \mathcal{N}(\mathbf{0},
+        \mathbf{M}(\mathbf{u}_n)),
+
+    (the midpoint of the turn), with noise on the inputs that grows with
+    the distance and the turn, as odometry error does,
+
+    .. math::
+        \mathbf{M} = \operatorname{diag}\big(\sigma_d^2 + (s_d
+        \delta_d)^2,\; \sigma_\theta^2 + (s_\theta \delta_\theta)^2 +
+        (s_{\theta d} \delta_d)^2\big).
+
+    The particle methods draw the inputs' noise (:meth:`sample`); the
+    Gaussian methods and the bound take :math:`f(\mathbf{x}, \mathbf{u})`
+    (:meth:`mean`) and the noise propagated to the state by the model's
+    own Jacobian with respect to the input, :math:`\mathbf{Q} = \mathbf{G}
+    \mathbf{M} \mathbf{G}^\top`, :math:`\mathbf{G} = \partial f /
+    \partial \mathbf{u}` (:meth:`noise_covariance`).
+
+    **A step without input** (a row of NaN, or no :obj:`control` at all)
+    is a random walk: the robot is predicted where it was, with
+    independent noise of :obj:`idle_position` metres on each coordinate
+    and :obj:`idle_heading` radians on the heading.
+
+    The heading is an angle (:meth:`layout`): :math:`f` leaves it on the
+    real line (a lift), and every residual and report wraps it.
+
+    Args:
+        sigma_distance (float, optional): :math:`\sigma_d`, metres.
+            (default: :obj:`0.005`)
+        distance_scale (float, optional): :math:`s_d`, metres of error per
+            metre driven. (default: :obj:`0.05`)
+        sigma_turn (float, optional): :math:`\sigma_\theta`, radians.
+            (default: :obj:`0.005`)
+        turn_scale (float, optional): :math:`s_\theta`, radians of error
+            per radian turned. (default: :obj:`0.05`)
+        turn_per_distance (float, optional): :math:`s_{\theta d}`, radians
+            of heading error per metre driven. (default: :obj:`0.02`)
+        idle_position (float, optional): Standard deviation of a step
+            without input, metres per coordinate. (default: :obj:`0.5`)
+        idle_heading (float, optional): Standard deviation of a step
+            without input, radians. (default: :obj:`0.5`)
+
+    Shapes:
+        - **input:** states :math:`(*, 3)`, inputs :math:`(*, 2)`
+          (broadcast against the states' leading dimensions)
+        - **output:** states :math:`(*, 3)`
+    """
+    state_dim = 3
+    control_dim = 2
+
+    def __init__(self, sigma_distance: float = 0.005,
+                 distance_scale: float = 0.05, sigma_turn: float = 0.005,
+                 turn_scale: float = 0.05, turn_per_distance: float = 0.02,
+                 idle_position: float = 0.5, idle_heading: float = 0.5):
+        self.sigma_distance = check_number(sigma_distance, 'sigma_distance')
+        self.distance_scale = check_number(distance_scale, 'distance_scale',
+                                           inclusive=True)
+        self.sigma_turn = check_number(sigma_turn, 'sigma_turn')
+        self.turn_scale = check_number(turn_scale, 'turn_scale',
+                                       inclusive=True)
+        self.turn_per_distance = check_number(
+            turn_per_distance, 'turn_per_distance', inclusive=True)
+        self.idle_position = check_number(idle_position, 'idle_position')
+        self.idle_heading = check_number(idle_heading, 'idle_heading')
+
+    def params(self) -> dict:
+        return dict(sigma_distance=self.sigma_distance,
+                    distance_scale=self.distance_scale,
+                    sigma_turn=self.sigma_turn, turn_scale=self.turn_scale,
+                    turn_per_distance=self.turn_per_distance,
+                    idle_position=self.idle_position,
+                    idle_heading=self.idle_heading)
+
+    def layout(self, size: int) -> StateLayout:
+        r""":math:`[x, y, \theta]`: a 2-D position and a heading."""
+        return StateLayout(size, 2, (2, ))
+
+    def with_time_step(self, dt: float) -> 'UnicycleOdometry':
+        r"""Itself: the odometry input carries the step, whatever its
+        duration (a step without input is one random-walk step)."""
+        return self
+
+    @staticmethod
+    def propagate(states: Tensor, control: Tensor) -> Tensor:
+        r"""The move :math:`f(\mathbf{x}, \mathbf{u})` of states
+        :math:`(*, 3)` by inputs :math:`(*, 2)`, without noise."""
+        distance, turn = control[..., 0], control[..., 1]
+        heading = states[..., 2] + 0.5 * turn
+        return torch.stack([states[..., 0] + distance * torch.cos(heading),
+                            states[..., 1] + distance * torch.sin(heading),
+                            states[..., 2] + turn], -1)
+
+    def _inputs(self, states: Tensor, control: Optional[Tensor]):
+        # the inputs broadcast to the states, zero where missing, and the
+        # mask of the missing ones
+        shape = states.shape[:-1] + (2, )
+        if control is None:
+            return (states.new_zeros(shape),
+                    torch.ones(shape[:-1], dtype=torch.bool,
+                               device=states.device))
+        control = torch.broadcast_to(control.to(states.dtype), shape)
+        missing = torch.isnan(control).any(-1)
+        return torch.where(missing.unsqueeze(-1), 0.0, control), missing
+
+    def input_variances(self, control: Tensor) -> Tensor:
+        r"""The variances :math:`(*, 2)` of the inputs' noise,
+        :math:`\operatorname{diag} \mathbf{M}(\mathbf{u})`."""
+        distance, turn = control[..., 0], control[..., 1]
+        return torch.stack([
+            self.sigma_distance**2 + (self.distance_scale * distance)**2,
+            self.sigma_turn**2 + (self.turn_scale * turn)**2 +
+            (self.turn_per_distance * distance)**2], -1)
+
+    def measure(self, control: Tensor,
+                generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""What the odometry reads of the true inputs :obj:`control`
+        :math:`(*, 2)`: the inputs plus noise of covariance
+        :math:`\mathbf{M}` (the model's own noise, for generating
+        scenarios)."""
+        noise = torch.randn(control.shape, dtype=control.dtype,
+                            device=control.device, generator=generator)
+        return control + noise * self.input_variances(control).sqrt()
+
+    def _idle_variances(self, like: Tensor) -> Tensor:
+        return like.new_tensor([self.idle_position**2] * 2 +
+                               [self.idle_heading**2])
+
+    def sample(self, states: Tensor,
+               generator: Optional[torch.Generator] = None,
+               control: Optional[Tensor] = None) -> Tensor:
+        r"""Draws :math:`\mathbf{x}_n`: the inputs with their noise, or a
+        random-walk step where there is no input (three normal draws per
+        state either way)."""
+        control, missing = self._inputs(states, control)
+        noise = torch.randn(states.shape, dtype=states.dtype,
+                            device=states.device, generator=generator)
+        moved = self.propagate(states, control + noise[..., :2] *
+                               self.input_variances(control).sqrt())
+        idle = states + noise * self._idle_variances(states).sqrt()
+        return torch.where(missing.unsqueeze(-1), idle, moved)
+
+    def mean(self, states: Tensor,
+             control: Optional[Tensor] = None) -> Tensor:
+        r""":math:`f(\mathbf{x}, \mathbf{u})`; the state itself where
+        there is no input."""
+        control, missing = self._inputs(states, control)
+        return torch.where(missing.unsqueeze(-1), states,
+                           self.propagate(states, control))
+
+    def noise_covariance(self, states: Tensor,
+                         control: Optional[Tensor] = None) -> Tensor:
+        r""":math:`\mathbf{G} \mathbf{M} \mathbf{G}^\top` :math:`(*, 3,
+        3)`, with :math:`\mathbf{G}` by forward-mode differentiation of
+        :meth:`propagate` in the inputs; the random walk's diagonal where
+        there is no input."""
+        import torch.autograd.forward_ad as forward_ad
+        control, missing = self._inputs(states, control)
+        columns = []
+        for k in range(2):
+            tangent = torch.zeros_like(control)
+            tangent[..., k] = 1.0
+            with forward_ad.dual_level():
+                moved = self.propagate(
+                    states, forward_ad.make_dual(control, tangent))
+                columns.append(forward_ad.unpack_dual(moved).tangent)
+        gain = torch.stack(columns, -1)  # G, (*, 3, 2)
+        cov = (gain * self.input_variances(control).unsqueeze(-2)) @ \
+            gain.transpose(-1, -2)
+        idle = torch.diag_embed(self._idle_variances(states).expand(
+            states.shape))
+        return torch.where(missing.view(missing.shape + (1, 1)), idle,
+                           0.5 * (cov + cov.transpose(-1, -2)))

@@ -659,7 +659,10 @@ class GaussianBPConv(MessagePassing):
         info = prior.info.clone()
         info[:, :width, :width] += sums[:, :width * width].view(
             -1, width, width)
-        total = (prior.info @ prior.mean.unsqueeze(-1)).squeeze(-1)
+        # a copy, not the squeezed view: adding a message that carries a
+        # gradient in place into a view of a grad-free product covering
+        # its whole base (a scope of the whole state) is refused by autograd
+        total = (prior.info @ prior.mean.unsqueeze(-1)).squeeze(-1).clone()
         total[:, :width] += sums[:, width * width:]
         # anchors keep their known state (an identity keeps the solve
         # finite)

@@ -280,9 +280,11 @@ class GaussianNEBPConv(MessagePassing):
         chi2 = ((_quadratic(cov_s, grad_s) + _quadratic(cov_t, grad_t)) /
                 (spread * (1 + spread)).clamp_min(tiny))
         # the sign of the residual: positive where the factor pushes its
-        # ends apart (a range longer than the means' distance)
-        apart = (grad_s * (belief.mean[source, :width] -
-                           belief.mean[target, :width])).sum(-1)
+        # ends apart (a range longer than the means' distance), along the
+        # positions (the first entries of the factor's scope)
+        dim = self.measurement.position_dim(belief.mean.size(-1))
+        apart = (grad_s[:, :dim] * (belief.mean[source, :dim] -
+                                    belief.mean[target, :dim])).sum(-1)
         # (the square root's slope is infinite at zero: floored)
         residual = torch.where(apart < 0, -1.0, 1.0).to(chi2) * (
             chi2.clamp_min(1e-12).sqrt())

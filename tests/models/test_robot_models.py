@@ -1,0 +1,295 @@
+r"""The robot models: the odometry-driven unicycle
+(:class:`~tg_nebp.models.UnicycleOdometry`) and the range-bearing
+likelihoods, each against plain float64 loops of its formula, finite
+differences and sample statistics; the state layout and the angle
+wrapping they rely on."""
+import math
+
+import pytest
+import torch
+
+from tg_nebp.models import (GaussianRange, GaussianRangeBearing,
+                            StateLayout, StudentTRangeBearing,
+                            UnicycleOdometry, model_from_config,
+                            resolve_models, wrap_angle)
+from tg_nebp.models.base import MeasurementModel
+
+from helpers import gen
+
+NAN = float('nan')
+
+
+def test_wrap_angle_lands_in_the_half_open_interval():
+    angles = torch.tensor([-math.pi, math.pi, 3 * math.pi, -3 * math.pi,
+                           0.5, -7.0, 7.0], dtype=torch.float64)
+    wrapped = wrap_angle(angles)
+    assert bool(((wrapped > -math.pi) & (wrapped <= math.pi)).all())
+    assert torch.allclose(torch.cos(wrapped), torch.cos(angles))
+    assert torch.allclose(torch.sin(wrapped), torch.sin(angles),
+                          atol=1e-12)
+    assert float(wrapped[0]) == math.pi  # -pi maps to +pi
+
+
+def test_the_default_layout_is_position_then_velocity():
+    from tg_nebp.models import ConstantVelocityDrag
+    assert ConstantVelocityDrag().layout(4) == StateLayout(4, 2, ())
+    assert ConstantVelocityDrag().layout(6) == StateLayout(6, 3, ())
+    layout = UnicycleOdometry().layout(3)
+    assert layout == StateLayout(3, 2, (2, ))
+    states = torch.tensor([[1.0, 2.0, 4.0]])
+    assert torch.equal(layout.positions(states), states[:, :2])
+    assert float(layout.wrap(states)[0, 2]) == pytest.approx(
+        4.0 - 2 * math.pi)
+
+
+def _unicycle_loop(state, control):
+    # the odometry step written out for one state, float64 math
+    x, y, theta = state
+    d, turn = control
+    heading = theta + turn / 2
+    return [x + d * math.cos(heading), y + d * math.sin(heading),
+            theta + turn]
+
+
+def test_unicycle_mean_and_jacobian_against_loops_and_differences():
+    model = UnicycleOdometry()
+    states = torch.randn(6, 3, dtype=torch.float64, generator=gen(0))
+    control = torch.rand(6, 2, dtype=torch.float64, generator=gen(1))
+    control[4] = NAN  # a step without input: the robot stays
+    mean = model.mean(states, control=control)
+    for k in range(6):
+        expected = (states[k].tolist() if k == 4 else
+                    _unicycle_loop(states[k].tolist(), control[k].tolist()))
+        assert mean[k].tolist() == pytest.approx(expected, abs=1e-12)
+    jac = model.jacobian(states, control=control)
+    eps = 1e-6
+    for k in range(6):
+        for j in range(3):
+            step = torch.zeros(3, dtype=torch.float64)
+            step[j] = eps
+            column = (model.mean(states[k] + step, control=control[k]) -
+                      model.mean(states[k] - step, control=control[k])) / (
+                          2 * eps)
+            assert torch.allclose(jac[k, :, j], column, atol=1e-8)
+
+
+def test_unicycle_noise_is_the_input_noise_through_its_jacobian():
+    model = UnicycleOdometry(sigma_distance=0.01, distance_scale=0.1,
+                             sigma_turn=0.02, turn_scale=0.2,
+                             turn_per_distance=0.05, idle_position=0.3,
+                             idle_heading=0.4)
+    states = torch.tensor([[1.0, 2.0, 0.7], [0.0, 0.0, -3.0],
+                           [5.0, 5.0, 1.0]], dtype=torch.float64)
+    control = torch.tensor([[0.4, 0.3], [1.2, -0.5], [NAN, NAN]],
+                           dtype=torch.float64)
+    cov = model.noise_covariance(states, control=control)
+    for k in range(2):
+        d, turn = control[k].tolist()
+        heading = float(states[k, 2]) + turn / 2
+        # G = df/du written out
+        g = torch.tensor([[math.cos(heading), -d / 2 * math.sin(heading)],
+                          [math.sin(heading), d / 2 * math.cos(heading)],
+                          [0.0, 1.0]], dtype=torch.float64)
+        m = torch.diag(torch.tensor([
+            0.01**2 + (0.1 * d)**2,
+            0.02**2 + (0.2 * turn)**2 + (0.05 * d)**2],
+            dtype=torch.float64))
+        assert torch.allclose(cov[k], g @ m @ g.T, atol=1e-14)
+    assert torch.allclose(cov[2], torch.diag(torch.tensor(
+        [0.09, 0.09, 0.16], dtype=torch.float64)))
+    assert torch.equal(cov, cov.transpose(-1, -2))
+    # without any input every state is a random-walk step
+    assert torch.allclose(model.noise_covariance(states)[0], cov[2])
+    assert torch.equal(model.mean(states), states)
+
+
+def test_unicycle_samples_match_the_linearized_moments():
+    # small noise: the draws' mean and covariance are f(x, u) and G M G^T
+    model = UnicycleOdometry(sigma_distance=0.002, distance_scale=0.01,
+                             sigma_turn=0.002, turn_scale=0.01,
+                             turn_per_distance=0.005)
+    state = torch.tensor([[1.0, -1.0, 2.5]], dtype=torch.float64)
+    control = torch.tensor([[0.8, 0.4]], dtype=torch.float64)
+    draws = model.sample(state.expand(40000, 3), gen(3),
+                         control=control)
+    mean = model.mean(state, control=control)[0]
+    cov = model.noise_covariance(state, control=control)[0]
+    offset = draws - mean
+    se = (cov.diagonal() / 40000).sqrt()
+    assert bool((offset.mean(0).abs() < 5 * se + 1e-7).all())
+    empirical = offset.T @ offset / 40000
+    assert torch.allclose(empirical, cov, rtol=0.05, atol=2e-7)
+    # without input: the random walk
+    idle = model.sample(state.expand(20000, 3), gen(4))
+    assert torch.allclose(idle.std(0), torch.tensor(
+        [0.5, 0.5, 0.5], dtype=torch.float64), rtol=0.03)
+
+
+def test_unicycle_measure_adds_the_input_noise():
+    model = UnicycleOdometry()
+    true = torch.tensor([[0.5, 0.2]], dtype=torch.float64).expand(30000, 2)
+    read = model.measure(true, gen(5))
+    expected = model.input_variances(true[:1])[0].sqrt()
+    assert torch.allclose((read - true).std(0), expected, rtol=0.03)
+    assert model.with_time_step(0.25) is model
+    assert model_from_config(model.config(), 'motion') == model
+
+
+def _range_bearing_loop(z, sender, receiver, sigma, sigma_bearing):
+    # the Gaussian range-bearing log-likelihood of one pair, float64 math
+    dx, dy = sender[0] - receiver[0], sender[1] - receiver[1]
+    d = math.hypot(dx, dy)
+    bearing = math.atan2(dy, dx) - receiver[2]
+    residual = z[1] - bearing
+    residual = math.atan2(math.sin(residual), math.cos(residual))
+    return (-0.5 * ((z[0] - d) / sigma)**2 -
+            0.5 * (residual / sigma_bearing)**2 -
+            math.log(2 * math.pi * sigma * sigma_bearing))
+
+
+def _bound(model):
+    return resolve_models(UnicycleOdometry(), model)[1]
+
+
+def test_range_bearing_likelihood_against_a_loop_across_the_cut():
+    model = _bound(GaussianRangeBearing(sigma=0.2, sigma_bearing=0.1))
+    sender = torch.tensor([[-1.0, 0.01, 0.0], [3.0, 4.0, 1.0],
+                           [0.0, -2.0, 0.5]], dtype=torch.float64)
+    receiver = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -2.0],
+                             [0.0, 0.0, 3.1]], dtype=torch.float64)
+    # the first link's bearing is just below pi and measured just above
+    # -pi: a residual of a few hundredths, not of a turn
+    z = torch.tensor([[1.1, -math.pi + 0.02], [5.2, 2.9], [1.8, 1.5]],
+                     dtype=torch.float64)
+    log_lik = model.log_likelihood(z, sender.unsqueeze(1),
+                                   receiver.unsqueeze(1))
+    for k in range(3):
+        assert float(log_lik[k, 0]) == pytest.approx(_range_bearing_loop(
+            z[k].tolist(), sender[k].tolist(), receiver[k].tolist(), 0.2,
+            0.1), abs=1e-10)
+    residual = model.residuals(z, sender.unsqueeze(1),
+                               receiver.unsqueeze(1))[0, 0]
+    assert float(residual[1]) == pytest.approx(
+        0.02 + math.pi - math.atan2(0.01, -1.0), abs=1e-12)
+
+
+@pytest.mark.parametrize('cls', [GaussianRangeBearing, StudentTRangeBearing])
+def test_range_bearing_linearization(cls):
+    # the gradient against finite differences of the model's own
+    # likelihood, and the curvature H^T W H with H written out, at a
+    # bearing near the cut
+    model = _bound(cls(sigma=0.3, sigma_bearing=0.05))
+    sender = torch.tensor([[-2.0, 0.05, 0.3, ], [1.0, 2.0, -1.0]],
+                          dtype=torch.float64)
+    receiver = torch.tensor([[0.0, 0.0, 0.0], [-1.0, 0.5, 2.0]],
+                            dtype=torch.float64)
+    z = torch.tensor([[2.2, -3.1], [2.4, -1.4]], dtype=torch.float64)
+    grad, curvature = model.linearize(z, sender, receiver)
+    assert grad.shape == (2, 6) and curvature.shape == (2, 6, 6)
+    ends = torch.cat([sender, receiver], -1)
+    eps = 1e-6
+    for j in range(6):
+        step = torch.zeros(6, dtype=torch.float64)
+        step[j] = eps
+
+        def log_lik(at):
+            return model.log_likelihood(z, at[:, None, :3],
+                                        at[:, None, 3:])[:, 0]
+
+        numeric = (log_lik(ends + step) - log_lik(ends - step)) / (2 * eps)
+        assert torch.allclose(grad[:, j], numeric, atol=1e-6)
+    for k in range(2):
+        dx, dy = (sender[k, :2] - receiver[k, :2]).tolist()
+        q = dx * dx + dy * dy
+        d = math.sqrt(q)
+        h = torch.tensor([[dx / d, dy / d, 0, -dx / d, -dy / d, 0],
+                          [-dy / q, dx / q, 0, dy / q, -dx / q, -1]],
+                         dtype=torch.float64)
+        r = model.residuals(z[k:k + 1], sender[k:k + 1, None],
+                            receiver[k:k + 1, None])[0, 0]
+        if cls is GaussianRangeBearing:
+            w = torch.tensor([0.3**-2, 0.05**-2], dtype=torch.float64)
+        else:
+            w = (3 + 1) / (3 * torch.tensor([0.3, 0.05],
+                                            dtype=torch.float64)**2 + r**2)
+        assert torch.allclose(curvature[k], h.T @ torch.diag(w) @ h,
+                              rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize('cls', [GaussianRangeBearing, StudentTRangeBearing])
+def test_range_bearing_fisher_information_against_monte_carlo(cls):
+    # the closed form against the generic Monte Carlo of the squared score
+    # over the model's own draws (MeasurementModel.fisher_information)
+    model = _bound(cls(sigma=0.3, sigma_bearing=0.1))
+    sender = torch.tensor([[3.0, 1.0, 0.0]], dtype=torch.float64)
+    receiver = torch.tensor([[0.0, 0.0, 0.4]], dtype=torch.float64)
+    z = torch.zeros(1, 2, dtype=torch.float64)
+    exact = model.fisher_information(z, sender, receiver)[0]
+    model.fisher_samples = 200000
+    generic = MeasurementModel.fisher_information(model, z, sender, receiver,
+                                                  gen(7))[0]
+    assert torch.allclose(generic, exact, rtol=0.03, atol=0.03 *
+                          float(exact.abs().max()))
+
+
+def test_field_of_view_against_a_loop():
+    model = _bound(GaussianRangeBearing(max_range=5.0,
+                                        field_of_view=math.pi / 2))
+    states = torch.rand(30, 3, dtype=torch.float64, generator=gen(8))
+    states[:, :2] *= 10
+    states[:, 2] = states[:, 2] * 2 * math.pi - math.pi
+    receiver = torch.arange(30) < 20
+    edges = model.connect_states(states, receiver)
+    expected = set()
+    for i in range(20):
+        for j in range(30):
+            dx, dy = (states[j, :2] - states[i, :2]).tolist()
+            if i == j or math.hypot(dx, dy) > 5.0:
+                continue
+            bearing = math.atan2(dy, dx) - float(states[i, 2])
+            bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+            if abs(bearing) <= math.pi / 4:
+                expected.add((j, i))
+    assert set(map(tuple, edges.t().tolist())) == expected
+    assert expected  # the test sees links
+
+
+def test_range_bearing_samples():
+    model = _bound(GaussianRangeBearing(sigma=0.2, sigma_bearing=0.1))
+    sender = torch.tensor([[1.0, 3.0, 0.0]], dtype=torch.float64).expand(
+        20000, 3)
+    receiver = torch.tensor([[0.0, 0.0, -3.0]],
+                            dtype=torch.float64).expand(20000, 3)
+    z = model.sample_features(sender, receiver, None, None, gen(9))
+    residual = model.residuals(z, sender[:, None], receiver[:, None])[:, 0]
+    assert torch.allclose(residual.std(0), torch.tensor(
+        [0.2, 0.1], dtype=torch.float64), rtol=0.03)
+    assert bool((residual.mean(0).abs() < 0.005).all())
+    assert bool(((z[:, 1] > -math.pi) & (z[:, 1] <= math.pi)).all())
+
+
+def test_range_bearing_needs_a_heading():
+    # a [p, v] state has none, and neither has a layout without an angle
+    with pytest.raises(ValueError, match='heading'):
+        resolve_models(None, GaussianRangeBearing())[1].scope(4)
+    with pytest.raises(ValueError, match='heading at entry 2'):
+        GaussianRangeBearing().bind(StateLayout(3, 2, ()))
+
+
+def test_a_range_model_reads_the_robot_position():
+    # bound to the unicycle's layout, a range model reads [x, y] of
+    # [x, y, heading] (not the first half of the state)
+    motion, model = resolve_models(UnicycleOdometry(), GaussianRange(0.5))
+    assert model.scope(3) == (0, 1)
+    assert model == GaussianRange(0.5)  # its configuration is its own
+    sender = torch.tensor([[[3.0, 4.0, 2.0]]], dtype=torch.float64)
+    receiver = torch.tensor([[[0.0, 0.0, -1.0]]], dtype=torch.float64)
+    z = torch.tensor([[5.5]], dtype=torch.float64)
+    expected = -0.5 * (0.5 / 0.5)**2 - math.log(math.sqrt(2 * math.pi) *
+                                                0.5)
+    assert float(model.log_likelihood(z, sender, receiver)) == \
+        pytest.approx(expected)
+    info = model.fisher_information(z, sender[:, 0], receiver[:, 0])[0]
+    assert info.shape == (6, 6)
+    assert float(info[2, 2]) == 0.0 and float(info[5, 5]) == 0.0
+    assert float(info[0, 0]) == pytest.approx(0.6**2 / 0.25)
