@@ -226,7 +226,9 @@ def _evaluate(args) -> int:
             return 0
     entry, key = result['entry'], result['key']
     what = 'RMSE floor' if key == 'pcrb' else 'RMSE'
-    print(f"{key}: {what} {entry['rmse']:.3f} m, outage "
+    heading = (f", heading {entry['heading_rmse']:.4f} rad"
+               if 'heading_rmse' in entry else '')
+    print(f"{key}: {what} {entry['rmse']:.3f} m{heading}, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
           f"{entry['seconds']:.1f} s -> {Path(args.out) / 'metrics.json'}")
     return 0
@@ -325,6 +327,10 @@ def _reproduce(args) -> int:
 def _add_method_options(parser: argparse.ArgumentParser):
     # the options of method_tracker (METHOD_OPTIONS), for evaluate and track
     add = parser.add_argument
+    add('--no-control', action='store_true',
+        help='ignore the known inputs (odometry) of the data: every step '
+        'is the motion model\'s input-free prediction (what odometry is '
+        'worth)')
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '
         'ideal of a distributed filter)')

@@ -14,6 +14,7 @@ from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.data.realization import position_dim_of
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.filters import Tracker
+from tg_nebp.filters.tracker import with_control
 from tg_nebp.io import read_json, write_json
 from tg_nebp.utils import check_device, derive_seed, process_group
 
@@ -324,6 +325,7 @@ def evaluate_method(method: str, tracker: Union[Tracker, PosteriorCRB],
         result = track_dataset(tracker, dataset, batch_size, device, seed,
                                progress=progress)
         settings = tracker.settings()
+    settings = with_control(tracker, settings)
     entry = summarize_result(result)
     entry.update(settings, realizations=len(dataset),
                  seconds=round(time.perf_counter() - start, 3),

@@ -21,6 +21,7 @@ from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
 from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
+from tg_nebp.data.realization import position_dim_of
 from tg_nebp.data.validation import check_number
 from tg_nebp.io import atomic_write, one_line, read_tensors
 from tg_nebp.utils import derive_seed, process_group
@@ -73,11 +74,13 @@ def base_of(config: dict) -> str:
     return config.get('base', 'particle')
 
 
-def position_loss(mean, states, t, anchor):
+def position_loss(mean, states, t, anchor, dim=None):
     r"""The paper's loss :math:`\sum_i \|\hat{\mathbf{p}}_i -
-    \mathbf{p}_i\|^2` over the agents at time index :obj:`t`."""
+    \mathbf{p}_i\|^2` over the agents at time index :obj:`t`, the
+    positions the first :obj:`dim` entries (the first half of a state by
+    default)."""
     agents = ~anchor
-    dim = states.size(-1) // 2  # the positions
+    dim = states.size(-1) // 2 if dim is None else dim
     return (mean[agents, :dim] - states[agents, t, :dim]).square().sum()
 
 
@@ -98,7 +101,7 @@ def gaussian_step_loss(step, batch: Batch) -> Tensor:
     covariance around a lost agent as much as finding it; the squared
     error keeps the estimate honest."""
     agents = ~batch.anchor
-    dim = batch.states.size(-1) // 2
+    dim = position_dim_of(batch)
     error = step.mean[agents, :dim] - batch.states[agents, step.t, :dim]
     cov = step.cov[agents, :dim, :dim]
     factor = torch.linalg.cholesky(cov)
@@ -332,7 +335,8 @@ def adam(lr: float) -> Callable[[Iterable[torch.Tensor]],
 def step_loss(step, batch: Batch) -> Tensor:
     r"""The paper's loss of one time step (:func:`position_loss` of the
     step's estimate), the default :obj:`loss` of :func:`train`."""
-    return position_loss(step.mean, batch.states, step.t, batch.anchor)
+    return position_loss(step.mean, batch.states, step.t, batch.anchor,
+                         position_dim_of(batch))
 
 
 def _resume(checkpoint, model: Tracker, optimizer, settings: dict

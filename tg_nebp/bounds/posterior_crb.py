@@ -4,7 +4,7 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.realization import position_dim_of
+from tg_nebp.data.realization import controls_of, position_dim_of
 from tg_nebp.data.validation import (check_control, check_realization,
                                      check_state_dim)
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
@@ -84,6 +84,11 @@ class PosteriorCRB(torch.nn.Module):
           :obj:`states` :math:`(N, T, S)`
         - **output:** bound covariances :math:`(N, T, S, S)`
     """
+    #: Whether the bound reads a realization's known inputs (see
+    #: :attr:`Tracker.use_control <tg_nebp.filters.Tracker.use_control>`):
+    #: without them, the floor of an estimator without odometry.
+    use_control: bool = True
+
     def __init__(self, motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None):
         super().__init__()
@@ -109,7 +114,8 @@ class PosteriorCRB(torch.nn.Module):
                              "the realization")
         size = states.size(-1)
         check_state_dim(size, self.motion, position_dim_of(data))
-        check_control(data, self.motion)
+        if self.use_control:
+            check_control(data, self.motion)
         check_predicted_prior(data, self.motion, 'the posterior CRB')
         layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
@@ -124,7 +130,7 @@ class PosteriorCRB(torch.nn.Module):
         covs = [block_diagonal(prior_cov[nodes]) for nodes in layout.agents]
         previous = data.prior_mean.double()
         for t, ((edge_index, edge_attr), control) in enumerate(zip(
-                data.edges_by_step(), data.controls_by_step())):
+                data.edges_by_step(), controls_of(data, self.use_control))):
             truth = states[:, t]
             src, dst = edge_index
             blocks = self.measurement.fisher_information(

@@ -47,7 +47,7 @@ import numbers
 import torch
 from torch_geometric.data import Data
 
-__all__ = ['Realization', 'num_steps_of', 'position_dim_of']
+__all__ = ['Realization', 'num_steps_of', 'position_dim_of', 'controls_of']
 
 
 def position_dim_of(data: Data) -> int:
@@ -62,6 +62,15 @@ def position_dim_of(data: Data) -> int:
         raise ValueError(f"'position_dim' must be equal across a batch, got "
                          f"{dims.tolist()}")
     return int(dims[0])
+
+
+def controls_of(data: Data, use: bool = True) -> list:
+    r"""The known inputs of every step of a single or batched
+    realization (:meth:`Realization.controls_by_step`), or :math:`T`
+    :obj:`None` where :obj:`use` is off (a method told to ignore them)."""
+    if not use:
+        return [None] * num_steps_of(data)
+    return Realization.controls_by_step(data)
 
 
 def num_steps_of(data: Data) -> int:

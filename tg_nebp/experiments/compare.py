@@ -77,9 +77,34 @@ def compare_methods(scenario: Scenario,
     methods = {BOUND: ('the posterior CRB: the floor, and an efficient '
                        "estimator's outage",
                        lambda: PosteriorCRB(motion, own))}
-    likelihoods = ['gaussian', 'student-t']
+    if 'bearing' in own.features:
+        # the robust variant, and the range alone (the bearing's worth)
+        likelihoods = ['range-bearing', 'student-t-range-bearing',
+                       'gaussian']
+        range_only = model_like('gaussian', 'measurement', own)
+        methods[f'{BOUND}-range-only'] = (
+            'the posterior CRB of the ranges alone (no bearing)',
+            lambda: PosteriorCRB(motion, range_only))
+    else:
+        likelihoods = ['gaussian', 'student-t']
     if own.name not in likelihoods:
         likelihoods.append(own.name)
+    shown = {likelihood: likelihood for likelihood in likelihoods}
+    if 'bearing' in own.features:
+        shown['gaussian'] = 'gaussian range-only'
+    # a motion model with known inputs: the rows without them (what the
+    # odometry is worth), each beside the bound without them
+    blind = [] if motion.control_dim == 0 else [
+        (f'{BOUND}-no-odometry', 'the posterior CRB without odometry',
+         lambda: PosteriorCRB(motion, own)),
+        (f'iekf-no-odometry {own.name}', 'centralized IEKF without odometry',
+         lambda: CentralizedIEKF(motion=motion, measurement=own)),
+        (f'gbp-no-odometry {own.name}',
+         'Gaussian BP, recommended, without odometry',
+         lambda: GaussianBP.recommended(motion=motion, measurement=own)),
+        (f'bp-recommended-no-odometry {own.name}',
+         'particle BP, recommended, without odometry',
+         lambda: ParticleBP.recommended(motion=motion, measurement=own))]
     for marginal in (False, True):
         name = 'iekf-marginal' if marginal else 'iekf'
         what = ('centralized IEKF, marginals only (the distributed ideal)'
@@ -87,17 +112,17 @@ def compare_methods(scenario: Scenario,
         for likelihood in likelihoods:
             measurement = model_like(likelihood, 'measurement', own)
             methods[f'{name} {likelihood}'] = (
-                f'{what}, {likelihood} likelihood',
+                f'{what}, {shown[likelihood]} likelihood',
                 lambda m=measurement, marginal=marginal: CentralizedIEKF(
                     motion=motion, measurement=m, marginal=marginal))
     for likelihood in likelihoods:
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (
-            f'Gaussian BP, recommended (inflation 1.5), {likelihood} '
-            f'likelihood', lambda m=measurement: GaussianBP.recommended(
+            f'Gaussian BP, recommended (inflation 1.5), '
+            f'{shown[likelihood]} likelihood', lambda m=measurement: GaussianBP.recommended(
                 motion=motion, measurement=m))
         methods[f'gbp-plain {likelihood}'] = (
-            f'Gaussian BP without inflation, {likelihood} likelihood',
+            f'Gaussian BP without inflation, {shown[likelihood]} likelihood',
             lambda m=measurement: GaussianBP.recommended(
                 inflation=1.0, motion=motion, measurement=m))
     methods[f'bp-paper {own.name}'] = (
@@ -106,6 +131,8 @@ def compare_methods(scenario: Scenario,
     methods[f'bp-recommended {own.name}'] = (
         'particle BP, recommended (K = 500, M = 32, regularized)',
         lambda: ParticleBP.recommended(motion=motion, measurement=own))
+    for key, what, build in blind:
+        methods[key] = (what, lambda build=build: _without_control(build()))
     for path in checkpoints:
         path = checkpoint_path(path)
         if not path.is_file():
@@ -116,6 +143,11 @@ def compare_methods(scenario: Scenario,
             f'{"Gaussian " if base == "gaussian" else ""}NEBP from {path}',
             lambda path=path: tracker_from_checkpoint(path))
     return methods
+
+
+def _without_control(method: Method) -> Method:
+    method.use_control = False
+    return method
 
 
 _PROBABILITY, _NON_NEGATIVE = Number(0.0, 1.0), Number(0.0)

@@ -38,12 +38,13 @@ METHOD_OPTIONS = {
     'resampler': ('bp', ),
     'regularize': ('bp', ),
     'ess_threshold': ('bp', ),
-    'measurement': ('bp', 'iekf', 'gbp'),
+    'measurement': ('bp', 'iekf', 'gbp', 'pcrb'),
     'iterations': ('bp', 'iekf', 'gbp', 'gnebp'),
     'ends': ('bp', 'gbp'),
     'marginal': ('iekf', ),
     'inflation': ('gbp', ),
     'tolerance': ('gbp', 'gnebp'),
+    'no_control': METHODS,
 }
 
 
@@ -100,7 +101,7 @@ def method_tracker(method: str, scenario: Scenario,
                    inflation: Optional[float] = None,
                    tolerance: Optional[float] = None,
                    checkpoint: Optional[str] = None,
-                   compile: bool = False
+                   compile: bool = False, no_control: bool = False
                    ) -> Tuple[Union[Tracker, PosteriorCRB], str]:
     r"""The tracker of :obj:`method` (one of :data:`METHODS`) for the data
     of :obj:`scenario`, and its :obj:`metrics.json` key. The options left
@@ -117,7 +118,26 @@ def method_tracker(method: str, scenario: Scenario,
     (:data:`METHOD_OPTIONS`) is a :class:`ValueError`, and so is a count
     below one. Particle BP with more than one iteration and receiver-only
     messages is refused: the senders' beliefs already hold the receivers'
-    information, and each iteration would count it again."""
+    information, and each iteration would count it again. With
+    :obj:`no_control` the method ignores the realizations' known inputs
+    (odometry): every step is the motion model's input-free prediction
+    (:attr:`Tracker.use_control <tg_nebp.filters.Tracker.use_control>`).
+    The bound takes :obj:`measurement` too: the floor of an estimator
+    that reads only that likelihood's features (the range alone of a
+    range-bearing link)."""
+    method, key = _method_tracker(method, scenario, measurement, particles,
+                                  iterations, samples, resampler,
+                                  regularize, ess_threshold, ends, marginal,
+                                  inflation, tolerance, checkpoint, compile,
+                                  no_control)
+    method.use_control = not no_control
+    return method, key
+
+
+def _method_tracker(method, scenario, measurement, particles, iterations,
+                    samples, resampler, regularize, ess_threshold, ends,
+                    marginal, inflation, tolerance, checkpoint, compile,
+                    no_control):
     # every option by name (all the arguments but the first two), before
     # any other local exists
     options = {name: value for name, value in locals().items()
@@ -143,8 +163,7 @@ def method_tracker(method: str, scenario: Scenario,
     models = dict(motion=scenario.motion_model,
                   measurement=tracker_measurement(scenario, measurement))
     if method == 'pcrb':
-        return PosteriorCRB(scenario.motion_model,
-                            scenario.measurement_model), 'pcrb'
+        return PosteriorCRB(**models), 'pcrb'
     if method == 'iekf':
         tracker = CentralizedIEKF(**_given(num_iterations=iterations),
                                   marginal=marginal, **models)

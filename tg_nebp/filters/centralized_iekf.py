@@ -125,7 +125,7 @@ class CentralizedIEKF(Tracker):
         # the nodes stay: one layout for every step
         layout = GraphLayout.of(data)
         for t, ((edge_index, edge_attr), control) in enumerate(zip(
-                data.edges_by_step(), data.controls_by_step())):
+                data.edges_by_step(), self.controls_of(data))):
             output, state = self.step(state, edge_index, edge_attr,
                                       data.anchor, t, layout=layout,
                                       control=control)

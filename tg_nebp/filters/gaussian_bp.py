@@ -201,7 +201,7 @@ class GaussianBP(Tracker):
         num_graphs = int(graph_of.max()) + 1
         state = self.initial_state(data)
         for t, ((edge_index, edge_attr), control) in enumerate(zip(
-                data.edges_by_step(), data.controls_by_step())):
+                data.edges_by_step(), self.controls_of(data))):
             output, state = self.step(state, edge_index, edge_attr,
                                       data.anchor, t, generator,
                                       graph_of=graph_of,

@@ -469,7 +469,7 @@ class ParticleBP(Tracker):
         state = self.initial_state(data, generator, compute_dtype(
             data.prior_mean, data.prior_cov, data.edge_attr))
         for t, ((edge_index, edge_attr), control) in enumerate(zip(
-                data.edges_by_step(), data.controls_by_step())):
+                data.edges_by_step(), self.controls_of(data))):
             output, state = self.step(state, edge_index, edge_attr,
                                       data.anchor, t, generator,
                                       counts=counts,

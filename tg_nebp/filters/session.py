@@ -300,7 +300,7 @@ class TrackingSession:
                  anchor: Tensor) -> Optional[Tensor]:
         # the step's inputs as rows (N, C), NaN for an agent without one;
         # checked whole: known agents, C finite numbers each
-        if not control:
+        if not control or not self.tracker.use_control:
             return None
         motion = self.tracker.motion
         if motion.control_dim == 0:

@@ -12,12 +12,20 @@ from typing import Any, Dict, Iterator, NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from tg_nebp.data.realization import Realization, position_dim_of
+from tg_nebp.data.realization import (Realization, controls_of,
+                                      position_dim_of)
 from tg_nebp.data.validation import (check_control, check_realization,
                                      check_state_dim)
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
-__all__ = ['Tracker', 'StepOutput', 'TrackOutput']
+__all__ = ['Tracker', 'StepOutput', 'TrackOutput', 'with_control']
+
+
+def with_control(method, settings: Dict[str, Any]) -> Dict[str, Any]:
+    r""":obj:`settings` of a tracker or bound :obj:`method` with
+    :obj:`"control": false` added where it ignores known inputs
+    (:attr:`Tracker.use_control`)."""
+    return settings if method.use_control else dict(settings, control=False)
 
 
 class StepOutput(NamedTuple):
@@ -55,10 +63,21 @@ class Tracker(torch.nn.Module):
         measurement (MeasurementModel, optional): Measurement model.
             (default: :obj:`GaussianRange()`)
     """
+    #: Whether the tracker reads a realization's known inputs
+    #: (:obj:`control`); without them every step is the motion model's
+    #: input-free prediction (to measure what odometry is worth).
+    use_control: bool = True
+
     def __init__(self, motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None):
         super().__init__()
         self.motion, self.measurement = resolve_models(motion, measurement)
+
+    def controls_of(self, data: Realization) -> list:
+        r"""The known inputs of every step that the tracker reads
+        (:meth:`~tg_nebp.data.Realization.controls_by_step`; none where
+        :attr:`use_control` is off)."""
+        return controls_of(data, self.use_control)
 
     def check(self, data: Realization) -> None:
         r"""Checks a realization (:func:`~tg_nebp.data.check_realization`
@@ -69,7 +88,8 @@ class Tracker(torch.nn.Module):
         check_realization(data, self.measurement.features)
         check_state_dim(data.prior_mean.size(1), self.motion,
                         position_dim_of(data))
-        check_control(data, self.motion)
+        if self.use_control:
+            check_control(data, self.motion)
 
     def steps(self, data: Realization,
               generator=None) -> Iterator[StepOutput]:
