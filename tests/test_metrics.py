@@ -626,3 +626,14 @@ def test_nees_of_three_dimensional_errors_has_three_degrees_of_freedom():
     assert abs(float(three[1]) - 0.95) < 0.005
     assert abs(float(two[0]) - 0.5) > 0.015
     assert abs(float(two[1]) - 0.95) > 0.008
+
+
+def test_angle_errors_wrap_the_difference():
+    import math
+    from tg_nebp.metrics import angle_errors
+    est = torch.tensor([3.1, -3.1, 0.5, math.pi])
+    truth = torch.tensor([-3.1, 3.1, -0.5, -math.pi])
+    expected = [2 * math.pi - 6.2, 2 * math.pi - 6.2, 1.0, 0.0]
+    assert angle_errors(est, truth).tolist() == pytest.approx(expected,
+                                                              abs=1e-6)
+    assert angle_errors(est, truth).dtype == torch.float64

@@ -598,3 +598,47 @@ def test_a_singular_agent_prior_is_used_or_refused_by_name(entries):
                 f"'prior_cov[{agent}]' of agent {agent} is singular") +
                 f'.*{what} needs a positive predicted variance'):
             method(data)
+
+
+def _robots(steps=4):
+    scenario = Scenario.load('robots_train').replace(num_steps=steps)
+    return scenario, scenario.generate(torch.Generator().manual_seed(0))
+
+
+@pytest.mark.parametrize('edit,match', [
+    (lambda d: setattr(d, 'control', d.control[:, :, :1]),
+     r"'control' must have shape \[11, 4, 2\]"),
+    (lambda d: setattr(d, 'control', d.control.long()),
+     "'control' must be a floating point"),
+    (lambda d: d.control.__setitem__((2, 3, 0), math.inf),
+     r"'control\[2, 3\]' holds an infinite value"),
+    (lambda d: d.control.__setitem__((1, 2, 1), math.nan),
+     r"'control\[1, 2\]' is partly NaN"),
+    (lambda d: setattr(d, 'position_dim', 4),
+     "'position_dim' must be 2 or 3"),
+])
+def test_bad_control_and_layout_are_named(edit, match):
+    from tg_nebp.filters import GaussianBP
+    scenario, data = _robots()
+    edit(data)
+    with pytest.raises(ValueError, match=match):
+        GaussianBP(motion=scenario.motion_model,
+                   measurement=scenario.measurement_model).check(data)
+
+
+def test_control_for_a_model_without_inputs_is_refused():
+    from tg_nebp.filters import GaussianBP
+    from tg_nebp.models import ConstantVelocity
+    _, data = _robots()
+    # a robot's states are not a constant-velocity model's
+    with pytest.raises(ValueError, match='positions have 2 entries'):
+        GaussianBP(motion=ConstantVelocity()).check(data)
+    scenario = Scenario.load('paper_train').replace(num_steps=3)
+    paper = scenario.generate(torch.Generator().manual_seed(0))
+    paper.control = torch.zeros(paper.num_nodes, 3, 2)
+    with pytest.raises(ValueError, match='takes none'):
+        GaussianBP().check(paper)
+    # without a declared layout a state is [p, v]
+    del data.position_dim
+    with pytest.raises(ValueError, match=r"shape \[11, 4\] or \[11, 6\]"):
+        check_realization(data)

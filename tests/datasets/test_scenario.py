@@ -12,6 +12,8 @@ from tg_nebp.data.validation import check_realization
 from tg_nebp.datasets import Scenario
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 
+from helpers import gen
+
 PAPER_TRAIN_ANCHORS = ((10, 10), (50, 10), (10, 50), (50, 50), (30, 30))
 
 
@@ -386,3 +388,50 @@ def test_a_generator_that_leaves_float32_blames_its_parameters(changes,
     scenario = Scenario.load('paper_test').replace(num_agents=5, **changes)
     with pytest.raises(ValueError, match=message):
         scenario.generate(torch.Generator().manual_seed(0))
+
+
+def test_robots_scenario_generates_odometry_and_bearings():
+    scenario = Scenario.load('robots_test').replace(num_steps=15)
+    data = scenario.generate(gen(0))
+    count = scenario.num_agents
+    assert data.states.shape == (data.num_nodes, 15, 3)
+    assert data.control.shape == (data.num_nodes, 15, 2)
+    assert int(data.position_dim) == 2
+    assert bool(torch.isnan(data.control[count:]).all())
+    assert not bool(torch.isnan(data.control[:count]).any())
+    assert data.edge_attr.size(1) == 2
+    heading = data.states[..., 2]
+    assert bool(((heading > -math.pi) & (heading <= math.pi)).all())
+    # the recorded odometry is the true move plus the model's noise: the
+    # driven distance per step within the drive's speeds, give or take
+    moved = (data.states[:count, 1:, :2] - data.states[:count, :-1, :2]
+             ).norm(dim=-1)
+    drive = scenario.drive
+    assert float(moved.min()) > drive['speed_low'] * 0.8
+    assert float(moved.max()) < drive['speed_high'] * 1.01
+    odometry = data.control[:count, 1:, 0]
+    assert float((odometry - moved).abs().mean()) < 0.05
+    # the same seed, the same realization
+    again = scenario.generate(gen(0))
+    torch.testing.assert_close(again.control, data.control, rtol=0, atol=0,
+                               equal_nan=True)
+    assert torch.equal(again.edge_attr, data.edge_attr)
+
+
+@pytest.mark.parametrize('change,match', [
+    (dict(drive=None), "needs a 'drive'"),
+    (dict(drive={'speed_low': 0.1}), "'drive' must map"),
+    (dict(drive={'speed_low': 0.3, 'speed_high': 0.1, 'turn_sigma': 0.1,
+                 'turn_correlation': 0.5, 'turn_back': 0.2}),
+     'speed_low <= speed_high'),
+    (dict(prior_var=(1.0, 1.0, 1.0, 1.0)), "'prior_var' must hold 3"),
+])
+def test_robots_scenario_errors(change, match):
+    with pytest.raises(ValueError, match=match):
+        Scenario.load('robots_test').replace(**change)
+
+
+def test_a_drive_needs_inputs():
+    robots = Scenario.load('robots_test')
+    with pytest.raises(ValueError, match="'drive' is for a motion model"):
+        Scenario.load('paper_test').replace(drive=robots.drive)

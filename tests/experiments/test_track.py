@@ -1,6 +1,7 @@
 r"""The live path from the command line: :obj:`tg-nebp record`,
 :obj:`track` (in process, and as a subprocess fed through a pipe) and
 :obj:`score`."""
+import dataclasses
 import json
 import os
 import random
@@ -14,6 +15,8 @@ import torch
 from helpers import PACKAGE_ROOT, tiny_scenario
 
 from tg_nebp.cli import main
+from tg_nebp.datasets import Scenario
+from tg_nebp.io import write_json
 
 STEPS = 6
 
@@ -186,3 +189,38 @@ def test_killed_and_resumed_track_writes_the_uninterrupted_lines(
     out, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 0, err
     assert output.read_text().split('\n')[:-1] == recorded['estimates']
+
+
+def test_robots_replay_with_odometry_scores_as_evaluate(tmp_path, capsys):
+    # simulated robots: their odometry and bearings travel in the lines
+    # ("control", a link's second feature), and the replay scores as the
+    # evaluation of the same realization, to the last bit
+    root, out = str(tmp_path / 'data'), tmp_path / 'out'
+    measurements, truth = tmp_path / 'm.jsonl', tmp_path / 't.jsonl'
+    estimates = tmp_path / 'e.jsonl'
+    scenario = Scenario.load('robots_test').replace(num_steps=12)
+    path = tmp_path / 'robots.json'
+    write_json(path, dataclasses.asdict(scenario))
+    assert main(['record', '--scenario', str(path), '--root', root,
+                 '--measurements', str(measurements), '--truth',
+                 str(truth)]) == 0
+    first = json.loads(measurements.read_text().splitlines()[0])
+    assert len(first['control']) == scenario.num_agents
+    assert all(len(link) == 4 for link in first['links'])
+    assert main(['track', '--method', 'gbp', '--scenario', str(path),
+                 '--input', str(measurements), '--output',
+                 str(estimates)]) == 0
+    assert main(['evaluate', '--method', 'gbp', '--scenario', str(path),
+                 '--realizations', '1', '--root', root, '--out', str(out),
+                 '--quiet']) == 0
+    entry = json.loads((out / 'metrics.json').read_text())['gbp']
+    from tg_nebp.experiments.track import score_files
+    exact = score_files(str(estimates), str(truth))
+    assert exact['rmse'] == entry['rmse']
+    assert exact['accept'] == entry['accept']
+    assert 'heading_rmse' in entry
+    # without the odometry the replay is another (worse) run
+    assert main(['track', '--method', 'gbp', '--scenario', str(path),
+                 '--no-control', '--input', str(measurements), '--output',
+                 str(estimates)]) == 0
+    assert score_files(str(estimates), str(truth))['rmse'] > entry['rmse']

@@ -537,3 +537,52 @@ def test_joining_takes_any_sequence_of_numbers(data):
     with pytest.raises(ValueError, match=r"'join\[0\]' \('d'\) mean must "
                        r"have shape \[4\], got \[6\]"):
         session.update(join={'d': AgentPrior(torch.zeros(6), torch.eye(6))})
+
+
+def _robot_session():
+    from tg_nebp.models import GaussianRangeBearing, UnicycleOdometry
+    session = TrackingSession(GaussianBP(motion=UnicycleOdometry(),
+                                         measurement=GaussianRangeBearing()),
+                              dtype=torch.float64)
+    session.update(join={'r1': AgentPrior([0.0, 0.0, 0.0],
+                                          torch.eye(3).tolist()),
+                         'r2': AgentPrior([1.0, 0.0, 3.0],
+                                          torch.eye(3).tolist()),
+                         'L': AnchorAt([2.0, 2.0])})
+    return session
+
+
+@pytest.mark.parametrize('control,match', [
+    ({'r9': [0.1, 0.0]}, r"'control\['r9'\]': unknown identifier"),
+    ({'L': [0.1, 0.0]}, "'L' is an anchor"),
+    ({'r1': [0.1]}, r"'control\['r1'\]' must have shape \[2\]"),
+    ({'r1': [0.1, float('nan')]}, "must be finite"),
+    ([[0.1, 0.0]], "must map identifiers"),
+])
+def test_bad_control_is_named_and_changes_nothing(control, match):
+    session = _robot_session()
+    before = session.state_dict()
+    with pytest.raises(ValueError, match=match):
+        session.update(control=control)
+    after = session.state_dict()
+    assert torch.equal(before['state']['mean'], after['state']['mean'])
+    assert session.num_steps == 1
+
+
+def test_control_moves_the_robot_and_a_missing_one_is_input_free():
+    session = _robot_session()
+    # JSON object keys are strings: r1 by name; r2 gets no input
+    out = session.update(control={'r1': [1.0, 0.0]})
+    assert out.mean[0].tolist() == pytest.approx([1.0, 0.0, 0.0])
+    assert out.mean[1].tolist() == pytest.approx([1.0, 0.0, 3.0])
+    # every input-free prediction (this and the joining step's) widens by
+    # the model's idle noise
+    assert float(out.cov[1, 0, 0]) == pytest.approx(1.0 + 2 * 0.25)
+
+
+def test_control_for_a_model_without_inputs_is_refused():
+    session = TrackingSession(GaussianBP(), dtype=torch.float64)
+    with pytest.raises(ValueError, match='takes no known inputs'):
+        session.update(join={'a': AgentPrior([0.0] * 4,
+                                             torch.eye(4).tolist())},
+                       control={'a': [1.0]})
