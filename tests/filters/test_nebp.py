@@ -444,3 +444,11 @@ def test_three_dimensional_nebp_runs_and_keeps_its_dimension(variant):
                        r'of size 6\), but the realization holds states of '
                        r'size 4'):
         model(tiny_scenario(steps=1).generate(gen(1)), gen(0))
+
+
+def test_nebp_refuses_a_robot_layout_by_name():
+    from tg_nebp.models import GaussianRangeBearing, UnicycleOdometry
+    with pytest.raises(ValueError, match=r"reads \[p, v\] states.*"
+                       r"UnicycleOdometry.*GaussianNEBP"):
+        NEBP(num_particles=8, motion=UnicycleOdometry(),
+             measurement=GaussianRangeBearing())

@@ -311,7 +311,7 @@ def check_state_dim(size: int, motion: 'MotionModel',
     motion model is for (a model that states its
     :attr:`~tg_nebp.models.MotionModel.state_dim`), or, with
     :obj:`position_dim` (a realization's,
-    :func:`~tg_nebp.data.realization.position_dim_of`), if the model's
+    :func:`~tg_nebp.data.position_dim_of`), if the model's
     layout puts another number of position entries first."""
     if motion.state_dim is not None and size != motion.state_dim:
         raise ValueError(f"'prior_mean' holds states of size {size} but the "

@@ -4,7 +4,8 @@ from torch import Tensor
 
 from tg_nebp.data.validation import check_position_dim
 from tg_nebp.filters.particle_bp import ParticleBP
-from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
+from tg_nebp.models import (MeasurementModel, MotionModel, StateLayout,
+                            model_from_config)
 from tg_nebp.nn.conv import EquivariantNEBPConv, NEBPConv, ParticleBPConv
 
 __all__ = ['NEBP', 'VARIANTS']
@@ -89,6 +90,16 @@ class NEBP(ParticleBP):
         super().__init__(num_particles, num_iterations, motion, measurement,
                          resampler, chunk_size, num_samples=num_samples,
                          regularize=regularize, ess_threshold=ess_threshold)
+        # the correction's features are a [p, v] state's moments: another
+        # layout (a robot's heading) is refused here
+        size = self.motion.state_dim
+        if size is not None and self.motion.layout(size) != \
+                StateLayout(size, size // 2):
+            raise ValueError(f"NEBP's learned correction reads [p, v] "
+                             f"states; the motion model {self.motion} has "
+                             f"{self.motion.layout(size)}: use the Gaussian "
+                             f"NEBP (GaussianNEBP), whose features are any "
+                             f"layout's")
         self.resampler_name = resampler if isinstance(resampler,
                                                       str) else None
         # the NEBP layer in place of BP's (it holds BP's conv itself)

@@ -252,8 +252,9 @@ class MotionModel(Model):
     r"""The motion role: :meth:`~tg_nebp.models.MotionModel.sample` draws
     :math:`\mathbf{x}_n \sim p(\mathbf{x}_n | \mathbf{x}_{n-1},
     \mathbf{u}_n)` for states :math:`(*, S)` and, for a model that takes
-    one (:attr:`control_dim` :math:`C > 0`), the step's known input
-    :math:`\mathbf{u}_n` :math:`(*, C)` (odometry).
+    one (:attr:`~tg_nebp.models.MotionModel.control_dim` :math:`C > 0`),
+    the step's known input :math:`\mathbf{u}_n` :math:`(*, C)`
+    (odometry).
 
     **The state layout** is the model's to declare (:meth:`layout`): the
     first :math:`D` entries are the position, and some entries may be
