@@ -125,8 +125,7 @@ class PosteriorCRB(torch.nn.Module):
         # the links inform the entries the likelihood reads: the update
         # works on those (a range model's positions), by Woodbury
         scope = self.measurement.scope(size)
-        read = torch.tensor(scope, device=states.device)
-        both = torch.cat([read, size + read])
+        both = self.measurement.scope_of_both(size, states.device)
         covs = [block_diagonal(prior_cov[nodes]) for nodes in layout.agents]
         previous = data.prior_mean.double()
         for t, ((edge_index, edge_attr), control) in enumerate(zip(

@@ -538,18 +538,31 @@ class MeasurementModel(Model):
         scoring, exact for a measurement that is linear in the states with
         Gaussian noise. :class:`RangeModel` gives robust weights
         instead."""
+        both = self.scope_of_both(sender.size(-1), sender.device)
+        info = self.fisher_information(z, sender, receiver, generator)
+        return (self.likelihood_gradient(z, sender, receiver)[:, both],
+                info[:, both.view(-1, 1), both])
+
+    def likelihood_gradient(self, z: Tensor, sender: Tensor,
+                            receiver: Tensor) -> Tensor:
+        r"""The gradient :math:`(E, 2S)` of :meth:`log_likelihood` with
+        respect to :math:`[\mathbf{x}_j; \mathbf{x}_i]` at the states
+        :obj:`sender` and :obj:`receiver` :math:`(E, S)`, by automatic
+        differentiation of the model's own formula."""
         with torch.enable_grad():
             ends = [x.detach().requires_grad_() for x in (sender, receiver)]
             log_lik = self.log_likelihood(z, ends[0].unsqueeze(1),
                                           ends[1].unsqueeze(1))
             grads = torch.autograd.grad(log_lik.sum(), ends)
-        size = sender.size(-1)
+        return torch.cat(grads, -1)
+
+    def scope_of_both(self, size: int, device=None) -> Tensor:
+        r"""The indices :math:`(2R)` of the :meth:`scope` entries of both
+        ends in :math:`[\mathbf{x}_j; \mathbf{x}_i]` of states of
+        :obj:`size` entries."""
         read = torch.tensor(self.scope(size), dtype=torch.long,
-                            device=sender.device)
-        both = torch.cat([read, size + read])
-        info = self.fisher_information(z, sender, receiver, generator)
-        return (torch.cat(grads, -1)[:, both],
-                info[:, both.view(-1, 1), both])
+                            device=device)
+        return torch.cat([read, size + read])
 
 
 class RangeModel(MeasurementModel):

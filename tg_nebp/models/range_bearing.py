@@ -199,19 +199,14 @@ class RangeBearingModel(MeasurementModel):
         weights :math:`\mathbf{W}` of the residuals
         (:meth:`residual_weights`): one step of iteratively reweighted
         least squares, the bearing's residual wrapped."""
-        with torch.enable_grad():
-            ends = [x.detach().requires_grad_() for x in (sender, receiver)]
-            log_lik = self.log_likelihood(z, ends[0].unsqueeze(1),
-                                          ends[1].unsqueeze(1))
-            grads = torch.autograd.grad(log_lik.sum(), ends)
-        size = sender.size(-1)
-        both = list(range(3)) + list(range(size, size + 3))
+        both = self.scope_of_both(sender.size(-1), sender.device)
         residual = self.residuals(z, sender.unsqueeze(1),
                                   receiver.unsqueeze(1))[:, 0]
         jac = self.measurement_jacobian(sender, receiver)
         weights = self.residual_weights(residual)
         curvature = (jac.transpose(1, 2) * weights.unsqueeze(1)) @ jac
-        return torch.cat(grads, -1)[:, both], curvature
+        return (self.likelihood_gradient(z, sender, receiver)[:, both],
+                curvature)
 
     def connect(self, pos: Tensor, receiver: Tensor) -> Tensor:
         r"""The pairs within :obj:`max_range` (the field of view needs the
