@@ -85,6 +85,22 @@ def test_partition_keeps_the_order_and_plans_both_sides():
             assert torch.equal(sent, received)
 
 
+def test_a_partition_carries_the_robots_inputs_and_layout():
+    # a rank's part of a robots network: its nodes' odometry and the
+    # layout, so its Gaussian BP predicts as the whole network's does
+    from tg_nebp.datasets import Scenario
+    scenario = Scenario.load('robots_train').replace(num_steps=3)
+    data = scenario.generate(gen(0))
+    owner = strips(data, 2)
+    for rank in range(2):
+        part, plan = partition(data, owner, rank)
+        torch.testing.assert_close(part.control, data.control[plan.nodes],
+                                   rtol=0, atol=0, equal_nan=True)
+        assert int(part.position_dim) == 2
+        GaussianBP(motion=scenario.motion_model,
+                   measurement=scenario.measurement_model).check(part)
+
+
 def test_a_batch_is_refused():
     _, data = network()
     part, plan = partition(data, strips(data, 2), 0)

@@ -18,7 +18,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from tg_nebp.data.realization import Realization
+from tg_nebp.data.realization import Realization, position_dim_of
 from tg_nebp.filters.gaussian_bp import GaussianBP
 from tg_nebp.nn.conv.gaussian_bp_conv import GaussianBelief
 
@@ -79,9 +79,12 @@ def partition(data: Realization, owner: Tensor, rank: int
         edge_index=number[data.edge_index[:, links]],
         edge_attr=data.edge_attr[links], edge_time=data.edge_time[links],
         num_steps=data.num_time_steps, num_nodes=nodes.numel())
-    states = getattr(data, 'states', None)
-    if states is not None:
-        part.states = states[nodes]
+    for key in ('states', 'control'):  # true states, known inputs
+        value = getattr(data, key, None)
+        if value is not None:
+            setattr(part, key, value[nodes])
+    if getattr(data, 'position_dim', None) is not None:
+        part.position_dim = position_dim_of(data)
     send, receive = [], []
     for q in range(num_parts):
         if q == rank:
