@@ -1,0 +1,176 @@
+r"""The MRCLAM reader on a small sequence written here in the dataset's
+format (and on sequence 6 where ../shared has it): barcodes, repeated
+measurements, unknown barcodes, the ground truth's interpolation across
+the heading's cut, odometry against the closed form of constant
+velocities, the step boundaries, the zip and the folder alike."""
+import math
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from tg_nebp.data import check_realization
+from tg_nebp.datasets.mrclam import (integrate_odometry, interpolate_pose,
+                                     protocol_realization, read_sequence)
+
+HEADER = '# UTIAS\n# produced by\n# Format:\n# columns\n'
+T0 = 1000.0
+# robot r drives at v_r along x with turn rate w_r from heading h_r
+SPEED = [0.1, 0.2, 0.05, 0.0, 0.15]
+TURN = [0.0, 0.1, -0.2, 0.0, 0.3]
+HEADING = [0.0, 3.0, -3.0, 1.0, 2.0]
+
+
+def _write(folder: Path, measurements):
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def table(name, rows):
+        (folder / name).write_text(HEADER + ''.join(
+            ' \t '.join(f'{v}' for v in row) + '\n' for row in rows))
+
+    # robots 1-5, landmarks 6 and 7; barcode 99 is nobody's
+    table('Barcodes.dat', [(s, 10 + s) for s in range(1, 8)])
+    table('Landmark_Groundtruth.dat', [(6, 1.0, 2.0, 0.0, 0.0),
+                                       (7, -3.0, 4.0, 0.0, 0.0)])
+    for r in range(5):
+        times = T0 + np.arange(0.0, 30.0, 0.01)
+        heading = HEADING[r] + TURN[r] * (times - T0)
+        wrapped = math.pi - np.mod(math.pi - heading, 2 * math.pi)
+        table(f'Robot{r + 1}_Groundtruth.dat', [
+            (t, r + SPEED[r] * (t - T0), 0.5 * r, h)
+            for t, h in zip(times, wrapped)])
+        # odometry from 1 s on, every 0.02 s
+        table(f'Robot{r + 1}_Odometry.dat', [
+            (t, SPEED[r], TURN[r])
+            for t in T0 + 1.0 + np.arange(0.0, 28.0, 0.02)])
+        table(f'Robot{r + 1}_Measurement.dat', measurements.get(r + 1, []))
+
+
+MEASUREMENTS = {
+    # robot 1 sees landmark 6 twice in step 0 (the latest stays), once
+    # exactly at the end of step 0, robot 2 in step 1, and barcode 99
+    1: [(T0 + 1.1, 16, 1.5, 0.1), (T0 + 1.3, 16, 1.6, 0.2),
+        (T0 + 1.5, 16, 1.7, 0.3), (T0 + 1.7, 12, 2.0, -0.1),
+        (T0 + 1.8, 99, 3.0, 0.0)],
+    # robot 3 sees landmark 7 before the start (outside) and in step 2
+    3: [(T0 + 0.5, 17, 4.0, 0.0), (T0 + 2.4, 17, 4.1, -0.3)],
+}
+
+
+@pytest.fixture
+def folder(tmp_path):
+    path = tmp_path / 'MRCLAM_Dataset9'
+    _write(path, MEASUREMENTS)
+    return path
+
+
+def test_protocol_steps_links_and_counts(folder):
+    sequence = read_sequence(folder)
+    assert sequence.start() == pytest.approx(T0 + 1.0)
+    data, counts = protocol_realization(sequence, dt=0.5, duration=10.0)
+    check_realization(data, ('range', 'bearing'))
+    assert data.num_nodes == 7 and int(data.num_steps) == 20
+    assert data.anchor.tolist() == [False] * 5 + [True] * 2
+    assert counts == dict(unknown_barcodes=1, repeated=2, outside=1)
+    links = sorted(zip(data.edge_time.tolist(),
+                       data.edge_index.t().tolist(),
+                       data.edge_attr.tolist()))
+    # (t0, t0 + 0.5]: the latest of robot 1's three sightings of landmark
+    # 6 (node 5), the one at exactly t0 + 0.5 included; then robot 2
+    # (node 1) in step 1, landmark 7 (node 6) by robot 3 in step 2
+    assert links == [(0, [5, 0], pytest.approx([1.7, 0.3])),
+                     (1, [1, 0], pytest.approx([2.0, -0.1])),
+                     (2, [6, 2], pytest.approx([4.1, -0.3]))]
+    assert data.prior_mean[5].tolist() == [1.0, 2.0, 0.0]
+    only_landmarks, _ = protocol_realization(sequence, dt=0.5,
+                                             duration=10.0,
+                                             links='landmarks',
+                                             features=('range', ))
+    assert only_landmarks.edge_index[0].tolist() == [5, 6]
+    assert only_landmarks.edge_attr.shape == (2, 1)
+    assert getattr(protocol_realization(sequence, dt=0.5, duration=10.0,
+                                        odometry=False)[0], 'control',
+                   None) is None
+
+
+def test_ground_truth_interpolated_across_the_cut(folder):
+    sequence = read_sequence(folder)
+    data, _ = protocol_realization(sequence, dt=0.5, duration=20.0)
+    times = sequence.start() + 0.5 * torch.arange(1, 41).double()
+    for r in range(5):
+        heading = HEADING[r] + TURN[r] * (times - T0)
+        expected = torch.stack([r + SPEED[r] * (times - T0),
+                                torch.full_like(times, 0.5 * r),
+                                math.pi - torch.remainder(
+                                    math.pi - heading, 2 * math.pi)], -1)
+        difference = data.states[r].double() - expected
+        difference[:, 2] = torch.remainder(difference[:, 2] + math.pi,
+                                           2 * math.pi) - math.pi
+        assert float(difference.abs().max()) < 1e-4
+    # robot 2 turns from 3 rad through pi: the cut is crossed
+    assert bool((data.states[1, :, 2] < 0).any())
+
+
+def test_odometry_against_constant_velocities(folder):
+    sequence = read_sequence(folder)
+    data, _ = protocol_realization(sequence, dt=0.5, duration=20.0)
+    for r in range(5):
+        expected = torch.tensor([SPEED[r] * 0.5, TURN[r] * 0.5])
+        assert torch.allclose(data.control[r], expected.expand(40, 2),
+                              atol=1e-6)
+    assert bool(torch.isnan(data.control[5:]).all())
+    # outside the odometry's span: no input
+    odometry = np.array([[0.0, 1.0, 0.5], [1.0, 2.0, 0.5], [2.0, 2.0, 0.5]])
+    inputs = integrate_odometry(odometry, np.array([-0.5, 0.5, 1.5, 2.5]))
+    assert np.isnan(inputs[0]).all() and np.isnan(inputs[2]).all()
+    assert inputs[1].tolist() == pytest.approx([0.5 * 1.0 + 0.5 * 2.0,
+                                                0.5])
+
+
+def test_zip_and_folder_read_alike(folder, tmp_path):
+    archive = tmp_path / 'MRCLAM_Dataset9.zip'
+    with zipfile.ZipFile(archive, 'w') as z:
+        for path in folder.iterdir():
+            z.write(path, f'MRCLAM_Dataset9/{path.name}')
+    a, _ = protocol_realization(read_sequence(folder), duration=10.0)
+    b, _ = protocol_realization(read_sequence(archive), duration=10.0)
+    for key in ('states', 'edge_index', 'edge_attr', 'control'):
+        torch.testing.assert_close(getattr(a, key), getattr(b, key),
+                                   rtol=0, atol=0, equal_nan=True)
+
+
+def test_bad_files_are_named(folder):
+    (folder / 'Robot3_Odometry.dat').write_text(HEADER + '1.0 2.0\n')
+    with pytest.raises(ValueError, match=r"'Robot3_Odometry.dat': data row "
+                       r"1 has 2 columns, expected 3"):
+        read_sequence(folder)
+    (folder / 'Robot3_Odometry.dat').unlink()
+    with pytest.raises(ValueError, match="has no 'Robot3_Odometry.dat'"):
+        read_sequence(folder)
+    _write(folder, MEASUREMENTS)
+    with pytest.raises(ValueError, match='leave the span'):
+        protocol_realization(read_sequence(folder), duration=100.0)
+
+
+def test_interpolate_pose_turns_the_short_way():
+    truth = np.array([[0.0, 0.0, 0.0, 3.1], [1.0, 1.0, 0.0, -3.1]])
+    pose = interpolate_pose(truth, np.array([0.5]))
+    assert abs(abs(pose[0, 2]) - math.pi) < 1e-9
+
+
+SEQUENCE_6 = Path(__file__).resolve().parents[3] / 'shared' / 'data' / \
+    'mrclam' / 'MRCLAM_Dataset6.zip'
+
+
+@pytest.mark.skipif(not SEQUENCE_6.is_file(),
+                    reason=f'sequence 6 is not at {SEQUENCE_6}')
+def test_sequence_6_under_the_test_protocol():
+    data, counts = protocol_realization(read_sequence(SEQUENCE_6))
+    check_realization(data, ('range', 'bearing'))
+    assert int(data.num_steps) == 1200 and data.num_nodes == 20
+    assert int((~data.anchor).sum()) == 5
+    assert data.edge_index.size(1) == 8164
+    assert counts == dict(unknown_barcodes=6, repeated=3813, outside=7394)
+    assert not bool(torch.isnan(data.control[:5]).any())

@@ -1,0 +1,264 @@
+r"""Real robots: the UTIAS Multi-Robot Cooperative Localization and Mapping
+dataset (MRCLAM) read into :class:`~tg_nebp.data.Realization` form, as the
+trackers take simulated data.
+
+K. Y. K. Leung, Y. Halpern, T. D. Barfoot and H. H. T. Liu, "The UTIAS
+multi-robot cooperative localization and mapping dataset", International
+Journal of Robotics Research 30(8), 2011. Nine sequences, one zip each
+(:obj:`MRCLAM_DatasetN.zip`, the folder :obj:`MRCLAM_DatasetN/` inside):
+five robots with wheel odometry and a camera that measures range and
+bearing to barcodes on 15 surveyed landmarks and on the other robots, with
+Vicon ground truth.
+
+**The test protocol** (:func:`protocol_realization`): from the first time :math:`t_0` at which all five robots
+have ground truth and odometry, :obj:`duration` seconds in steps of
+:obj:`dt`; step :math:`k` holds the measurements in :math:`(t_0 + (k - 1)
+\Delta, t_0 + k \Delta]`; a robot's repeated measurement of one subject
+within a step: the latest; a barcode not in :obj:`Barcodes.dat` (or a
+subject without ground truth) is dropped and counted; landmarks are anchors
+at their surveyed positions; the robots' states :math:`[x, y, \theta]` are
+the ground truth interpolated at the step times (for the metrics only), the
+prior the ground truth at :math:`t_0` with :obj:`prior_std` metres and
+:obj:`heading_std` radians of standard deviation; each robot's odometry
+(forward and angular velocity, held from one sample to the next) is
+integrated over every step into the step's input :math:`[\delta_d,
+\delta_\theta]` (:class:`~tg_nebp.models.UnicycleOdometry`'s), NaN where a
+step is not covered by the robot's odometry."""
+import math
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+
+from tg_nebp.data.realization import Realization
+
+__all__ = ['MRCLAMSequence', 'read_sequence', 'protocol_realization',
+           'integrate_odometry', 'interpolate_pose', 'NUM_ROBOTS',
+           'LINKS']
+
+#: The robots of every sequence (subjects 1 to 5).
+NUM_ROBOTS = 5
+#: Which links :func:`protocol_realization` keeps: every one, those to
+#: landmarks only, those between robots only.
+LINKS = ('all', 'landmarks', 'robots')
+
+
+def _table(text: str, name: str, columns: int) -> np.ndarray:
+    # a whitespace-separated table after '#' header lines, float64
+    rows = [line.split() for line in text.splitlines()
+            if line.strip() and not line.lstrip().startswith('#')]
+    bad = next((k for k, row in enumerate(rows) if len(row) != columns),
+               None)
+    if bad is not None:
+        raise ValueError(f"'{name}': data row {bad + 1} has "
+                         f"{len(rows[bad])} columns, expected {columns}")
+    try:
+        table = np.array(rows, dtype=np.float64).reshape(-1, columns)
+    except ValueError as e:
+        raise ValueError(f"'{name}': not a table of numbers ({e})") from None
+    if not np.isfinite(table).all():
+        row = int(np.flatnonzero(~np.isfinite(table).all(1))[0])
+        raise ValueError(f"'{name}': data row {row + 1} is not finite")
+    return table
+
+
+@dataclass
+class MRCLAMSequence:
+    r"""The files of one sequence, read: :obj:`barcodes` (barcode to
+    subject), :obj:`landmarks` (subject to surveyed :math:`[x, y]`), and per
+    robot :math:`r = 1..5` its :obj:`groundtruth` (time, x, y, heading),
+    :obj:`odometry` (time, forward velocity, angular velocity) and
+    :obj:`measurements` (time, barcode, range, bearing), sorted by time."""
+    barcodes: Dict[int, int]
+    landmarks: Dict[int, Tuple[float, float]]
+    groundtruth: List[np.ndarray] = field(default_factory=list)
+    odometry: List[np.ndarray] = field(default_factory=list)
+    measurements: List[np.ndarray] = field(default_factory=list)
+
+    def start(self) -> float:
+        r"""The first time at which every robot has ground truth and
+        odometry."""
+        return max(max(float(g[0, 0]), float(o[0, 0]))
+                   for g, o in zip(self.groundtruth, self.odometry))
+
+    def end(self) -> float:
+        r"""The last time at which every robot has ground truth and
+        odometry."""
+        return min(min(float(g[-1, 0]), float(o[-1, 0]))
+                   for g, o in zip(self.groundtruth, self.odometry))
+
+
+def _files(source: Union[str, os.PathLike]):
+    # name -> text of a sequence's files, from its zip, its folder or a
+    # folder holding either
+    source = Path(source)
+    if source.is_file() and zipfile.is_zipfile(source):
+        with zipfile.ZipFile(source) as archive:
+            return {Path(name).name: archive.read(name).decode('utf-8')
+                    for name in archive.namelist()
+                    if name.endswith('.dat')}
+    if source.is_dir():
+        found = {p.name: p for p in source.glob('*.dat')}
+        if found:
+            return {name: p.read_text(encoding='utf-8')
+                    for name, p in found.items()}
+    raise ValueError(f"'{source}' is neither an MRCLAM zip nor a folder "
+                     f"of its .dat files")
+
+
+def read_sequence(source: Union[str, os.PathLike]) -> MRCLAMSequence:
+    r"""Reads a sequence from its zip (:obj:`MRCLAM_DatasetN.zip`) or the
+    folder of its files (:obj:`MRCLAM_DatasetN/`); a missing file, a row
+    of the wrong width or a value that is not a finite number is a
+    :class:`ValueError` naming the file and the row."""
+    files = _files(source)
+
+    def table(name, columns):
+        if name not in files:
+            raise ValueError(f"'{source}' has no '{name}'")
+        data = _table(files[name], name, columns)
+        return data[np.argsort(data[:, 0], kind='stable')] \
+            if name.startswith('Robot') else data
+
+    barcodes = {int(b): int(s) for s, b in table('Barcodes.dat', 2)}
+    landmarks = {int(s): (float(x), float(y))
+                 for s, x, y, _, _ in table('Landmark_Groundtruth.dat', 5)}
+    sequence = MRCLAMSequence(barcodes, landmarks)
+    for r in range(1, NUM_ROBOTS + 1):
+        sequence.groundtruth.append(table(f'Robot{r}_Groundtruth.dat', 4))
+        sequence.odometry.append(table(f'Robot{r}_Odometry.dat', 3))
+        sequence.measurements.append(table(f'Robot{r}_Measurement.dat', 4))
+        for what, data in (('Groundtruth', sequence.groundtruth[-1]),
+                           ('Odometry', sequence.odometry[-1])):
+            if len(data) < 2:
+                raise ValueError(f"'Robot{r}_{what}.dat' holds fewer than "
+                                 f"two rows")
+    return sequence
+
+
+def interpolate_pose(groundtruth: np.ndarray,
+                     times: np.ndarray) -> np.ndarray:
+    r"""The poses :math:`[x, y, \theta]` :math:`(T, 3)` at :obj:`times`,
+    linear between the ground truth's samples (the heading unwrapped
+    first, so that it turns the short way across :math:`\pm \pi`, then
+    wrapped to :math:`(-\pi, \pi]`)."""
+    t = groundtruth[:, 0]
+    heading = np.unwrap(groundtruth[:, 3])
+    pose = np.stack([np.interp(times, t, groundtruth[:, 1]),
+                     np.interp(times, t, groundtruth[:, 2]),
+                     np.interp(times, t, heading)], -1)
+    pose[:, 2] = math.pi - np.mod(math.pi - pose[:, 2], 2 * math.pi)
+    return pose
+
+
+def integrate_odometry(odometry: np.ndarray,
+                       times: np.ndarray) -> np.ndarray:
+    r"""The inputs :math:`[\delta_d, \delta_\theta]` :math:`(T - 1, 2)` of
+    the intervals between consecutive :obj:`times` :math:`(T)`: the
+    integrals of the forward and angular velocity, each sample held until
+    the next; NaN for an interval not inside the odometry's span."""
+    t = odometry[:, 0]
+    rates = odometry[:, 1:]
+    # the integral at every sample time, then anywhere by the held rate
+    at_samples = np.concatenate([np.zeros((1, 2)), np.cumsum(
+        rates[:-1] * np.diff(t)[:, None], 0)])
+    last = np.clip(np.searchsorted(t, times, side='right') - 1, 0,
+                   len(t) - 1)
+    integral = at_samples[last] + rates[last] * (times - t[last])[:, None]
+    inputs = np.diff(integral, axis=0)
+    covered = (times[:-1] >= t[0]) & (times[1:] <= t[-1])
+    inputs[~covered] = np.nan
+    return inputs
+
+
+def protocol_realization(sequence: MRCLAMSequence, dt: float = 0.5,
+                         duration: float = 600.0,
+                         start: Optional[float] = None,
+                         features: Sequence[str] = ('range', 'bearing'),
+                         odometry: bool = True, links: str = 'all',
+                         prior_std: float = 0.5, heading_std: float = 0.2
+                         ) -> Tuple[Realization, Dict[str, int]]:
+    r"""The realization of :obj:`duration` seconds of :obj:`sequence` from
+    :obj:`start` (the sequence's :meth:`~MRCLAMSequence.start` by
+    default) in steps of :obj:`dt` under the test protocol (see the module
+    docstring), with the link :obj:`features` (:obj:`('range',)` or
+    :obj:`('range', 'bearing')`), the odometry as known inputs or not, and
+    the :obj:`links` of :data:`LINKS`; and what was dropped or merged
+    (:obj:`"unknown_barcodes"`, :obj:`"repeated"`, :obj:`"outside"`).
+
+    Nodes: the robots first (agents, subject order), then the landmarks
+    (anchors, subject order)."""
+    if links not in LINKS:
+        raise ValueError(f"'links' must be one of {list(LINKS)}, got "
+                         f"{links!r}")
+    if tuple(features) not in (('range', ), ('range', 'bearing')):
+        raise ValueError(f"'features' must be ('range',) or ('range', "
+                         f"'bearing'), got {tuple(features)!r}")
+    t0 = sequence.start() if start is None else float(start)
+    steps = int(round(duration / dt))
+    if steps < 1 or t0 + steps * dt > sequence.end() + 1e-9:
+        raise ValueError(f"{duration} s from {t0:.3f} in steps of {dt} s "
+                         f"leave the span in which every robot has ground "
+                         f"truth and odometry ({sequence.start():.3f} to "
+                         f"{sequence.end():.3f})")
+    times = t0 + dt * np.arange(steps + 1)  # t_0 .. t_T
+    landmark_ids = sorted(sequence.landmarks)
+    node_of = {r: r - 1 for r in range(1, NUM_ROBOTS + 1)}
+    node_of.update({s: NUM_ROBOTS + k for k, s in enumerate(landmark_ids)})
+    count = NUM_ROBOTS + len(landmark_ids)
+    poses = np.zeros((count, steps + 1, 3))
+    for r in range(NUM_ROBOTS):
+        poses[r] = interpolate_pose(sequence.groundtruth[r], times)
+    for s in landmark_ids:
+        poses[node_of[s], :, :2] = sequence.landmarks[s]
+    counts = dict(unknown_barcodes=0, repeated=0, outside=0)
+    latest = {}  # (step, receiver, sender) -> (time, range, bearing)
+    for r in range(NUM_ROBOTS):
+        for time, barcode, rng, bearing in sequence.measurements[r]:
+            subject = sequence.barcodes.get(int(barcode))
+            if subject is None or subject not in node_of \
+                    or subject == r + 1:
+                counts['unknown_barcodes'] += 1
+                continue
+            if not t0 < time <= times[-1]:
+                counts['outside'] += 1
+                continue
+            to_robot = subject <= NUM_ROBOTS
+            if (links == 'landmarks' and to_robot) or \
+                    (links == 'robots' and not to_robot):
+                continue
+            step = min(int(math.ceil((time - t0) / dt)) - 1, steps - 1)
+            key = (step, r, node_of[subject])
+            if key in latest:
+                counts['repeated'] += 1
+                if latest[key][0] > time:
+                    continue
+            latest[key] = (time, rng, bearing)
+    keys = sorted(latest, key=lambda k: (k[0], k[1], k[2]))
+    width = len(tuple(features))
+    edge_index = torch.tensor([[k[2] for k in keys], [k[1] for k in keys]],
+                              dtype=torch.long).view(2, -1)
+    edge_attr = torch.tensor([latest[k][1:1 + width] for k in keys],
+                             dtype=torch.float32).view(-1, width)
+    edge_time = torch.tensor([k[0] for k in keys], dtype=torch.long)
+    anchor = torch.arange(count) >= NUM_ROBOTS
+    prior_var = torch.tensor([prior_std**2] * 2 + [heading_std**2],
+                             dtype=torch.float32)
+    prior_cov = torch.diag_embed(prior_var.expand(count, 3)).clone()
+    prior_cov[anchor] = 0
+    data = Realization(
+        states=torch.from_numpy(poses[:, 1:]).float(),
+        edge_index=edge_index, edge_attr=edge_attr, edge_time=edge_time,
+        anchor=anchor, prior_mean=torch.from_numpy(poses[:, 0]).float(),
+        prior_cov=prior_cov, num_steps=steps, num_nodes=count,
+        position_dim=2)
+    if odometry:
+        control = np.full((count, steps, 2), np.nan)
+        for r in range(NUM_ROBOTS):
+            control[r] = integrate_odometry(sequence.odometry[r], times)
+        data.control = torch.from_numpy(control).float()
+    return data, counts
