@@ -63,8 +63,8 @@ def test_measurement_is_not_for_nebp(tmp_path, capsys):
             '--root', str(tmp_path / 'data'), '--out', str(tmp_path / 'o'),
             '--quiet']
     assert main(argv) == 2
-    assert ("'measurement' (--measurement) is for method bp or iekf or gbp, "
-            "not nebp") in capsys.readouterr().err
+    assert ("'measurement' (--measurement) is for method bp or iekf or gbp "
+            "or pcrb, not nebp") in capsys.readouterr().err
 
 
 def test_samples_flag(tmp_path):

@@ -67,7 +67,7 @@ def test_method_tracker_refusals(scenario):
 GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
              resampler='systematic', regularize=0.2, ess_threshold=0.5,
              measurement='student-t', iterations=2, ends='both',
-             marginal=True, inflation=1.2, tolerance=0.0)
+             marginal=True, inflation=1.2, tolerance=0.0, no_control=True)
 
 
 def test_an_option_is_refused_by_the_methods_that_do_not_take_it(scenario):

@@ -55,8 +55,11 @@ def position_dim_of(data: Data) -> int:
     realization: its :obj:`position_dim` where it declares one (equal
     across a batch), else half its state size."""
     declared = getattr(data, 'position_dim', None)
-    if declared is None:
-        return data.prior_mean.size(-1) // 2
+    if declared is None:  # [p, v]: the first half of a state
+        states = getattr(data, 'prior_mean', None)
+        if states is None:
+            states = data.states
+        return states.size(-1) // 2
     dims = torch.as_tensor(declared).view(-1)
     if dims.numel() == 0 or bool((dims != dims[0]).any()):
         raise ValueError(f"'position_dim' must be equal across a batch, got "
