@@ -13,7 +13,7 @@ import torch
 
 from tg_nebp.data import check_realization
 from tg_nebp.datasets.mrclam import (integrate_odometry, interpolate_pose,
-                                     protocol_realization, read_sequence)
+                                     mrclam_realization, read_mrclam)
 
 HEADER = '# UTIAS\n# produced by\n# Format:\n# columns\n'
 T0 = 1000.0
@@ -67,9 +67,9 @@ def folder(tmp_path):
 
 
 def test_protocol_steps_links_and_counts(folder):
-    sequence = read_sequence(folder)
+    sequence = read_mrclam(folder)
     assert sequence.start() == pytest.approx(T0 + 1.0)
-    data, counts = protocol_realization(sequence, dt=0.5, duration=10.0)
+    data, counts = mrclam_realization(sequence, dt=0.5, duration=10.0)
     check_realization(data, ('range', 'bearing'))
     assert data.num_nodes == 7 and int(data.num_steps) == 20
     assert data.anchor.tolist() == [False] * 5 + [True] * 2
@@ -84,20 +84,20 @@ def test_protocol_steps_links_and_counts(folder):
                      (1, [1, 0], pytest.approx([2.0, -0.1])),
                      (2, [6, 2], pytest.approx([4.1, -0.3]))]
     assert data.prior_mean[5].tolist() == [1.0, 2.0, 0.0]
-    only_landmarks, _ = protocol_realization(sequence, dt=0.5,
+    only_landmarks, _ = mrclam_realization(sequence, dt=0.5,
                                              duration=10.0,
                                              links='landmarks',
                                              features=('range', ))
     assert only_landmarks.edge_index[0].tolist() == [5, 6]
     assert only_landmarks.edge_attr.shape == (2, 1)
-    assert getattr(protocol_realization(sequence, dt=0.5, duration=10.0,
+    assert getattr(mrclam_realization(sequence, dt=0.5, duration=10.0,
                                         odometry=False)[0], 'control',
                    None) is None
 
 
 def test_ground_truth_interpolated_across_the_cut(folder):
-    sequence = read_sequence(folder)
-    data, _ = protocol_realization(sequence, dt=0.5, duration=20.0)
+    sequence = read_mrclam(folder)
+    data, _ = mrclam_realization(sequence, dt=0.5, duration=20.0)
     times = sequence.start() + 0.5 * torch.arange(1, 41).double()
     for r in range(5):
         heading = HEADING[r] + TURN[r] * (times - T0)
@@ -114,8 +114,8 @@ def test_ground_truth_interpolated_across_the_cut(folder):
 
 
 def test_odometry_against_constant_velocities(folder):
-    sequence = read_sequence(folder)
-    data, _ = protocol_realization(sequence, dt=0.5, duration=20.0)
+    sequence = read_mrclam(folder)
+    data, _ = mrclam_realization(sequence, dt=0.5, duration=20.0)
     for r in range(5):
         expected = torch.tensor([SPEED[r] * 0.5, TURN[r] * 0.5])
         assert torch.allclose(data.control[r], expected.expand(40, 2),
@@ -134,8 +134,8 @@ def test_zip_and_folder_read_alike(folder, tmp_path):
     with zipfile.ZipFile(archive, 'w') as z:
         for path in folder.iterdir():
             z.write(path, f'MRCLAM_Dataset9/{path.name}')
-    a, _ = protocol_realization(read_sequence(folder), duration=10.0)
-    b, _ = protocol_realization(read_sequence(archive), duration=10.0)
+    a, _ = mrclam_realization(read_mrclam(folder), duration=10.0)
+    b, _ = mrclam_realization(read_mrclam(archive), duration=10.0)
     for key in ('states', 'edge_index', 'edge_attr', 'control'):
         torch.testing.assert_close(getattr(a, key), getattr(b, key),
                                    rtol=0, atol=0, equal_nan=True)
@@ -145,13 +145,13 @@ def test_bad_files_are_named(folder):
     (folder / 'Robot3_Odometry.dat').write_text(HEADER + '1.0 2.0\n')
     with pytest.raises(ValueError, match=r"'Robot3_Odometry.dat': data row "
                        r"1 has 2 columns, expected 3"):
-        read_sequence(folder)
+        read_mrclam(folder)
     (folder / 'Robot3_Odometry.dat').unlink()
     with pytest.raises(ValueError, match="has no 'Robot3_Odometry.dat'"):
-        read_sequence(folder)
+        read_mrclam(folder)
     _write(folder, MEASUREMENTS)
     with pytest.raises(ValueError, match='leave the span'):
-        protocol_realization(read_sequence(folder), duration=100.0)
+        mrclam_realization(read_mrclam(folder), duration=100.0)
 
 
 def test_interpolate_pose_turns_the_short_way():
@@ -167,7 +167,7 @@ SEQUENCE_6 = Path(__file__).resolve().parents[3] / 'shared' / 'data' / \
 @pytest.mark.skipif(not SEQUENCE_6.is_file(),
                     reason=f'sequence 6 is not at {SEQUENCE_6}')
 def test_sequence_6_under_the_test_protocol():
-    data, counts = protocol_realization(read_sequence(SEQUENCE_6))
+    data, counts = mrclam_realization(read_mrclam(SEQUENCE_6))
     check_realization(data, ('range', 'bearing'))
     assert int(data.num_steps) == 1200 and data.num_nodes == 20
     assert int((~data.anchor).sum()) == 5

@@ -10,20 +10,20 @@ five robots with wheel odometry and a camera that measures range and
 bearing to barcodes on 15 surveyed landmarks and on the other robots, with
 Vicon ground truth.
 
-**The test protocol** (:func:`protocol_realization`): from the first time :math:`t_0` at which all five robots
-have ground truth and odometry, :obj:`duration` seconds in steps of
-:obj:`dt`; step :math:`k` holds the measurements in :math:`(t_0 + (k - 1)
-\Delta, t_0 + k \Delta]`; a robot's repeated measurement of one subject
-within a step: the latest; a barcode not in :obj:`Barcodes.dat` (or a
-subject without ground truth) is dropped and counted; landmarks are anchors
-at their surveyed positions; the robots' states :math:`[x, y, \theta]` are
-the ground truth interpolated at the step times (for the metrics only), the
-prior the ground truth at :math:`t_0` with :obj:`prior_std` metres and
-:obj:`heading_std` radians of standard deviation; each robot's odometry
-(forward and angular velocity, held from one sample to the next) is
-integrated over every step into the step's input :math:`[\delta_d,
-\delta_\theta]` (:class:`~tg_nebp.models.UnicycleOdometry`'s), NaN where a
-step is not covered by the robot's odometry."""
+**The test protocol** (:func:`~tg_nebp.datasets.mrclam_realization`): from the
+first time :math:`t_0` at which all five robots have ground truth and odometry,
+:obj:`duration` seconds in steps of :obj:`dt`; step :math:`k` holds the
+measurements in :math:`(t_0 + (k - 1) \Delta, t_0 + k \Delta]`; a robot's
+repeated measurement of one subject within a step: the latest; a barcode not in
+:obj:`Barcodes.dat` (or a subject without ground truth) is dropped and counted;
+landmarks are anchors at their surveyed positions; the robots' states
+:math:`[x, y, \theta]` are the ground truth interpolated at the step times (for
+the metrics only), the prior the ground truth at :math:`t_0` with
+:obj:`prior_std` metres and :obj:`heading_std` radians of standard deviation;
+each robot's odometry (forward and angular velocity, held from one sample to
+the next) is integrated over every step into the step's input :math:`[\delta_d,
+\delta_\theta]` (:class:`~tg_nebp.models.UnicycleOdometry`'s), NaN where a step
+is not covered by the robot's odometry."""
 import math
 import os
 import zipfile
@@ -36,14 +36,14 @@ import torch
 
 from tg_nebp.data.realization import Realization
 
-__all__ = ['MRCLAMSequence', 'read_sequence', 'protocol_realization',
+__all__ = ['MRCLAMSequence', 'read_mrclam', 'mrclam_realization',
            'integrate_odometry', 'interpolate_pose', 'NUM_ROBOTS',
            'LINKS']
 
 #: The robots of every sequence (subjects 1 to 5).
 NUM_ROBOTS = 5
-#: Which links :func:`protocol_realization` keeps: every one, those to
-#: landmarks only, those between robots only.
+#: Which links :func:`~tg_nebp.datasets.mrclam_realization` keeps: every
+#: one, those to landmarks only, those between robots only.
 LINKS = ('all', 'landmarks', 'robots')
 
 
@@ -110,7 +110,7 @@ def _files(source: Union[str, os.PathLike]):
                      f"of its .dat files")
 
 
-def read_sequence(source: Union[str, os.PathLike]) -> MRCLAMSequence:
+def read_mrclam(source: Union[str, os.PathLike]) -> MRCLAMSequence:
     r"""Reads a sequence from its zip (:obj:`MRCLAM_DatasetN.zip`) or the
     folder of its files (:obj:`MRCLAM_DatasetN/`); a missing file, a row
     of the wrong width or a value that is not a finite number is a
@@ -175,7 +175,7 @@ def integrate_odometry(odometry: np.ndarray,
     return inputs
 
 
-def protocol_realization(sequence: MRCLAMSequence, dt: float = 0.5,
+def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
                          duration: float = 600.0,
                          start: Optional[float] = None,
                          features: Sequence[str] = ('range', 'bearing'),
@@ -187,7 +187,8 @@ def protocol_realization(sequence: MRCLAMSequence, dt: float = 0.5,
     default) in steps of :obj:`dt` under the test protocol (see the module
     docstring), with the link :obj:`features` (:obj:`('range',)` or
     :obj:`('range', 'bearing')`), the odometry as known inputs or not, and
-    the :obj:`links` of :data:`LINKS`; and what was dropped or merged
+    the :obj:`links` (:obj:`"all"`, :obj:`"landmarks"` or
+    :obj:`"robots"`); and what was dropped or merged
     (:obj:`"unknown_barcodes"`, :obj:`"repeated"`, :obj:`"outside"`).
 
     Nodes: the robots first (agents, subject order), then the landmarks

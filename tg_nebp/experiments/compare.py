@@ -119,7 +119,8 @@ def compare_methods(scenario: Scenario,
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (
             f'Gaussian BP, recommended (inflation 1.5), '
-            f'{shown[likelihood]} likelihood', lambda m=measurement: GaussianBP.recommended(
+            f'{shown[likelihood]} likelihood',
+            lambda m=measurement: GaussianBP.recommended(
                 motion=motion, measurement=m))
         methods[f'gbp-plain {likelihood}'] = (
             f'Gaussian BP without inflation, {shown[likelihood]} likelihood',

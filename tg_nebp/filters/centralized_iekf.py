@@ -164,9 +164,9 @@ class CentralizedIEKF(Tracker):
         :class:`~tg_nebp.models.MotionModel`). Returns the step's
         :class:`~tg_nebp.filters.StepOutput` (time index :obj:`t`:
         every node's mean, its angles wrapped, and marginal covariance)
-        and the state after it. :obj:`layout` places the agents of every graph of a batch
-        (:meth:`GraphLayout.of <tg_nebp.gaussian.GraphLayout.of>`; one
-        graph by default)."""
+        and the state after it. :obj:`layout` places the agents of every
+        graph of a batch (:meth:`GraphLayout.of
+        <tg_nebp.gaussian.GraphLayout.of>`; one graph by default)."""
         if layout is None:
             layout = GraphLayout.of_nodes(anchor)
         size = state.mean.size(1)

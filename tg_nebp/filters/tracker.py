@@ -84,7 +84,8 @@ class Tracker(torch.nn.Module):
         with the link features the measurement model reads), that its
         states have the motion model's dimension
         (:func:`~tg_nebp.data.check_state_dim`) and that its known inputs,
-        if any, are the motion model's (:func:`~tg_nebp.data.check_control`)."""
+        if any, are the motion model's
+        (:func:`~tg_nebp.data.check_control`)."""
         check_realization(data, self.measurement.features)
         check_state_dim(data.prior_mean.size(1), self.motion,
                         position_dim_of(data))
