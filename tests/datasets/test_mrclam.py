@@ -174,3 +174,24 @@ def test_sequence_6_under_the_test_protocol():
     assert data.edge_index.size(1) == 8164
     assert counts == dict(unknown_barcodes=6, repeated=3813, outside=7394)
     assert not bool(torch.isnan(data.control[:5]).any())
+
+
+def test_fitted_noise_recovers_a_simulation():
+    # simulated robots of known noise, read as a sequence would be: the
+    # fitted scales, tails and odometry variances are the simulation's
+    from tg_nebp.datasets import Scenario, fit_models
+    scenario = Scenario.load('robots_test')
+    data = scenario.generate(torch.Generator().manual_seed(5))
+    motion, measurement, report = fit_models(data)
+    truth = scenario.measurement_model
+    assert measurement.sigma == pytest.approx(truth.sigma, rel=0.1)
+    assert measurement.sigma_bearing == pytest.approx(truth.sigma_bearing,
+                                                      rel=0.1)
+    assert measurement.nu >= 16  # Gaussian residuals: light tails
+    assert report['range_beyond_3_sigma'] < 0.01
+    assert abs(report['range_bias_slope']) < 0.02
+    typical = data.control[:scenario.num_agents].reshape(-1, 2).median(0)
+    fitted = motion.input_variances(typical.values.double().view(1, 2))
+    true = scenario.motion_model.input_variances(
+        typical.values.double().view(1, 2))
+    assert torch.allclose(fitted.sqrt(), true.sqrt(), rtol=0.15)

@@ -37,8 +37,8 @@ import torch
 from tg_nebp.data.realization import Realization
 
 __all__ = ['MRCLAMSequence', 'read_mrclam', 'mrclam_realization',
-           'integrate_odometry', 'interpolate_pose', 'NUM_ROBOTS',
-           'LINKS']
+           'integrate_odometry', 'interpolate_pose', 'fit_models',
+           'NUM_ROBOTS', 'LINKS']
 
 #: The robots of every sequence (subjects 1 to 5).
 NUM_ROBOTS = 5
@@ -263,3 +263,117 @@ def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
             control[r] = integrate_odometry(sequence.odometry[r], times)
         data.control = torch.from_numpy(control).float()
     return data, counts
+
+
+def _scale(residuals: np.ndarray) -> float:
+    # a robust standard deviation: 1.4826 times the median absolute
+    # deviation from the median (a Gaussian's sigma)
+    return float(1.4826 * np.median(np.abs(residuals -
+                                           np.median(residuals))))
+
+
+def _variance_fit(squared: np.ndarray, columns: np.ndarray,
+                  floor: float) -> np.ndarray:
+    # non-negative coefficients c of squared ~ columns @ c (least squares,
+    # a column whose coefficient would be negative dropped), the first
+    # (the constant) at least 'floor'
+    active = list(range(columns.shape[1]))
+    while True:
+        c, *_ = np.linalg.lstsq(columns[:, active], squared, rcond=None)
+        if (c >= 0).all() or len(active) == 1:
+            break
+        active.pop(int(np.argmin(np.where(np.arange(len(c)) == 0, np.inf,
+                                          c))))
+    out = np.zeros(columns.shape[1])
+    out[active] = np.clip(c, 0, None)
+    out[0] = max(out[0], floor)
+    return out
+
+
+def fit_models(data: Realization, max_range: float = 10.0,
+               field_of_view: float = 2 * math.pi
+               ) -> Tuple['UnicycleOdometry', 'StudentTRangeBearing', Dict]:
+    r"""The noise of a sequence's sensors, fitted on its ground truth
+    (a realization of :func:`~tg_nebp.datasets.mrclam_realization` with
+    bearings and odometry): the models the trackers take and what was
+    measured.
+
+    * **Range and bearing**: the residuals of every link against the
+      interpolated true poses; the scales :math:`\sigma` are robust
+      (1.4826 times the median absolute deviation), the Student-t's
+      :math:`\nu` the maximum-likelihood one on a grid (2, 3, 4, 6, 8, 16,
+      32) over both residuals; reported beside them: the median
+      residuals, the range bias's slope against the distance (least
+      squares) and the fraction of residuals beyond three scales.
+    * **Odometry**: every agent-step's input against the true move (the
+      distance between the true positions, the wrapped change of the true
+      heading); :math:`\sigma_d^2 + s_d^2 \delta_d^2` and
+      :math:`\sigma_\theta^2 + s_\theta^2 \delta_\theta^2 + s_{\theta
+      d}^2 \delta_d^2` by non-negative least squares of the squared
+      residuals, the constants at least :math:`10^{-3}` m and rad; the
+      input-free prediction (a step without odometry) a random walk of the
+      true moves' root mean square per coordinate and of the heading.
+
+    Returns the :class:`~tg_nebp.models.UnicycleOdometry`, the
+    :class:`~tg_nebp.models.StudentTRangeBearing` (with :obj:`max_range`
+    and :obj:`field_of_view`) and a report of the figures."""
+    from tg_nebp.models import (StudentTRangeBearing, UnicycleOdometry,
+                                wrap_angle)
+    from tg_nebp.models.range_bearing import RangeBearingModel
+    states = data.states.double()
+    src, dst = data.edge_index
+    t = data.edge_time
+    expected = RangeBearingModel.expected(states[src, t], states[dst, t])
+    z = data.edge_attr.double()
+    range_res = (z[:, 0] - expected[:, 0]).numpy()
+    bearing_res = wrap_angle(z[:, 1] - expected[:, 1]).numpy()
+    distance = expected[:, 0].numpy()
+    sigma, sigma_bearing = _scale(range_res), _scale(bearing_res)
+    slope, intercept = np.polyfit(distance, range_res, 1)
+    centred = np.stack([range_res - np.median(range_res),
+                        bearing_res - np.median(bearing_res)], -1)
+    best, best_nu = -np.inf, None
+    for nu in (2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 32.0):
+        model = StudentTRangeBearing(sigma, sigma_bearing, nu)
+        value = float(model.log_likelihood_of_residuals(
+            torch.from_numpy(centred)).sum())
+        if value > best:
+            best, best_nu = value, nu
+    agents = ~data.anchor
+    control = data.control[agents].double()
+    moved = states[agents, 1:, :2] - states[agents, :-1, :2]
+    true_distance = moved.norm(dim=-1).numpy().reshape(-1)
+    true_turn = wrap_angle(states[agents, 1:, 2] -
+                           states[agents, :-1, 2]).numpy().reshape(-1)
+    d = control[:, 1:, 0].numpy().reshape(-1)
+    turn = control[:, 1:, 1].numpy().reshape(-1)
+    keep = np.isfinite(d) & np.isfinite(turn)
+    d, turn = d[keep], turn[keep]
+    e_d = (np.abs(d) - true_distance[keep])**2
+    e_t = (turn - true_turn[keep])**2
+    distance_fit = _variance_fit(e_d, np.stack([np.ones_like(d), d**2], -1),
+                                 1e-6)
+    turn_fit = _variance_fit(e_t, np.stack([np.ones_like(d), turn**2,
+                                            d**2], -1), 1e-6)
+    # the input-free prediction: a random walk of the true moves' size
+    idle_position = float(np.sqrt(np.mean(moved.numpy()**2)))
+    idle_heading = float(np.sqrt(np.mean(true_turn**2)))
+    motion = UnicycleOdometry(
+        idle_position=idle_position, idle_heading=idle_heading,
+        sigma_distance=float(np.sqrt(distance_fit[0])),
+        distance_scale=float(np.sqrt(distance_fit[1])),
+        sigma_turn=float(np.sqrt(turn_fit[0])),
+        turn_scale=float(np.sqrt(turn_fit[1])),
+        turn_per_distance=float(np.sqrt(turn_fit[2])))
+    measurement = StudentTRangeBearing(sigma, sigma_bearing, best_nu,
+                                       max_range, field_of_view)
+    report = dict(
+        links=int(len(range_res)), range_median=float(np.median(range_res)),
+        range_bias_slope=float(slope), range_bias_intercept=float(intercept),
+        range_beyond_3_sigma=float(np.mean(np.abs(centred[:, 0]) >
+                                           3 * sigma)),
+        bearing_median=float(np.median(bearing_res)),
+        bearing_beyond_3_sigma=float(np.mean(np.abs(centred[:, 1]) >
+                                             3 * sigma_bearing)),
+        nu=best_nu, agent_steps=int(keep.sum()))
+    return motion, measurement, report
