@@ -885,3 +885,16 @@ def test_settings_name_the_resampler():
     assert ParticleBP(8, resampler='systematic').settings()[
         'resampler'] == 'systematic'
     assert ParticleBP(8, resampler=own).settings()['resampler'] == 'own'
+
+
+def test_regularized_resampling_never_moves_an_anchor():
+    # the kernel jitter of an anchor's one-point cloud grew its
+    # rounding-level spread geometrically (to 1e18 m on a real sequence):
+    # an anchor's particles stay its known position, bit for bit
+    data = tiny_scenario(steps=30).generate(gen(2))
+    tracker = ParticleBP.recommended(num_particles=64)
+    anchors = data.anchor.nonzero().view(-1)
+    for step in tracker.steps(data, gen(3)):
+        known = data.prior_mean[anchors].unsqueeze(1).expand(-1, 64, -1)
+        assert torch.equal(step.particles[anchors], known.to(
+            step.particles.dtype))

@@ -526,9 +526,14 @@ class ParticleBP(Tracker):
         if not bool(state.fresh.all()):
             moved, carried = self.resample_step(particles, log_weights,
                                                 state.cov, generator, counts)
-            # a prior's draws are predicted as they are
+            # a prior's draws are predicted as they are, and an anchor's
+            # known state is never resampled or jittered: the kernel
+            # jitter of a one-point cloud multiplies its rounding-level
+            # spread by 1 + h^2 every step (1e18 m after 720 steps of a
+            # real sequence)
             fresh = state.fresh.view(-1, 1)
-            particles = torch.where(fresh.unsqueeze(-1), particles, moved)
+            kept = (state.fresh | anchor).view(-1, 1, 1)
+            particles = torch.where(kept, particles, moved)
             log_weights = torch.where(fresh, log_weights, carried)
         num_nodes = particles.size(0)
         # receiver-sorted links: no check, no sort per step
