@@ -90,7 +90,8 @@ def check_dense_joint(num_agents: int, state_dim: int, what: str,
             f"up to about {fits} agents per graph here")
 
 
-def check_predicted_prior(data, motion, what: str) -> None:
+def check_predicted_prior(data, motion, what: str,
+                          use_control: bool = True) -> None:
     r"""Refuses, with a :class:`ValueError` naming :obj:`prior_cov` and the
     agent, a prior whose prediction through the motion model,
     :math:`\mathbf{F} \boldsymbol{\Sigma}_0 \mathbf{F}^\top + \mathbf{Q}`,
@@ -100,8 +101,10 @@ def check_predicted_prior(data, motion, what: str) -> None:
     agent whose whole state is known is an anchor."""
     agents = ~data.anchor
     mean = data.prior_mean[agents].double()
+    # the first step's inputs where the method reads them (the prediction
+    # it makes first)
     control = getattr(data, 'control', None)
-    given = {} if control is None else {
+    given = {} if control is None or not use_control else {
         'control': control[agents, 0].double()}
     jacobian = motion.jacobian(mean, **given)
     predicted = (jacobian @ data.prior_cov[agents].double() @

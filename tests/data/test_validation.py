@@ -642,3 +642,17 @@ def test_control_for_a_model_without_inputs_is_refused():
     del data.position_dim
     with pytest.raises(ValueError, match=r"shape \[11, 4\] or \[11, 6\]"):
         check_realization(data)
+
+
+def test_a_tracker_told_to_ignore_inputs_runs_data_that_has_them():
+    from tg_nebp.filters import CentralizedIEKF, GaussianBP
+    scenario = Scenario.load('paper_train').replace(num_steps=3)
+    paper = scenario.generate(torch.Generator().manual_seed(0))
+    plain = GaussianBP()(paper)
+    paper.control = torch.zeros(paper.num_nodes, 3, 2)
+    for tracker in (GaussianBP(), CentralizedIEKF()):
+        tracker.use_control = False
+        tracker(paper)
+    blind = GaussianBP()
+    blind.use_control = False
+    assert torch.equal(blind(paper).mean, plain.mean)

@@ -197,3 +197,11 @@ def test_cli_evaluates_a_shipped_gaussian_nebp_by_name(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith('error: ') and err.count('\n') == 1
     assert 'absent.pt' in err
+
+
+def test_a_run_without_inputs_has_its_own_entry():
+    from tg_nebp.datasets import Scenario
+    robots = Scenario.load('robots_test')
+    tracker, key = method_tracker('gbp', robots, no_control=True)
+    assert key == 'gbp-no-control' and tracker.use_control is False
+    assert method_tracker('gbp', robots)[1] == 'gbp'

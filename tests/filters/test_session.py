@@ -1,4 +1,5 @@
 import json
+import math
 import os
 import subprocess
 import sys
@@ -586,3 +587,16 @@ def test_control_for_a_model_without_inputs_is_refused():
         session.update(join={'a': AgentPrior([0.0] * 4,
                                              torch.eye(4).tolist())},
                        control={'a': [1.0]})
+
+
+def test_the_shipped_robots_correction_runs_live():
+    # a robot's [x, y, heading] is 2-D positions, as the checkpoint's
+    from tg_nebp.training import gaussian_nebp_from_checkpoint
+    session = TrackingSession(gaussian_nebp_from_checkpoint('robots'),
+                              dtype=torch.float64)
+    out = session.update(join={'a': AgentPrior([0.0, 0.0, 0.1],
+                                               (0.25 * torch.eye(3)).tolist()),
+                               'L': AnchorAt([3.0, 1.0])},
+                         control={'a': [0.1, 0.0]})
+    assert out.mean[0, :2].tolist() == pytest.approx(
+        [0.1 * math.cos(0.1), 0.1 * math.sin(0.1)])

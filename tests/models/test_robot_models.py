@@ -293,3 +293,10 @@ def test_a_range_model_reads_the_robot_position():
     assert info.shape == (6, 6)
     assert float(info[2, 2]) == 0.0 and float(info[5, 5]) == 0.0
     assert float(info[0, 0]) == pytest.approx(0.6**2 / 0.25)
+
+
+def test_a_layout_with_a_heading_binds_at_any_size():
+    # [x, y, heading, speed]: the position is half the state, yet the
+    # heading must be known to the model
+    bound = GaussianRangeBearing().bind(StateLayout(4, 2, (2, )))
+    assert bound.scope(4) == (0, 1, 2)

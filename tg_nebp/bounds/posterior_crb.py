@@ -116,7 +116,8 @@ class PosteriorCRB(torch.nn.Module):
         check_state_dim(size, self.motion, position_dim_of(data))
         if self.use_control:
             check_control(data, self.motion)
-        check_predicted_prior(data, self.motion, 'the posterior CRB')
+        check_predicted_prior(data, self.motion, 'the posterior CRB',
+                              self.use_control)
         layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the posterior CRB', states.device)

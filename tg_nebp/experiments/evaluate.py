@@ -131,7 +131,8 @@ def method_tracker(method: str, scenario: Scenario,
                                   inflation, tolerance, checkpoint, compile,
                                   no_control)
     method.use_control = not no_control
-    return method, key
+    # its own metrics.json entry: the run with the inputs stays
+    return method, key + ('-no-control' if no_control else '')
 
 
 def _method_tracker(method, scenario, measurement, particles, iterations,

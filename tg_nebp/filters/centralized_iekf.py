@@ -139,7 +139,8 @@ class CentralizedIEKF(Tracker):
         graph, the block-diagonal joint of its agents' prior covariances;
         a joint too large for the free memory is refused
         (:func:`~tg_nebp.gaussian.check_dense_joint`). No draws."""
-        check_predicted_prior(data, self.motion, 'the centralized IEKF')
+        check_predicted_prior(data, self.motion, 'the centralized IEKF',
+                              self.use_control)
         layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents),
                           data.prior_mean.size(1), 'the centralized IEKF',

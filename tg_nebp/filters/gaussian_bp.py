@@ -218,7 +218,8 @@ class GaussianBP(Tracker):
         :meth:`initial_memory`. A prior whose prediction is singular is
         refused (:func:`~tg_nebp.gaussian.check_predicted_prior`). No
         draws."""
-        check_predicted_prior(data, self.motion, 'Gaussian BP')
+        check_predicted_prior(data, self.motion, 'Gaussian BP',
+                              self.use_control)
         anchor = data.anchor
         return GaussianState(data.prior_mean.double(),
                              data.prior_cov.double(), torch.ones_like(anchor),

@@ -509,9 +509,16 @@ class TrackingSession:
             ids.append(node)
         check_state_dim(size, self.tracker.motion)
         position_dim = getattr(self.tracker, 'position_dim', None)
-        if position_dim is not None:
-            check_position_dim(position_dim, size,
-                               type(self.tracker).__name__)
+        layout = motion.layout(size)
+        name = type(self.tracker).__name__
+        if position_dim is not None and layout.angles == () and \
+                layout.position_dim == size // 2:  # [p, v]
+            check_position_dim(position_dim, size, name)
+        elif position_dim is not None and \
+                layout.position_dim != position_dim:
+            raise ValueError(f"{name} was built for {position_dim}-D "
+                             f"positions, but the motion model's states of "
+                             f"size {size} hold {layout.position_dim}-D ones")
         mean, cov = torch.stack(means), torch.stack(covs)
         anchor = torch.tensor(anchors)
         try:

@@ -416,7 +416,8 @@ class MeasurementModel(Model):
         where the position is. The trackers and the bound bind their
         models (:func:`resolve_models`); the configuration is the
         model's own either way."""
-        if layout.position_dim == layout.size // 2 and self.layout is None:
+        if layout.position_dim == layout.size // 2 and not layout.angles \
+                and self.layout is None:
             return self
         bound = copy.copy(self)
         bound.layout = layout
