@@ -263,13 +263,13 @@ def linear_scenario(steps=4, num_agents=4, sigma=0.5):
 
 
 def simulate_robots(motion, measurement, true_control, anchors, start,
-                    prior_var, seed=0, recorded=None):
+                    prior_var, seed=0):
     r"""A realization of robots moved by :obj:`motion`'s own draws with
     the true inputs :obj:`true_control` :math:`(A, T, C)` from the true
     states :obj:`start` :math:`(A, S)`, measured by :obj:`measurement`
     (links by its :meth:`connect_states`) to the anchors at
     :obj:`anchors` :math:`(M, D)` and each other; the inputs recorded are
-    :obj:`recorded` (the true ones by default), the prior centred on the
+    the true ones, the prior centred on the
     truth with the variances :obj:`prior_var` :math:`(S)`."""
     from tg_nebp.data import Realization
     from tg_nebp.models import resolve_models
@@ -292,14 +292,14 @@ def simulate_robots(motion, measurement, true_control, anchors, start,
         edge_attr.append(measurement.sample_features(
             every[edges[0]], every[edges[1]], None, edges, g))
         edge_time.append(torch.full((edges.size(1), ), t))
-    control = true_control if recorded is None else recorded
     prior_cov = torch.diag_embed(torch.tensor(prior_var).double().expand(
         count + anchors.size(0), size)).clone()
     prior_cov[anchor] = 0
     return Realization(
         states=torch.stack(states, 1),
-        control=torch.cat([control.double(), control.new_full(
-            (anchors.size(0), ) + control.shape[1:], math.nan).double()]),
+        control=torch.cat([true_control.double(), true_control.new_full(
+            (anchors.size(0), ) + true_control.shape[1:],
+            math.nan).double()]),
         position_dim=anchors.size(1),
         edge_index=torch.cat(edge_index, 1),
         edge_attr=torch.cat(edge_attr).double(),

@@ -103,9 +103,10 @@ def check_predicted_prior(data, motion, what: str,
     mean = data.prior_mean[agents].double()
     # the first step's inputs where the method reads them (the prediction
     # it makes first)
+    from tg_nebp.models import inputs  # the models import this module
     control = getattr(data, 'control', None)
-    given = {} if control is None or not use_control else {
-        'control': control[agents, 0].double()}
+    given = inputs(None if control is None or not use_control else
+                   control[agents, 0].double())
     jacobian = motion.jacobian(mean, **given)
     predicted = (jacobian @ data.prior_cov[agents].double() @
                  jacobian.transpose(-1, -2) +
