@@ -102,3 +102,39 @@ def test_dense_joint_check_names_the_sizes():
                        r'about 71.5 GiB .* 1 GiB are free on cpu: it runs up '
                        r'to about 1182 agents'):
         check_dense_joint(10_000, 4, 'the test', free=2**30)
+
+
+def test_bounded_inflation_against_the_generalized_eigenproblem():
+    # a slow reference: scipy's generalized eigenvectors V of (P, C)
+    # (V^T C V = I, V^T P V = diag(lambda)); the inflated covariance is
+    # V^-T diag(min(kappa, max(lambda, 1))) V^-1, one matrix at a time
+    import scipy.linalg
+    from tg_nebp.gaussian import bounded_inflation
+    g = torch.Generator().manual_seed(3)
+    count, size = 6, 4
+    a = torch.randn(count, size, size, generator=g, dtype=torch.float64)
+    cov = a @ a.transpose(-1, -2) + 0.1 * torch.eye(size)
+    b = torch.randn(count, size, 2, generator=g, dtype=torch.float64)
+    # the prediction is wider in a 2-D subspace only: the links measured
+    # two directions, the others not at all
+    predicted = cov + 3.0 * b @ b.transpose(-1, -2)
+    kappa = torch.linspace(0.9, 4.0, count, dtype=torch.float64)
+    out = bounded_inflation(cov, predicted, kappa)
+    for n in range(count):
+        lam, v = scipy.linalg.eigh(predicted[n].numpy(), cov[n].numpy())
+        factor = np.minimum(float(kappa[n]), np.maximum(lam, 1.0))
+        inv = np.linalg.inv(v)
+        expected = inv.T @ np.diag(factor) @ inv
+        np.testing.assert_allclose(out[n].numpy(), expected, rtol=1e-9,
+                                   atol=1e-10)
+        # never wider than the prediction, never narrower than the belief
+        # where kappa >= 1
+        assert np.linalg.eigvalsh(predicted[n].numpy() -
+                                  out[n].numpy()).min() > -1e-9
+        if kappa[n] >= 1:
+            assert np.linalg.eigvalsh(out[n].numpy() -
+                                      cov[n].numpy()).min() > -1e-9
+    # links that narrowed every direction at least kappa times: kappa C
+    wide = bounded_inflation(cov, 10 * cov, torch.full((count, ), 1.5,
+                                                       dtype=torch.float64))
+    torch.testing.assert_close(wide, 1.5 * cov, rtol=1e-10, atol=1e-10)

@@ -23,7 +23,7 @@ __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'check_predicted_prior', 'predict_joint', 'range_blocks',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
            'unit_vectors', 'scope_index', 'WoodburyPrior', 'WoodburyUpdate',
-           'JOINT_COPIES']
+           'JOINT_COPIES', 'bounded_inflation']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
 #: recursion (covariance, information, factor, temporaries), for the
@@ -122,6 +122,58 @@ def check_predicted_prior(data, motion, what: str,
             f"{[float(f'{e:.3g}') for e in eig]}): {what} needs a "
             f"positive predicted variance in every direction (a known state "
             f"is an anchor's)")
+
+
+def bounded_inflation(cov: Tensor, predicted: Tensor,
+                      kappa: Tensor) -> Tensor:
+    r"""The covariances :obj:`cov` :math:`(N, S, S)` of beliefs after a
+    step's links inflated by :obj:`kappa` :math:`(N)`, never beyond the
+    same step's prediction :obj:`predicted` :math:`(N, S, S)` (before the
+    links): in every direction the inflation undoes at most what the links
+    took away.
+
+    With :math:`\boldsymbol{\Sigma} = \mathbf{L} \mathbf{L}^\top` and
+    the generalized eigenvalues :math:`\mathbf{L}^{-1} \mathbf{P}
+    \mathbf{L}^{-\top} = \mathbf{U} \boldsymbol{\Lambda}
+    \mathbf{U}^\top` (:math:`\lambda \geq 1` where the links brought
+    information),
+
+    .. math::
+        \boldsymbol{\Sigma}' = \mathbf{L} \mathbf{U}
+        \operatorname{diag}\big(\min(\kappa, \max(\lambda, 1))\big)
+        \mathbf{U}^\top \mathbf{L}^\top,
+
+    which is :math:`\kappa \boldsymbol{\Sigma}` where every direction's
+    variance was reduced at least :math:`\kappa` times, and leaves a
+    direction that no link measured as it is. A global inflation
+    :math:`\kappa \boldsymbol{\Sigma}` compensates the information that a
+    filter of marginals counts again (shared through links); applied to a
+    direction that got none, it compounds with every step: a robot seeing
+    one range a step had its sideways variance grow as :math:`\kappa^t`
+    (above :math:`10^6` m² on a real sequence). A :obj:`kappa` at most 1
+    deflates as given; a :obj:`cov` without a Cholesky factor (an anchor's
+    zero) is scaled by :obj:`kappa` as it is."""
+    kappa = kappa.to(cov).view(-1, 1)
+    if not kappa.requires_grad and bool((kappa == 1).all()):
+        return cov  # nothing inflated (plain Gaussian BP)
+    lower, failed = torch.linalg.cholesky_ex(cov)
+    ok = failed == 0
+    safe = torch.where(ok.view(-1, 1, 1), lower,
+                       torch.eye(cov.size(-1), dtype=cov.dtype,
+                                 device=cov.device))
+    half = torch.linalg.solve_triangular(safe, predicted, upper=False)
+    whitened = torch.linalg.solve_triangular(safe, half.transpose(-1, -2),
+                                             upper=False)
+    eigvals, eigvecs = torch.linalg.eigh(
+        0.5 * (whitened + whitened.transpose(-1, -2)))
+    factor = torch.minimum(kappa, eigvals.clamp_min(1.0))
+    root = safe @ eigvecs
+    # what is added to cov: exactly zero where nothing is inflated (an
+    # untrained learned inflation of 1 is plain Gaussian BP bit for bit)
+    added = ((root * (factor - 1).unsqueeze(-2)) @ root.transpose(-1, -2))
+    added = 0.5 * (added + added.transpose(-1, -2))
+    return torch.where(ok.view(-1, 1, 1), cov + added,
+                       kappa.view(-1, 1, 1) * cov)
 
 
 def block_diagonal(blocks: Tensor) -> Tensor:

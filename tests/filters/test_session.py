@@ -9,6 +9,7 @@ import torch
 from helpers import (PACKAGE_ROOT, gen, live_trackers, stream_realization,
                      tiny_scenario)
 
+from tg_nebp.gaussian import bounded_inflation
 from tg_nebp.filters import (AgentPrior, AnchorAt, CentralizedIEKF,
                              GaussianBP, ParticleBP, TrackingSession)
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange, MotionModel
@@ -405,9 +406,16 @@ def test_a_step_without_links_predicts_and_a_joined_prior_is_not_inflated(
     session = TrackingSession(tracker, dtype=torch.float64)
     last = stream_realization(session, data, steps=SPLIT)[-1]
     kappa = getattr(tracker, 'inflation', 1.0)
+    # Gaussian BP's inflation goes no further than the last step's
+    # prediction (the IEKF has none)
+    held = getattr(session.state, 'predicted', None)
     prior = AgentPrior([5.0, 6.0, 0.5, -0.25], torch.diag(torch.tensor(
         [4.0, 1.0, 0.01, 0.04], dtype=torch.float64)).tolist())
-    beliefs = [(0, *session.estimates(last)['n0'], kappa),
+    mean, cov = session.estimates(last)['n0']
+    if held is not None:
+        cov = bounded_inflation(cov[None], held[:1],
+                                torch.tensor([kappa]))[0]
+    beliefs = [(0, mean, cov, 1.0),
                (-1, torch.tensor(prior.mean, dtype=torch.float64),
                 torch.tensor(prior.cov, dtype=torch.float64), 1.0)]
     out = session.update(dt=2.0, join={'late': prior})

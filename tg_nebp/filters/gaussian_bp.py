@@ -6,7 +6,8 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.tracker import StepOutput, Tracker
-from tg_nebp.gaussian import check_predicted_prior, graph_index
+from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
+                              graph_index)
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
@@ -31,12 +32,16 @@ class GaussianState(NamedTuple):
     next, one row per node: the beliefs' :obj:`mean` :math:`(N, S)` and
     :obj:`cov` :math:`(N, S, S)` (float64; a prior before a node's first
     step), :obj:`fresh` :math:`(N)` (the row holds a given prior, not yet
-    predicted: not inflated) and the correction's :obj:`memory`
-    (:obj:`None` for Gaussian BP)."""
+    predicted: not inflated), the correction's :obj:`memory`
+    (:obj:`None` for Gaussian BP) and the step's :obj:`predicted`
+    covariance :math:`(N, S, S)` before its links (the prior's before the
+    first step), the widest that the inflation makes a belief
+    (:func:`~tg_nebp.gaussian.bounded_inflation`)."""
     mean: Tensor
     cov: Tensor
     fresh: Tensor
     memory: Optional[Tensor]
+    predicted: Tensor
 
 
 class _Active(NamedTuple):
@@ -112,11 +117,15 @@ class GaussianBP(Tracker):
             (default: :obj:`0.01`)
         inflation (float, optional): Every agent's belief covariance is
             multiplied by :math:`\kappa \geq 1` before the next prediction
-            (not the prior's, before the first),
-            which compensates the cross-agent correlations that a filter of
-            marginals drops (they make its beliefs overconfident, and every
-            later step counts shared information again); :obj:`1` is plain
-            Gaussian BP. (default: :obj:`1.0`)
+            (not the prior's, before the first), in every direction no
+            further than the step's own prediction
+            (:func:`~tg_nebp.gaussian.bounded_inflation`: a direction that
+            no link measured is not inflated, so it never grows beyond
+            what the motion model adds). This compensates the cross-agent
+            correlations that a filter of marginals drops (they make its
+            beliefs overconfident, and every later step counts shared
+            information again); :obj:`1` is plain Gaussian BP.
+            (default: :obj:`1.0`)
         compile (bool, optional): Fuse the rank-one messages of a range
             model with :func:`torch.compile` (see
             :class:`~tg_nebp.nn.conv.GaussianBPConv`; the first steps
@@ -221,10 +230,11 @@ class GaussianBP(Tracker):
         check_predicted_prior(data, self.motion, 'Gaussian BP',
                               self.use_control)
         anchor = data.anchor
-        return GaussianState(data.prior_mean.double(),
-                             data.prior_cov.double(), torch.ones_like(anchor),
+        cov = data.prior_cov.double()
+        return GaussianState(data.prior_mean.double(), cov,
+                             torch.ones_like(anchor),
                              self.initial_memory(anchor.numel(),
-                                                 anchor.device))
+                                                 anchor.device), cov)
 
     def step(self, state: GaussianState, edge_index: Tensor,
              edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
@@ -236,7 +246,9 @@ class GaussianBP(Tracker):
         (:meth:`steps`), a live session
         (:class:`~tg_nebp.filters.TrackingSession`) and a partitioned run
         share: the last step's beliefs handed on (:meth:`carry`) and
-        inflated (:meth:`inflate`; a :obj:`fresh` prior is not), predicted
+        inflated (:meth:`inflation_of`, no further than the step's
+        prediction: :func:`~tg_nebp.gaussian.bounded_inflation`; a
+        :obj:`fresh` prior is not), predicted
         by :obj:`motion` (the tracker's by default; a session's time step
         differs per step) with every node's known input :obj:`control`
         :math:`(N, C)`, then the iterations on the links
@@ -250,9 +262,11 @@ class GaussianBP(Tracker):
         if not bool(state.fresh.all()):
             mean, cov, memory = self.carry(mean, cov, memory)
             # the filter's own beliefs are inflated, not a given prior
-            cov = torch.where(state.fresh.view(-1, 1, 1), cov,
-                              self.inflate(cov, memory, anchor))
+            inflated = bounded_inflation(
+                cov, state.predicted, self.inflation_of(cov, memory, anchor))
+            cov = torch.where(state.fresh.view(-1, 1, 1), cov, inflated)
         mean, cov = self.predict(mean, cov, anchor, motion, control)
+        predicted = cov
         agents = ~anchor
         info = torch.zeros_like(cov)
         info[agents] = _inverse(cov[agents])
@@ -272,7 +286,7 @@ class GaussianBP(Tracker):
         cov = torch.zeros_like(belief.info)
         cov[agents] = _inverse(belief.info[agents])
         return StepOutput(t, mean, cov), GaussianState(
-            mean, cov, torch.zeros_like(state.fresh), memory)
+            mean, cov, torch.zeros_like(state.fresh), memory, predicted)
 
     def initial_memory(self, num_nodes: int,
                        device=None) -> Optional[Tensor]:
@@ -281,11 +295,12 @@ class GaussianBP(Tracker):
         correction keeps its node embeddings there)."""
         return None
 
-    def inflate(self, cov: Tensor, memory: Optional[Tensor],
-                anchor: Tensor) -> Tensor:
-        r"""The beliefs' covariances :math:`(N, S, S)` inflated before the
-        prediction of every step after the first: by :obj:`inflation`."""
-        return self.inflation * cov
+    def inflation_of(self, cov: Tensor, memory: Optional[Tensor],
+                     anchor: Tensor) -> Tensor:
+        r"""Every node's inflation :math:`\kappa_i` :math:`(N)` of its
+        belief covariance :obj:`cov` :math:`(N, S, S)` before the
+        prediction of every step after the first: :obj:`inflation`."""
+        return cov.new_full(cov.shape[:1], self.inflation)
 
     def iterate(self, prior: GaussianBelief, belief: GaussianBelief,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,

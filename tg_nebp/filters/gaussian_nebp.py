@@ -92,12 +92,12 @@ class GaussianNEBP(GaussianBP):
     def initial_memory(self, num_nodes: int, device=None) -> Tensor:
         return self.conv.initial_memory(num_nodes, device)
 
-    def inflate(self, cov: Tensor, memory: Tensor, anchor: Tensor) -> Tensor:
-        r"""Every agent's covariance inflated by its learned
-        :math:`\kappa_i` (:meth:`GaussianNEBPConv.inflation
+    def inflation_of(self, cov: Tensor, memory: Tensor,
+                     anchor: Tensor) -> Tensor:
+        r"""Every agent's learned inflation :math:`\kappa_i`
+        (:meth:`GaussianNEBPConv.inflation
         <tg_nebp.nn.conv.GaussianNEBPConv.inflation>`)."""
-        kappa = self.conv.inflation(cov, memory, anchor)
-        return kappa.view(-1, 1, 1) * cov
+        return self.conv.inflation(cov, memory, anchor)
 
     def iterate(self, prior, belief, edge_index, edge_attr, anchor,
                 messages, generator, factors, memory, iteration):

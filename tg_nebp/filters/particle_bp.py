@@ -15,6 +15,7 @@ from tg_nebp.data.validation import (check_layer_inputs, check_number,
 from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
                                         silverman_bandwidth)
 from tg_nebp.filters.tracker import StepOutput, Tracker
+from tg_nebp.gaussian import bounded_inflation
 from tg_nebp.models import (LinkPairRange, MeasurementModel, MotionModel,
                             RangeModel, inputs)
 from tg_nebp.nn.conv import ParticleBPConv
@@ -123,13 +124,16 @@ class ParticleState(NamedTuple):
     one row per node: the :obj:`particles` :math:`(N, K, S)` and their
     normalized :obj:`log_weights` :math:`(N, K)` of the last step before
     resampling, its weighted covariance :obj:`cov` :math:`(N, S, S)` (the
-    regularization's shape) and :obj:`fresh` :math:`(N)`: the row holds
+    regularization's shape), :obj:`fresh` :math:`(N)`: the row holds
     draws of a given prior, which the next step predicts without
-    resampling."""
+    resampling, and the weighted covariance of the step's
+    :obj:`predicted` particles :math:`(N, S, S)` before its links (what
+    bounds the regularization's inflation; zero before the first step)."""
     particles: Tensor
     log_weights: Tensor
     cov: Tensor
     fresh: Tensor
+    predicted: Tensor
 
 
 class ParticleBP(Tracker):
@@ -187,7 +191,14 @@ class ParticleBP(Tracker):
         regularize (float or str, optional): Regularized resampling: after
             resampling, every particle is moved by Gaussian noise with
             covariance :math:`h^2` times the node's weighted particle
-            covariance (:math:`0 < h \le 10`); :obj:`"silverman"` takes
+            covariance (:math:`0 < h \le 10`), in every direction at most
+            what brings the cloud's covariance back to the step's
+            prediction (:func:`~tg_nebp.gaussian.bounded_inflation` with
+            :math:`\kappa = 1 + h^2`): the kernel widens a belief by
+            :math:`1 + h^2` where the links narrowed it at least that
+            much, and leaves a direction that no link measured as it is,
+            so a node without links (a robot that sees nothing) does not
+            grow as :math:`(1 + h^2)^t`; :obj:`"silverman"` takes
             :math:`h` from :func:`~tg_nebp.filters.silverman_bandwidth`
             (about 0.3-0.5 at the paper's :math:`K`).
             (default: :obj:`None`, the paper's plain resampling)
@@ -498,7 +509,7 @@ class ParticleBP(Tracker):
         # no step yet: nothing to regularize with
         cov = particles.new_zeros(particles.size(0), size, size)
         return ParticleState(particles, log_weights, cov,
-                             torch.ones_like(data.anchor))
+                             torch.ones_like(data.anchor), cov)
 
     def step(self, state: ParticleState, edge_index: Tensor,
              edge_attr: Tensor, anchor: Tensor, t: int,
@@ -525,7 +536,8 @@ class ParticleBP(Tracker):
         particles, log_weights = state.particles, state.log_weights
         if not bool(state.fresh.all()):
             moved, carried = self.resample_step(particles, log_weights,
-                                                state.cov, generator, counts)
+                                                state.cov, generator, counts,
+                                                state.predicted)
             # a prior's draws are predicted as they are, and an anchor's
             # known state is never resampled or jittered: the kernel
             # jitter of a one-point cloud multiplies its rounding-level
@@ -549,6 +561,7 @@ class ParticleBP(Tracker):
                                                           motion, given),
                 generator, counts, particles, anchor, control)
         _check_prediction(particles, motion, t)
+        _, predicted = weighted_moments(particles, log_weights)
         # the M-sample offsets, per graph from its generator (none drawn
         # for the paper's pairing: its random stream is as is)
         offsets = None
@@ -567,7 +580,8 @@ class ParticleBP(Tracker):
         # over as values
         return (StepOutput(t, report, cov, particles, log_weights),
                 ParticleState(particles, log_weights.detach(), cov.detach(),
-                              torch.zeros_like(state.fresh)))
+                              torch.zeros_like(state.fresh),
+                              predicted.detach()))
 
     def _draw_offsets(self, part: Tensor, g: Optional[torch.Generator]):
         return self.bp_conv.draw_offsets(part.size(0), self.num_particles, g,
@@ -575,14 +589,17 @@ class ParticleBP(Tracker):
 
     def resample_step(self, particles: Tensor, log_weights: Tensor,
                       cov: Tensor, generator: Generators = None,
-                      counts: Optional[List[int]] = None):
+                      counts: Optional[List[int]] = None,
+                      predicted: Optional[Tensor] = None):
         r"""Step 4 of the time loop: resamples the nodes whose effective
         sample size is below :obj:`ess_threshold` :math:`\cdot K` (all
         nodes without a threshold), jitters their particles if
         :obj:`regularize` is set, and returns the particles and the
         log-weights that the next prediction carries (uniform where
         resampled). :obj:`cov` is the weighted particle covariance of the
-        step (the jitter's shape). The gradient is cut: log-weights carry
+        step (the jitter's shape), :obj:`predicted` that of its prediction
+        before the links (the jitter's bound; :obj:`None`: unbounded). The
+        gradient is cut: log-weights carry
         over as values. With one generator per graph, :obj:`counts` gives
         the graphs' node counts (as :meth:`steps` passes them)."""
         def resample(log_weights: Tensor, g: Optional[torch.Generator]):
@@ -599,7 +616,7 @@ class ParticleBP(Tracker):
             1, ancestors.unsqueeze(-1).expand(-1, -1, particles.size(-1)))
         if self.regularize is not None:
             particles = particles + self._jitter(cov, particles, generator,
-                                                 counts, resampled)
+                                                 counts, resampled, predicted)
         uniform = particles.new_full(particles.shape[:2],
                                      -math.log(self.num_particles))
         if resampled is None:
@@ -609,13 +626,22 @@ class ParticleBP(Tracker):
 
     def _jitter(self, cov: Tensor, particles: Tensor, generator: Generators,
                 counts: Optional[List[int]],
-                resampled: Optional[Tensor]) -> Tensor:
+                resampled: Optional[Tensor],
+                predicted: Optional[Tensor]) -> Tensor:
         # regularized resampling: Gaussian kernel noise with covariance
-        # h^2 times the weighted particle covariance (a PSD square root:
-        # anchors and collapsed clouds have singular covariances)
+        # h^2 times the weighted particle covariance, bounded by the
+        # step's prediction (a PSD square root: anchors and collapsed
+        # clouds have singular covariances)
         h = (silverman_bandwidth(self.num_particles, particles.size(-1))
              if self.regularize == 'silverman' else self.regularize)
-        eigvals, eigvecs = torch.linalg.eigh(cov.double())
+        cov = cov.double()
+        if predicted is None:
+            kernel = h * h * cov
+        else:
+            kernel = bounded_inflation(
+                cov, predicted.double(),
+                cov.new_full(cov.shape[:1], 1 + h * h)) - cov
+        eigvals, eigvecs = torch.linalg.eigh(kernel)
         root = (eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)).to(
             particles.dtype)
 
@@ -624,7 +650,7 @@ class ParticleBP(Tracker):
                                device=part.device, generator=g)
 
         noise = _draw(standard_normal, generator, counts, particles)
-        jitter = h * noise @ root.transpose(-1, -2)
+        jitter = noise @ root.transpose(-1, -2)
         if resampled is not None:  # only the particles just resampled
             jitter = jitter * resampled.view(-1, 1, 1)
         return jitter
