@@ -192,7 +192,9 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
     the library: one joint state over the agents, float64 numpy, one
     vector measurement at a time in a plain loop, Joseph-form updates; the
     covariance multiplied by :obj:`inflation` before every prediction but
-    the first. A realization's known inputs (:obj:`control`) enter as
+    the first, in every generalized eigen-direction of (the step's
+    prediction, the covariance) no further than that prediction (scipy's
+    generalized eigh; one agent: Gaussian BP's bounded inflation). A realization's known inputs (:obj:`control`) enter as
     :math:`\mathbf{F} \mathbf{x} + f(\mathbf{0}, \mathbf{u})` (the model
     is linear). With :obj:`marginal`, the cross-agent covariances are
     dropped after every step (what a filter of marginals keeps). Returns
@@ -217,8 +219,12 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
     means, covs = [], []
     sigma2 = measurement.sigma**2
     for t in range(int(data.num_steps)):
-        if t > 0:
-            P = inflation * P
+        if t > 0 and inflation != 1.0:
+            import scipy.linalg
+            lam, V = scipy.linalg.eigh(predicted, P)
+            Vinv = np.linalg.inv(V)
+            P = Vinv.T @ np.diag(np.minimum(inflation, np.maximum(lam, 1.0))
+                                 ) @ Vinv
         Fj = np.kron(np.eye(count), F)
         x = Fj @ x
         control = getattr(data, 'control', None)
@@ -227,6 +233,7 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
                                 control=control[agents, t].double()
                                 ).numpy().reshape(-1)
         P = Fj @ P @ Fj.T + np.kron(np.eye(count), Q)
+        predicted = P
         for e in np.flatnonzero(data.edge_time.numpy() == t):
             j, i = (int(v) for v in data.edge_index[:, e])
             z = data.edge_attr[e, :2].double().numpy() - measurement.OFFSET
