@@ -561,7 +561,9 @@ class ParticleBP(Tracker):
                                                           motion, given),
                 generator, counts, particles, anchor, control)
         _check_prediction(particles, motion, t)
-        _, predicted = weighted_moments(particles, log_weights)
+        # the kernel's bound: only a regularized tracker reads it
+        predicted = (weighted_moments(particles, log_weights)[1]
+                     if self.regularize is not None else state.predicted)
         # the M-sample offsets, per graph from its generator (none drawn
         # for the paper's pairing: its random stream is as is)
         offsets = None
