@@ -260,10 +260,11 @@ class GaussianBP(Tracker):
         default)."""
         mean, cov, memory = state.mean, state.cov, state.memory
         if not bool(state.fresh.all()):
-            mean, cov, memory = self.carry(mean, cov, memory)
+            mean, cov, memory, predicted = self.carry(mean, cov, memory,
+                                                      state.predicted)
             # the filter's own beliefs are inflated, not a given prior
             inflated = bounded_inflation(
-                cov, state.predicted, self.inflation_of(cov, memory, anchor))
+                cov, predicted, self.inflation_of(cov, memory, anchor))
             cov = torch.where(state.fresh.view(-1, 1, 1), cov, inflated)
         mean, cov = self.predict(mean, cov, anchor, motion, control)
         predicted = cov
@@ -313,11 +314,12 @@ class GaussianBP(Tracker):
                                   validate=False)
         return new, messages, memory
 
-    def carry(self, mean: Tensor, cov: Tensor, memory: Optional[Tensor]):
+    def carry(self, mean: Tensor, cov: Tensor, memory: Optional[Tensor],
+              predicted: Tensor):
         r"""What a step hands to the next (at the start of the next, after
-        the step's output was used): the beliefs and the memory, unchanged
-        here."""
-        return mean, cov, memory
+        the step's output was used): the beliefs, the memory and the
+        step's prediction, unchanged here."""
+        return mean, cov, memory, predicted
 
     def _iterate_step(self, work: _Active, num_graphs: int, generator
                       ) -> Tuple[GaussianBelief, Optional[Tensor]]:

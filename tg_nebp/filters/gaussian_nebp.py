@@ -105,11 +105,13 @@ class GaussianNEBP(GaussianBP):
                          memory, messages, generator, factors, iteration,
                          validate=False)
 
-    def carry(self, mean: Tensor, cov: Tensor, memory: Tensor):
-        r"""The beliefs and memory detached (training is truncated in time
-        to one step), the step's consistency added to the history."""
+    def carry(self, mean: Tensor, cov: Tensor, memory: Tensor,
+              predicted: Tensor):
+        r"""The beliefs, memory and prediction detached (training is
+        truncated in time to one step), the step's consistency added to the
+        history."""
         return (mean.detach(), cov.detach(),
-                self.conv.end_step(memory.detach()))
+                self.conv.end_step(memory.detach()), predicted.detach())
 
     @classmethod
     def recommended(cls, **overrides) -> 'GaussianNEBP':
