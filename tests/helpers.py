@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 import tg_nebp
@@ -194,7 +195,8 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
     covariance multiplied by :obj:`inflation` before every prediction but
     the first, in every generalized eigen-direction of (the step's
     prediction, the covariance) no further than that prediction (scipy's
-    generalized eigh; one agent: Gaussian BP's bounded inflation). A realization's known inputs (:obj:`control`) enter as
+    generalized eigh; one agent: Gaussian BP's bounded inflation). A
+    realization's known inputs (:obj:`control`) enter as
     :math:`\mathbf{F} \mathbf{x} + f(\mathbf{0}, \mathbf{u})` (the model
     is linear). With :obj:`marginal`, the cross-agent covariances are
     dropped after every step (what a filter of marginals keeps). Returns
@@ -418,3 +420,54 @@ def stream_realization(session, data, steps=None, start=0, dt=None,
         outputs.append(session.update(links, ranges, dt=dt, join=join))
         join = {}
     return outputs
+
+
+# a small UTIAS MRCLAM sequence, written in its format
+MRCLAM_HEADER = '# UTIAS\n# produced by\n# Format:\n# columns\n'
+MRCLAM_T0 = 1000.0
+# robot r drives at v_r along x with turn rate w_r from heading h_r
+MRCLAM_SPEED = [0.1, 0.2, 0.05, 0.0, 0.15]
+MRCLAM_TURN = [0.0, 0.1, -0.2, 0.0, 0.3]
+MRCLAM_HEADING = [0.0, 3.0, -3.0, 1.0, 2.0]
+
+
+def write_mrclam(folder: Path, measurements=None):
+    r"""A small MRCLAM sequence in the dataset's format in :obj:`folder`:
+    five robots driving at constant speeds and turn rates for 30 s, two
+    landmarks, the measurements :obj:`measurements` (robot -> rows; by
+    default :data:`MRCLAM_MEASUREMENTS`)."""
+    measurements = MRCLAM_MEASUREMENTS if measurements is None else \
+        measurements
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def table(name, rows):
+        (folder / name).write_text(MRCLAM_HEADER + ''.join(
+            ' \t '.join(f'{v}' for v in row) + '\n' for row in rows))
+
+    # robots 1-5, landmarks 6 and 7; barcode 99 is nobody's
+    table('Barcodes.dat', [(s, 10 + s) for s in range(1, 8)])
+    table('Landmark_Groundtruth.dat', [(6, 1.0, 2.0, 0.0, 0.0),
+                                       (7, -3.0, 4.0, 0.0, 0.0)])
+    for r in range(5):
+        times = MRCLAM_T0 + np.arange(0.0, 30.0, 0.01)
+        heading = MRCLAM_HEADING[r] + MRCLAM_TURN[r] * (times - MRCLAM_T0)
+        wrapped = math.pi - np.mod(math.pi - heading, 2 * math.pi)
+        table(f'Robot{r + 1}_Groundtruth.dat', [
+            (t, r + MRCLAM_SPEED[r] * (t - MRCLAM_T0), 0.5 * r, h)
+            for t, h in zip(times, wrapped)])
+        # odometry from 1 s on, every 0.02 s
+        table(f'Robot{r + 1}_Odometry.dat', [
+            (t, MRCLAM_SPEED[r], MRCLAM_TURN[r])
+            for t in MRCLAM_T0 + 1.0 + np.arange(0.0, 28.0, 0.02)])
+        table(f'Robot{r + 1}_Measurement.dat', measurements.get(r + 1, []))
+
+
+MRCLAM_MEASUREMENTS = {
+    # robot 1 sees landmark 6 twice in step 0 (the latest stays), once
+    # exactly at the end of step 0, robot 2 in step 1, and barcode 99
+    1: [(MRCLAM_T0 + 1.1, 16, 1.5, 0.1), (MRCLAM_T0 + 1.3, 16, 1.6, 0.2),
+        (MRCLAM_T0 + 1.5, 16, 1.7, 0.3), (MRCLAM_T0 + 1.7, 12, 2.0, -0.1),
+        (MRCLAM_T0 + 1.8, 99, 3.0, 0.0)],
+    # robot 3 sees landmark 7 before the start (outside) and in step 2
+    3: [(MRCLAM_T0 + 0.5, 17, 4.0, 0.0), (MRCLAM_T0 + 2.4, 17, 4.1, -0.3)],
+}

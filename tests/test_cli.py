@@ -184,3 +184,37 @@ def test_train_gaussian_nebp_on_a_mix_of_scenarios(tmp_path, capsys):
                  '--out', str(tmp_path / 'o3'), *common]) == 2
     assert capsys.readouterr().err.startswith(
         "error: 'hidden_dim' (--hidden-dim) is for the gaussian base")
+
+
+def test_fit_then_evaluate_record_track_and_score_a_real_sequence(
+        tmp_path, capsys):
+    # a sequence in the MRCLAM format: fitted, written as a scenario file,
+    # which evaluate reads with --root, record writes as lines, track
+    # follows and score scores as evaluate does
+    from helpers import write_mrclam
+    write_mrclam(tmp_path / 'MRCLAM_Dataset9')
+    root, fitted = str(tmp_path), str(tmp_path / 'fit9.json')
+    assert main(['fit', '--sequence', '9', '--root', root, '--output',
+                 fitted]) == 0
+    fields = json.loads((tmp_path / 'fit9.json').read_text())
+    assert (fields['sequence'], fields['measurement']['name']) == (
+        9, 'student-t-range-bearing')
+    fields['duration'] = 10.0
+    (tmp_path / 'fit9.json').write_text(json.dumps(fields))
+    out = tmp_path / 'out'
+    assert main(['evaluate', '--method', 'iekf', '--scenario', fitted,
+                 '--root', root, '--out', str(out), '--quiet']) == 0
+    entry = json.loads((out / 'metrics.json').read_text())['iekf']
+    capsys.readouterr()
+    lines, truth = tmp_path / 'm.jsonl', tmp_path / 't.jsonl'
+    assert main(['record', '--scenario', fitted, '--root', root,
+                 '--measurements', str(lines), '--truth', str(truth)]) == 0
+    first = json.loads(lines.read_text().splitlines()[0])
+    assert first['time'] == 0.5 and len(first['join']) == 7
+    estimates = tmp_path / 'e.jsonl'
+    assert main(['track', '--method', 'iekf', '--scenario', fitted,
+                 '--input', str(lines), '--output', str(estimates)]) == 0
+    capsys.readouterr()
+    assert main(['score', '--estimates', str(estimates), '--truth',
+                 str(truth)]) == 0
+    assert f"RMSE {entry['rmse']:.3f} m" in capsys.readouterr().out

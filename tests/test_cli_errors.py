@@ -20,11 +20,12 @@ import pytest
 import torch
 
 from tg_nebp import NEBP
+from tg_nebp.datasets import MRCLAMScenario
 from tg_nebp.experiments.compare import run_compare
 from tg_nebp.io import read_json, write_json
 from tg_nebp.training import save_checkpoint
 
-from helpers import mixed_k_checkpoint
+from helpers import mixed_k_checkpoint, write_mrclam
 
 # tiny runs: a case that is not caught early still ends in seconds
 EVALUATE = ['evaluate', '--realizations', '1', '--particles', '8', '--quiet']
@@ -162,6 +163,30 @@ def compare_zero_floor(folder):
     return argv, ['compare.json', "['pcrb']", 'remove the file']
 
 
+def mrclam_window_too_long(folder):
+    # a 28-s sequence under the 600-s test protocol
+    write_mrclam(folder / 'MRCLAM_Dataset9')
+    return (['evaluate', '--method', 'iekf', '--quiet', '--scenario',
+             'mrclam-9', '--root', '.'], ["'mrclam-9'", '600 s'])
+
+
+def mrclam_compare_uneven(folder):
+    # windows of 4 s every 4 s, and one window: tables of unequal length
+    write_mrclam(folder / 'MRCLAM_Dataset9')
+    MRCLAMScenario.load('mrclam-9').replace(
+        name='strided', duration=4.0, stride=4.0).save(folder / 's.json')
+    return (['compare', '--quiet', '--methods', 'pcrb', '--root', '.',
+             '--scenario', 's.json', 'mrclam-9-first-half'],
+            ['strided', 'mrclam-9-first-half', '--realizations'])
+
+
+def fit_output_is_folder(folder):
+    write_mrclam(folder / 'MRCLAM_Dataset9')
+    (folder / 'taken').mkdir()
+    return (['fit', '--sequence', '9', '--root', '.', '--output', 'taken'],
+            ["'taken'", 'folder'])
+
+
 def argv_only(argv: List[str], expected: List[str]) -> Prepare:
     return lambda folder: (argv, expected)
 
@@ -187,6 +212,11 @@ CASES: Dict[str, Prepare] = {
     'scenario-malformed-json': scenario_malformed,
     # '..' as a processed-file name would escape the dataset folder
     'scenario-name-dotdot': scenario_file(assign('name', '..'), "'name'"),
+    'mrclam-window-too-long': mrclam_window_too_long,
+    'mrclam-unknown-option': argv_only(
+        ['evaluate', '--scenario', 'mrclam-6-fast'], ["'fast'"]),
+    'mrclam-compare-uneven': mrclam_compare_uneven,
+    'fit-output-is-folder': fit_output_is_folder,
     'checkpoint-malicious-pickle': checkpoint_malicious,
     'checkpoint-missing': checkpoint_missing,
     'checkpoint-random-bytes': checkpoint_random_bytes,

@@ -10,6 +10,8 @@ from typing import Callable, List, NoReturn, Optional
 
 from tqdm import tqdm
 
+from tg_nebp.datasets import fitted_scenario
+from tg_nebp.datasets.mrclam_dataset import sequence_source
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
 from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
@@ -130,18 +132,28 @@ def _add_samples(parser: argparse.ArgumentParser, default):
                         f"{default if default is not None else 1})")
 
 
-def _add_test_data(parser: argparse.ArgumentParser, realizations: int):
-    # the realizations a tracker is evaluated on, and their batching
+_REAL_SCENARIOS = ('; mrclam-N with options, e.g. mrclam-6 or '
+                   'mrclam-6-range-no-odometry: a UTIAS MRCLAM sequence '
+                   'read from --root (the folder holding MRCLAM_DatasetN.zip '
+                   'or MRCLAM_DatasetN/; downloaded there where absent)')
+
+
+def _add_test_data(parser: argparse.ArgumentParser, realizations: int,
+                   real: bool = False):
+    # the realizations a tracker is evaluated on, and their batching; a
+    # real sequence's (real) are its windows, all of them by default
     parser.add_argument('--realizations', type=_positive,
-                        default=realizations, help=f'test realizations R '
-                        f'(default: {realizations})')
+                        default=None if real else realizations,
+                        help=f'test realizations R (default: '
+                        f'{realizations}' + ('; every window of a real '
+                                             'sequence)' if real else ')'))
     parser.add_argument('--seed', type=_non_negative, default=0,
                         help='seed of data and particles (default: 0)')
     parser.add_argument('--batch-size', type=_positive, default=1,
                         help='realizations tracked together (default: 1)')
     parser.add_argument('--scenario', default='paper_test',
                         help='scenario name or JSON file (default: '
-                        'paper_test)')
+                        'paper_test)' + (_REAL_SCENARIOS if real else ''))
 
 
 def _device(name: str) -> str:
@@ -280,6 +292,16 @@ def _record(args) -> int:
     return 0
 
 
+def _fit(args) -> int:
+    source = sequence_source(args.root, args.sequence)
+    scenario, report = fitted_scenario(source, args.sequence)
+    scenario.save(args.output)
+    print(f"motion: {scenario.motion_model}\nmeasurement: "
+          f"{scenario.measurement_model}\nfit: {report}\n-> {args.output} "
+          f"(--scenario {args.output} --root {args.root})")
+    return 0
+
+
 def _score(args) -> int:
     entry = score_files(args.estimates, args.truth)
     print(f"RMSE {entry['rmse']:.3f} m, outage {entry['outage']}, "
@@ -391,7 +413,7 @@ def build_parser() -> argparse.ArgumentParser:
         'writes; the metrics equal one process\'s.')
     ev.add_argument('--method', choices=list(METHODS), default='bp',
                     help=f"{', '.join(METHODS)} (default: bp)")
-    _add_test_data(ev, realizations=10)
+    _add_test_data(ev, realizations=10, real=True)
     ev.add_argument('--out', default='results/evaluate',
                     help='output folder (default: results/evaluate)')
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -529,9 +551,11 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument('--scenario', nargs='+', default=['paper_test',
                                                       'paper_test_nlos'],
                     metavar='NAME|FILE', help='scenarios, of distinct '
-                    'names (default: paper_test paper_test_nlos)')
-    cp.add_argument('--realizations', type=_positive, default=20,
-                    help='realizations per scenario (default: 20)')
+                    'names (default: paper_test paper_test_nlos)'
+                    + _REAL_SCENARIOS)
+    cp.add_argument('--realizations', type=_positive, default=None,
+                    help='realizations per scenario (default: 20; every '
+                    'window of a real sequence)')
     cp.add_argument('--seed', type=_non_negative, default=0,
                     help='seed of data and particles (default: 0)')
     cp.add_argument('--batch-size', type=_positive, default=1,
@@ -593,7 +617,8 @@ def build_parser() -> argparse.ArgumentParser:
         'its true states to another file, for a replay through the live '
         'path and tg-nebp score.')
     rc.add_argument('--scenario', default='paper_test',
-                    help='scenario name or JSON file (default: paper_test)')
+                    help='scenario name or JSON file (default: paper_test)'
+                    + _REAL_SCENARIOS)
     rc.add_argument('--seed', type=_non_negative, default=0,
                     help='seed of the test data (default: 0)')
     rc.add_argument('--realization', type=_non_negative, default=0,
@@ -605,6 +630,26 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument('--root', default='datasets',
                     help='dataset root (default: datasets)')
     rc.set_defaults(run=_record, threads=None, device='cpu')
+
+    ft = sub.add_parser(
+        'fit', help='fit the noise models of a UTIAS MRCLAM sequence and '
+        'write them as a scenario', description='Fits the range and bearing '
+        'noise (robust scales, the Student-t tail, the range bias against '
+        'the distance) and the odometry noise on the ground truth of a '
+        'sequence\'s test protocol (600 s from the first time all five '
+        'robots have ground truth and odometry, steps of 0.5 s) and writes '
+        'the scenario file that evaluate, compare, train, track and record '
+        'read (--scenario FILE); every mrclam-N name uses the ones fitted '
+        'on sequence 6.')
+    ft.add_argument('--sequence', type=int, choices=range(1, 10), default=6,
+                    metavar='N', help='the sequence, 1 to 9 (default: 6)')
+    ft.add_argument('--root', default='datasets',
+                    help='the folder holding MRCLAM_DatasetN.zip or '
+                    'MRCLAM_DatasetN/; downloaded there where absent '
+                    '(default: datasets)')
+    ft.add_argument('--output', required=True, metavar='FILE.json',
+                    help='the scenario file written')
+    ft.set_defaults(run=_fit, threads=None, device='cpu')
 
     sc = sub.add_parser(
         'score', help='the accuracy of track\'s estimates against record\'s '

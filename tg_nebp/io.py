@@ -37,6 +37,8 @@ def atomic_write(path: Union[str, Path], write: Callable[[str], None]):
     first removes the stale temporaries of killed writes in that folder
     (:func:`remove_stale_temporaries`)."""
     path = Path(path)
+    if path.is_dir():  # else the rename's error names the temporary
+        raise IsADirectoryError(f"'{path}' is a folder, not a file")
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path.parent)
     fd, tmp = tempfile.mkstemp(

@@ -15,48 +15,13 @@ from tg_nebp.data import check_realization
 from tg_nebp.datasets.mrclam import (integrate_odometry, interpolate_pose,
                                      mrclam_realization, read_mrclam)
 
-HEADER = '# UTIAS\n# produced by\n# Format:\n# columns\n'
-T0 = 1000.0
-# robot r drives at v_r along x with turn rate w_r from heading h_r
-SPEED = [0.1, 0.2, 0.05, 0.0, 0.15]
-TURN = [0.0, 0.1, -0.2, 0.0, 0.3]
-HEADING = [0.0, 3.0, -3.0, 1.0, 2.0]
+from helpers import (MRCLAM_HEADER, MRCLAM_HEADING, MRCLAM_MEASUREMENTS,
+                     MRCLAM_SPEED, MRCLAM_T0, MRCLAM_TURN, write_mrclam)
 
-
-def _write(folder: Path, measurements):
-    folder.mkdir(parents=True, exist_ok=True)
-
-    def table(name, rows):
-        (folder / name).write_text(HEADER + ''.join(
-            ' \t '.join(f'{v}' for v in row) + '\n' for row in rows))
-
-    # robots 1-5, landmarks 6 and 7; barcode 99 is nobody's
-    table('Barcodes.dat', [(s, 10 + s) for s in range(1, 8)])
-    table('Landmark_Groundtruth.dat', [(6, 1.0, 2.0, 0.0, 0.0),
-                                       (7, -3.0, 4.0, 0.0, 0.0)])
-    for r in range(5):
-        times = T0 + np.arange(0.0, 30.0, 0.01)
-        heading = HEADING[r] + TURN[r] * (times - T0)
-        wrapped = math.pi - np.mod(math.pi - heading, 2 * math.pi)
-        table(f'Robot{r + 1}_Groundtruth.dat', [
-            (t, r + SPEED[r] * (t - T0), 0.5 * r, h)
-            for t, h in zip(times, wrapped)])
-        # odometry from 1 s on, every 0.02 s
-        table(f'Robot{r + 1}_Odometry.dat', [
-            (t, SPEED[r], TURN[r])
-            for t in T0 + 1.0 + np.arange(0.0, 28.0, 0.02)])
-        table(f'Robot{r + 1}_Measurement.dat', measurements.get(r + 1, []))
-
-
-MEASUREMENTS = {
-    # robot 1 sees landmark 6 twice in step 0 (the latest stays), once
-    # exactly at the end of step 0, robot 2 in step 1, and barcode 99
-    1: [(T0 + 1.1, 16, 1.5, 0.1), (T0 + 1.3, 16, 1.6, 0.2),
-        (T0 + 1.5, 16, 1.7, 0.3), (T0 + 1.7, 12, 2.0, -0.1),
-        (T0 + 1.8, 99, 3.0, 0.0)],
-    # robot 3 sees landmark 7 before the start (outside) and in step 2
-    3: [(T0 + 0.5, 17, 4.0, 0.0), (T0 + 2.4, 17, 4.1, -0.3)],
-}
+T0, SPEED, TURN, HEADING = (MRCLAM_T0, MRCLAM_SPEED, MRCLAM_TURN,
+                            MRCLAM_HEADING)
+HEADER, MEASUREMENTS = MRCLAM_HEADER, MRCLAM_MEASUREMENTS
+_write = write_mrclam
 
 
 @pytest.fixture

@@ -8,7 +8,7 @@ import pytest
 from tg_nebp import NEBP
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.cli import main
-from tg_nebp.datasets import Scenario
+from tg_nebp.datasets import Scenario, load_scenario
 from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
                                           evaluate_scenario, method_tracker)
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF, GaussianBP,
@@ -205,3 +205,29 @@ def test_a_run_without_inputs_has_its_own_entry():
     tracker, key = method_tracker('gbp', robots, no_control=True)
     assert key == 'gbp-no-control' and tracker.use_control is False
     assert method_tracker('gbp', robots)[1] == 'gbp'
+
+
+def test_a_checkpoint_on_data_of_other_models_is_refused_or_said(
+        scenario, tmp_path):
+    # the shipped correction of the paper's network: robots are another
+    # kind of data (refused, naming both); NLOS ranges are the same kind
+    # under another likelihood (tracked with the checkpoint's, said)
+    with pytest.raises(ValueError, match=r"checkpoint 'paper' was trained "
+                       r"for constant-velocity-drag motion and the link "
+                       r"features \['range'\], but the data of scenario "
+                       r"'mrclam-6' are unicycle-odometry with \['range', "
+                       r"'bearing'\]"):
+        method_tracker('gnebp', load_scenario('mrclam-6'),
+                       checkpoint='paper')
+    nlos = Scenario.load('paper_test_nlos')
+    with pytest.warns(UserWarning, match=r"checkpoint 'paper' tracks with "
+                      r"the models it was trained with .*GaussianRange.*, "
+                      r"not those of scenario 'paper_test_nlos' "
+                      r"\(.*NLOSRange"):
+        tracker, _ = method_tracker('gnebp', nlos, checkpoint='paper')
+    assert tracker.measurement.name == 'gaussian'
+    particle = tmp_path / 'p.pt'
+    save_checkpoint(particle, NEBP(num_particles=8))
+    with pytest.raises(ValueError, match=r"the data of scenario 'mrclam-6'"):
+        method_tracker('nebp', load_scenario('mrclam-6'),
+                       checkpoint=particle)

@@ -12,11 +12,13 @@ from torch_geometric.data import InMemoryDataset
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_positive_int, check_realization,
                                      is_integer)
+from tg_nebp.datasets.mrclam_dataset import MRCLAM, MRCLAMScenario
 from tg_nebp.datasets.scenario import Scenario
-from tg_nebp.io import atomic_write, first_line
+from tg_nebp.io import atomic_write, first_line, read_json
 from tg_nebp.utils import derive_seed, process_group
 
-__all__ = ['CooperativeLocalizationDataset', 'load_datasets']
+__all__ = ['CooperativeLocalizationDataset', 'load_datasets',
+           'load_scenario']
 
 # bump when the generator or the file layout changes, so old processed files
 # are not reused (3: a dictionary of tensors and primitives, no classes)
@@ -221,20 +223,45 @@ def _describe(transform: Optional[Callable]) -> str:
     return re.sub(r' at 0x[0-9a-fA-F]+', '', repr(transform))
 
 
+def load_scenario(name_or_path: Union[str, os.PathLike]
+                  ) -> Union[Scenario, MRCLAMScenario]:
+    r"""A simulated :class:`~tg_nebp.datasets.Scenario` or a real
+    sequence's :class:`~tg_nebp.datasets.MRCLAMScenario`, by name
+    (:obj:`"paper_test"`, :obj:`"mrclam-6"`, ...) or from a JSON file (a
+    real sequence's file has a :obj:`"sequence"` field)."""
+    text = str(name_or_path)
+    if text.startswith('mrclam-') and not text.endswith('.json'):
+        return MRCLAMScenario.load(text)
+    if text.endswith('.json') and os.path.isfile(text):
+        fields = read_json(text)
+        if isinstance(fields, dict) and 'sequence' in fields:
+            return MRCLAMScenario.from_fields(fields, text)
+    return Scenario.load(name_or_path)
 
-def load_datasets(root: str, *specs: Tuple[Union[str, Scenario], int, int]
-                  ) -> List[CooperativeLocalizationDataset]:
+
+def load_datasets(root: str, *specs: Tuple[Union[str, Scenario], Optional[
+        int], int]) -> List[Union[CooperativeLocalizationDataset, MRCLAM]]:
     r"""The datasets :obj:`(scenario, num_realizations, seed)`, generated
     once: under an initialized :mod:`torch.distributed` process group rank
     0 generates (or finds) the files first and the other ranks then read
-    them, so concurrent processes never write the same file. Used by
-    :obj:`tg-nebp train`, :obj:`evaluate` and :obj:`reproduce`."""
+    them, so concurrent processes never write the same file. A real
+    sequence's scenario (:class:`~tg_nebp.datasets.MRCLAMScenario`) is
+    its :class:`~tg_nebp.datasets.MRCLAM` dataset read from :obj:`root`
+    (its first :obj:`num_realizations` windows, all of them for
+    :obj:`None`; the seed is not used). Used by :obj:`tg-nebp train`,
+    :obj:`evaluate`, :obj:`compare` and :obj:`reproduce`."""
     world_size, rank = process_group()
 
+    def one(scenario, count, seed):
+        if isinstance(scenario, (str, os.PathLike)):
+            scenario = load_scenario(scenario)
+        if isinstance(scenario, MRCLAMScenario):
+            return MRCLAM(root, scenario, count, log=False)
+        return CooperativeLocalizationDataset(root, scenario, count, seed,
+                                              log=False)
+
     def load():
-        return [CooperativeLocalizationDataset(root, scenario, count, seed,
-                                               log=False)
-                for scenario, count, seed in specs]
+        return [one(*spec) for spec in specs]
 
     if world_size == 1:
         return load()

@@ -17,10 +17,11 @@ from typing import (Callable, Dict, Iterable, List, Optional, Sequence,
                     Tuple, Union)
 
 from tg_nebp.bounds import PosteriorCRB
-from tg_nebp.datasets import Scenario, load_datasets
+from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
-from tg_nebp.experiments.evaluate import check_run, scenario_of
+from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, check_run,
+                                          realizations_of, scenario_of)
 from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
@@ -205,8 +206,9 @@ def _run_one(method: Method, dataset, seed: int, device: str,
 
 
 def run_compare(root: str = 'datasets',
-                scenarios: Sequence[Union[str, Scenario]] = COMPARE_SCENARIOS,
-                realizations: int = 20, seed: int = 0,
+                scenarios: Sequence[Union[str, Scenario, MRCLAMScenario]
+                                    ] = COMPARE_SCENARIOS,
+                realizations: Optional[int] = None, seed: int = 0,
                 out: Union[str, Path] = 'results/compare',
                 checkpoints: Sequence[Union[str, Path]] = (),
                 device: str = 'cpu', batch_size: int = 1,
@@ -244,10 +246,13 @@ def run_compare(root: str = 'datasets',
     Args:
         root (str, optional): Dataset root. (default: :obj:`"datasets"`)
         scenarios (sequence, optional): Scenario names, files or
-            :class:`~tg_nebp.datasets.Scenario` objects, of distinct names.
-            (default: :obj:`COMPARE_SCENARIOS`)
-        realizations (int, optional): Realizations per scenario.
-            (default: :obj:`20`)
+            :class:`~tg_nebp.datasets.Scenario` objects, of distinct names;
+            real sequences (:obj:`"mrclam-6"`,
+            :class:`~tg_nebp.datasets.MRCLAMScenario`) are read from
+            :obj:`root`. (default: :obj:`COMPARE_SCENARIOS`)
+        realizations (int, optional): Realizations per scenario: 20 by
+            default, every window of a real sequence; all scenarios must
+            hold as many. (default: :obj:`None`)
         seed (int, optional): Seed of the data and the particle draws.
             (default: :obj:`0`)
         out (str or Path, optional): Folder of :obj:`compare.json`.
@@ -265,7 +270,8 @@ def run_compare(root: str = 'datasets',
         log (callable, optional): Receives one line per row.
             (default: :obj:`print`)
     """
-    scenarios = _listed(scenarios, 'scenarios', (str, os.PathLike, Scenario),
+    scenarios = _listed(scenarios, 'scenarios',
+                        (str, os.PathLike) + SCENARIO_TYPES,
                         'a scenario name, a JSON file or a Scenario')
     checkpoints = _listed(checkpoints, 'checkpoints', (str, os.PathLike),
                           'a path')
@@ -288,8 +294,16 @@ def run_compare(root: str = 'datasets',
             for key, (what, build) in table.items()
             if methods is None or any(key.startswith(m) for m in methods)]
     order = {name: list(table) for name, table in rows.items()}
-    datasets = load_datasets(root, *((s, realizations, seed)
+    datasets = load_datasets(root, *((s, realizations_of(s, realizations,
+                                                         20), seed)
                                      for s in loaded))
+    realizations = len(datasets[0])
+    uneven = next((d for d in datasets if len(d) != realizations), None)
+    if uneven is not None:
+        raise ValueError(
+            f"the scenarios of one table must hold as many realizations: "
+            f"{datasets[0].scenario.name} has {realizations}, "
+            f"{uneven.scenario.name} {len(uneven)} (give --realizations)")
     path = Path(out) / 'compare.json'
     settings = _settings(datasets, seed, device)
     result = read_resumable(
@@ -326,7 +340,7 @@ def run_compare(root: str = 'datasets',
 def _listed(value, name: str, kinds: tuple, what: str) -> list:
     # one value where a list belongs would be iterated item by item (a
     # string letter by letter): refused, as is an item of another type
-    if (isinstance(value, (str, bytes, os.PathLike, Scenario))
+    if (isinstance(value, (str, bytes, os.PathLike) + SCENARIO_TYPES)
             or not isinstance(value, Iterable)):
         raise TypeError(f"'{name}' must be a list, each item {what}, got "
                         f"{value!r}")
@@ -342,7 +356,8 @@ def _check_names(specs: list, scenarios: List[Scenario]) -> None:
     # name would be skipped as done, under the first one's numbers
     first = {}
     for spec, scenario in zip(specs, scenarios):
-        given = 'a Scenario' if isinstance(spec, Scenario) else f"'{spec}'"
+        given = ('a Scenario' if isinstance(spec, SCENARIO_TYPES)
+                 else f"'{spec}'")
         if scenario.name in first:
             raise ValueError(
                 f"the scenarios {first[scenario.name]} and {given} are both "

@@ -5,12 +5,14 @@ or loads the realizations, runs it and merges its entry into
 :obj:`metrics.json`."""
 import contextlib
 import os
+import warnings
 from pathlib import Path
 from typing import Callable, Optional, Tuple, Union
 
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.data.validation import check_positive_int
-from tg_nebp.datasets import Scenario, load_datasets
+from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
+                              load_scenario)
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
 from tg_nebp.models import model_like
@@ -20,7 +22,8 @@ from tg_nebp.utils import check_device, process_group
 
 __all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
            'tracker_measurement', 'evaluate_scenario', 'scenario_of',
-           'check_run']
+           'check_run', 'realizations_of', 'checked_models',
+           'SCENARIO_TYPES']
 
 #: The methods of :func:`method_tracker`, by their :obj:`metrics.json` key
 #: stem: particle BP, NEBP from a checkpoint, Gaussian BP, Gaussian NEBP
@@ -58,29 +61,81 @@ def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
                       scenario.measurement_model)
 
 
-def scenario_of(spec: Union[str, os.PathLike, Scenario],
-                name: str = "'scenario'") -> Scenario:
-    r"""The :class:`~tg_nebp.datasets.Scenario` of a name, a JSON file or
-    a :class:`~tg_nebp.datasets.Scenario` (itself), loaded before any data
-    is made; another type is a :class:`TypeError` naming the argument
-    :obj:`name`."""
-    if isinstance(spec, Scenario):
+#: What a scenario argument may be: a simulated network or a real sequence.
+SCENARIO_TYPES = (Scenario, MRCLAMScenario)
+
+
+def scenario_of(spec: Union[str, os.PathLike, Scenario, MRCLAMScenario],
+                name: str = "'scenario'"
+                ) -> Union[Scenario, MRCLAMScenario]:
+    r"""The :class:`~tg_nebp.datasets.Scenario` or the real sequence's
+    :class:`~tg_nebp.datasets.MRCLAMScenario` of a name, a JSON file or
+    either object (itself) (:func:`~tg_nebp.datasets.load_scenario`),
+    loaded before any data is made; another type is a :class:`TypeError`
+    naming the argument :obj:`name`."""
+    if isinstance(spec, SCENARIO_TYPES):
         return spec
     if isinstance(spec, (str, os.PathLike)):
-        return Scenario.load(spec)
-    raise TypeError(f"{name} must be a scenario name, a JSON file or a "
-                    f"Scenario, got {spec!r}")
+        return load_scenario(spec)
+    raise TypeError(f"{name} must be a scenario name, a JSON file, a "
+                    f"Scenario or an MRCLAMScenario, got {spec!r}")
 
 
-def check_run(realizations: int, batch_size: int, device: str) -> None:
+def realizations_of(scenario: Union[Scenario, MRCLAMScenario],
+                    realizations: Optional[int], default: int
+                    ) -> Optional[int]:
+    r"""The realizations of a run on :obj:`scenario`: the number given;
+    where none is given, :obj:`default` for a simulated network and
+    :obj:`None` (every window) for a real sequence."""
+    if realizations is not None:
+        return realizations
+    return None if isinstance(scenario, MRCLAMScenario) else default
+
+
+def check_run(realizations: Optional[int], batch_size: int,
+              device: str) -> None:
     r"""Checks the arguments of a run over test realizations that the data
     or torch would otherwise refuse only midway, or with an error that
-    names none of them: positive integers :obj:`realizations` and
-    :obj:`batch_size`, and a :obj:`device` of this machine
+    names none of them: positive integers :obj:`realizations` (or
+    :obj:`None`: every window of a real sequence) and :obj:`batch_size`,
+    and a :obj:`device` of this machine
     (:func:`~tg_nebp.utils.check_device`)."""
-    check_positive_int(realizations, 'realizations')
+    if realizations is not None:
+        check_positive_int(realizations, 'realizations')
     check_positive_int(batch_size, 'batch_size')
     check_device(device)
+
+
+def checked_models(tracker: Tracker,
+                   scenario: Union[Scenario, MRCLAMScenario],
+                   checkpoint: str) -> Tracker:
+    r"""A learned tracker from :obj:`checkpoint`, which tracks with the
+    models it was trained with, checked against the data of
+    :obj:`scenario`: another kind of state or input (another motion model)
+    or other link features is a :class:`ValueError` naming both; other
+    parameters or another likelihood of the same features (the
+    model-mismatch experiments: trained on line-of-sight ranges, tested
+    on NLOS ones) are used with a :class:`UserWarning` that names both."""
+    motion, measurement = scenario.motion_model, scenario.measurement_model
+    if (tracker.motion.name != motion.name
+            or tracker.motion.state_dim != motion.state_dim
+            or len(tracker.measurement.features) != len(
+                measurement.features)):
+        raise ValueError(
+            f"checkpoint '{checkpoint}' was trained for {tracker.motion.name} "
+            f"motion and the link features "
+            f"{list(tracker.measurement.features)}, but the data of scenario "
+            f"'{scenario.name}' are {motion.name} with "
+            f"{list(measurement.features)}: train one on them (tg-nebp train "
+            f"--scenario ...)")
+    if (tracker.motion.config() != motion.config()
+            or tracker.measurement.config() != measurement.config()):
+        warnings.warn(
+            f"checkpoint '{checkpoint}' tracks with the models it was "
+            f"trained with ({tracker.motion}, {tracker.measurement}), not "
+            f"those of scenario '{scenario.name}' ({motion}, "
+            f"{measurement})", UserWarning, stacklevel=3)
+    return tracker
 
 
 def _given(**options) -> dict:
@@ -146,8 +201,9 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got "
                          f"{method!r}")
-    if not isinstance(scenario, Scenario):
-        raise TypeError(f"'scenario' must be a Scenario, got {scenario!r}")
+    if not isinstance(scenario, SCENARIO_TYPES):
+        raise TypeError(f"'scenario' must be a Scenario or an "
+                        f"MRCLAMScenario, got {scenario!r}")
     for name, value in options.items():
         takers = METHOD_OPTIONS[name]
         # None, and False for a switch, is an option left out
@@ -184,13 +240,15 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
         given = _given(num_iterations=iterations, tolerance=tolerance)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
-        return gaussian_nebp_from_checkpoint(checkpoint, **given), 'gnebp'
+        return checked_models(gaussian_nebp_from_checkpoint(
+            checkpoint, **given), scenario, checkpoint), 'gnebp'
     if method == 'nebp':
         if checkpoint is None:
             raise ValueError("method 'nebp' needs a checkpoint (--checkpoint "
                              "PATH)")
-        return nebp_from_checkpoint(checkpoint, particles, compile=compile,
-                                    num_samples=samples), 'nebp'
+        return checked_models(nebp_from_checkpoint(
+            checkpoint, particles, compile=compile, num_samples=samples),
+            scenario, checkpoint), 'nebp'
     # receiver-only messages are particle BP's default
     if iterations is not None and iterations > 1 and ends in (None,
                                                               'receiver'):
@@ -206,14 +264,17 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
     return ParticleBP(**given, compile=compile, **models), 'bp'
 
 
-def evaluate_scenario(method: str, scenario: Union[str, Scenario],
-                      realizations: int, seed: int = 0,
+def evaluate_scenario(method: str,
+                      scenario: Union[str, Scenario, MRCLAMScenario],
+                      realizations: Optional[int] = None, seed: int = 0,
                       root: str = 'datasets', out: str = 'results',
                       batch_size: int = 1, device: str = 'cpu',
                       progress_factory: Optional[Callable] = None,
                       **options) -> dict:
     r"""Generates (or loads) :obj:`realizations` test realizations of
-    :obj:`scenario` from :obj:`seed` under :obj:`root`, runs
+    :obj:`scenario` from :obj:`seed` under :obj:`root` (10 by default; a
+    real sequence's windows read from :obj:`root`, every one by default),
+    runs
     :func:`method_tracker(method, ..., **options) <method_tracker>` on
     them and merges its entry into :obj:`out/metrics.json`
     (:func:`~tg_nebp.evaluation.evaluate_method`). Under :obj:`torchrun`
@@ -234,6 +295,7 @@ def evaluate_scenario(method: str, scenario: Union[str, Scenario],
     """
     check_run(realizations, batch_size, device)
     scenario = scenario_of(scenario)
+    realizations = realizations_of(scenario, realizations, 10)
     tracker, key = method_tracker(method, scenario, **options)
     world_size, rank = process_group()
     dataset, = load_datasets(root, (scenario, realizations, seed))

@@ -121,7 +121,9 @@ def record_realization(measurements: str, truth: str,
     dataset, = load_datasets(root, (scenario, index + 1, seed))
     data = dataset[index]
     features = len(scenario.measurement_model.features)
-    dt = scenario.motion_model.params().get('dt', 1.0)
+    # a real sequence's step, a simulated network's motion model's
+    dt = getattr(scenario, 'dt', None) or scenario.motion_model.params(
+    ).get('dt', 1.0)
     write_text(measurements, ''.join(
         line + '\n' for line in realization_lines(data, features, dt)))
     write_text(truth, ''.join(line + '\n' for line in truth_lines(data, dt)))

@@ -486,3 +486,46 @@ def test_a_step_without_links_keeps_the_prior():
         torch.testing.assert_close(belief.mean, prior.mean, rtol=0,
                                    atol=1e-12)
         assert all(t.size(0) == 0 for t in messages)
+
+
+def test_a_singular_belief_keeps_its_prior_and_the_step_goes_on():
+    # messages that cancel an agent's prior information (what rounding
+    # does to messages that outweigh a very wide prior by many orders):
+    # that agent keeps its prior, with a warning naming it; the others'
+    # beliefs are the usual sums
+    *_, edge_index, edge_attr, anchor, belief = snapshot()
+    conv = GaussianBPConv(ends='both')
+    factors = conv.factors(edge_index, anchor, belief.mean.size(-1))
+    _, rank_one = conv(belief, belief, edge_index, edge_attr, anchor)
+    messages = rank_one.factor_messages()
+    agent = int((~anchor).nonzero()[0, 0])
+    into = (factors.index[1] == agent).nonzero().view(-1)
+    info = messages.info.clone()
+    width = messages.eta.size(-1)
+    # the agent's prior without position-velocity correlation: a message
+    # of minus its position information leaves the position undetermined
+    regular_info = belief.info.clone()
+    regular_info[agent, :width, width:] = 0
+    regular_info[agent, width:, :width] = 0
+    regular = GaussianBelief(belief.mean, regular_info)
+    info[into] = 0
+    info[into[0]] = -regular_info[agent, :width, :width]
+    with pytest.warns(RuntimeWarning, match=rf"node\(s\) \[{agent}\] became "
+                      r"singular"):
+        got = conv.beliefs(regular, belief, FactorMessages(
+            info, messages.eta), factors, anchor)
+    torch.testing.assert_close(got.info[agent], regular_info[agent])
+    torch.testing.assert_close(got.mean[agent], belief.mean[agent])
+    # a prior without velocity information cannot stand in for itself
+    prior_info = regular_info.clone()
+    prior_info[agent, width:, width:] = 0
+    prior = GaussianBelief(belief.mean, prior_info)
+    others = ~anchor
+    others[agent] = False
+    want = conv.beliefs(regular, belief, messages, factors, anchor)
+    torch.testing.assert_close(got.info[others], want.info[others])
+    # a prior that cannot stand in: refused by name
+    with pytest.raises(ValueError, match=rf"the belief of node {agent} has "
+                       r"singular information"):
+        conv.beliefs(prior, belief, FactorMessages(
+            torch.zeros_like(info), messages.eta), factors, anchor)

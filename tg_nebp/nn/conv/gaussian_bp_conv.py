@@ -1,3 +1,4 @@
+import warnings
 from typing import NamedTuple, Optional, Tuple
 
 import torch
@@ -182,6 +183,27 @@ def _marginal_information(info: Tensor, mean: Tensor, width: int,
     info_rr = torch.where(anchor.view(-1, 1, 1), eye,
                           0.5 * (info_rr + info_rr.transpose(-1, -2)))
     return info_rr, eta_r.masked_fill(anchor.view(-1, 1), 0.0)
+
+
+def _prior_where_singular(prior: GaussianBelief, mean: Tensor, info: Tensor,
+                          singular: Tensor, anchor: Tensor
+                          ) -> Tuple[Tensor, Tensor]:
+    # the beliefs of the nodes whose information is singular replaced by
+    # their priors (a singular prior too: nothing determines the state)
+    _, bad_prior = torch.linalg.inv_ex(prior.info)
+    lost = singular & bad_prior.bool() & ~anchor
+    if bool(lost.any()):
+        node = int(lost.nonzero()[0, 0])
+        raise ValueError(f"the belief of node {node} has singular "
+                         f"information: its prior and messages leave a state "
+                         f"entry undetermined")
+    nodes = singular.nonzero().view(-1).tolist()
+    warnings.warn(f"the belief of node(s) {nodes} became singular (their "
+                  f"messages cancel their prior's information): they keep "
+                  f"their prior for this step", RuntimeWarning, stacklevel=4)
+    keep = singular.view(-1, 1, 1)
+    return (torch.where(keep.view(-1, 1), prior.mean, mean),
+            torch.where(keep, prior.info, info))
 
 
 def position_covariance(belief: GaussianBelief, width: int,
@@ -651,7 +673,12 @@ class GaussianBPConv(MessagePassing):
         r"""The beliefs of the nodes: every agent's :obj:`prior` plus its
         incoming :obj:`messages` (on the message edges of
         :obj:`factors`), solved for the mean; anchors keep
-        :obj:`belief`'s known states."""
+        :obj:`belief`'s known states. An agent whose messages leave its
+        information singular (they cancel what its prior knows, as
+        rounding does to messages that outweigh a very wide prior by many
+        orders) keeps its prior for the step, with a warning that names
+        it, and the step goes on; one whose prior alone is singular too is
+        a :class:`ValueError` (nothing determines its state)."""
         num_nodes, size = belief.mean.shape
         width = messages.eta.size(-1)
         sums = self.propagate(factors.index, info=messages.info,
@@ -670,13 +697,11 @@ class GaussianBPConv(MessagePassing):
         solved, singular = torch.linalg.solve_ex(
             torch.where(anchor.view(-1, 1, 1), eye, info),
             total.unsqueeze(-1))
+        mean = solved.squeeze(-1)
         if bool(singular.any()):
-            node = int(singular.nonzero()[0, 0])
-            raise ValueError(f"the belief of node {node} has singular "
-                             f"information: its prior and messages leave "
-                             f"a state entry undetermined")
-        mean = torch.where(anchor.view(-1, 1), belief.mean,
-                           solved.squeeze(-1))
+            mean, info = _prior_where_singular(prior, mean, info,
+                                               singular.bool(), anchor)
+        mean = torch.where(anchor.view(-1, 1), belief.mean, mean)
         return GaussianBelief(mean, info)
 
     def edge_update(self, info_j: Tensor, eta_j: Tensor, point_j: Tensor,
