@@ -218,3 +218,26 @@ def test_fit_then_evaluate_record_track_and_score_a_real_sequence(
     assert main(['score', '--estimates', str(estimates), '--truth',
                  str(truth)]) == 0
     assert f"RMSE {entry['rmse']:.3f} m" in capsys.readouterr().out
+
+
+def test_train_a_gaussian_nebp_on_windows_of_a_real_sequence(tmp_path,
+                                                             capsys):
+    # windows of the first half to train on, the second half to validate
+    # on: a real sequence's windows are the same for every seed, so the
+    # validation windows must be named
+    from helpers import write_mrclam
+    from tg_nebp.datasets import MRCLAMScenario
+    write_mrclam(tmp_path / 'MRCLAM_Dataset9')
+    train = tmp_path / 'train.json'
+    MRCLAMScenario.load('mrclam-9-first-half').replace(
+        name='train', duration=4.0, stride=4.0).save(train)
+    argv = ['train', '--base', 'gaussian', '--hidden-dim', '4',
+            '--iterations', '2', '--epochs', '1', '--batch-size', '1',
+            '--scenario', str(train), '--root', str(tmp_path), '--out',
+            str(tmp_path / 'out'), '--quiet']
+    assert main(argv) == 2
+    assert "give validation windows elsewhere" in capsys.readouterr().err
+    assert main(argv + ['--val-scenario', 'mrclam-9-second-half']) == 0
+    tracker = gaussian_nebp_from_checkpoint(tmp_path / 'out' / 'nebp.pt')
+    assert tracker.motion.name == 'unicycle-odometry'
+    assert 'negative log-likelihood' in capsys.readouterr().out

@@ -11,6 +11,7 @@ from typing import Callable, List, NoReturn, Optional
 from tqdm import tqdm
 
 from tg_nebp.datasets import fitted_scenario
+from tg_nebp.datasets.mrclam import FIT_HORIZON
 from tg_nebp.datasets.mrclam_dataset import sequence_source
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
@@ -240,7 +241,9 @@ def _evaluate(args) -> int:
     what = 'RMSE floor' if key == 'pcrb' else 'RMSE'
     heading = (f", heading {entry['heading_rmse']:.4f} rad"
                if 'heading_rmse' in entry else '')
-    print(f"{key}: {what} {entry['rmse']:.3f} m{heading}, outage "
+    largest = (f", median {entry['median_error']:.3f} m, max "
+               f"{entry['max_error']:.2f} m" if 'max_error' in entry else '')
+    print(f"{key}: {what} {entry['rmse']:.3f} m{largest}{heading}, outage "
           f"{entry['outage']}, P(accept) {entry['accept']}, "
           f"{entry['seconds']:.1f} s -> {Path(args.out) / 'metrics.json'}")
     return 0
@@ -257,7 +260,7 @@ def _train(args) -> int:
             args.measurement, args.samples, args.regularize,
             args.ess_threshold, args.resume, args.log_dir, args.root,
             device, args.compile, _bars(args), base=args.base,
-            hidden_dim=args.hidden_dim)
+            hidden_dim=args.hidden_dim, val_scenario=args.val_scenario)
         if process_group()[1] > 0:
             return 0
     for h in trained.history:
@@ -294,7 +297,8 @@ def _record(args) -> int:
 
 def _fit(args) -> int:
     source = sequence_source(args.root, args.sequence)
-    scenario, report = fitted_scenario(source, args.sequence)
+    scenario, report = fitted_scenario(source, args.sequence,
+                                       horizon=args.horizon)
     scenario.save(args.output)
     print(f"motion: {scenario.motion_model}\nmeasurement: "
           f"{scenario.measurement_model}\nfit: {report}\n-> {args.output} "
@@ -450,10 +454,17 @@ def build_parser() -> argparse.ArgumentParser:
                     'validation data; several: a mix, --realizations of '
                     'each (default: paper_train)')
     _add_measurement(tr, 'NEBP')
-    tr.add_argument('--realizations', type=_positive, default=100,
-                    help='training realizations (default: 100)')
-    tr.add_argument('--val-realizations', type=_positive, default=10,
-                    help='validation realizations (default: 10)')
+    tr.add_argument('--val-scenario', nargs='+', default=None,
+                    metavar='NAME|FILE', help='scenarios of the validation '
+                    'data (default: those of --scenario, drawn from seed + '
+                    '1); a real sequence\'s training windows need other '
+                    'ones' + _REAL_SCENARIOS)
+    tr.add_argument('--realizations', type=_positive, default=None,
+                    help='training realizations (default: 100; every '
+                    'window of a real sequence)')
+    tr.add_argument('--val-realizations', type=_positive, default=None,
+                    help='validation realizations (default: 10; every '
+                    'window of a real sequence)')
     tr.add_argument('--epochs', type=_positive, default=10)
     tr.add_argument('--batch-size', type=_positive, default=2,
                     help='realizations per batch, over all processes; under '
@@ -647,6 +658,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help='the folder holding MRCLAM_DatasetN.zip or '
                     'MRCLAM_DatasetN/; downloaded there where absent '
                     '(default: datasets)')
+    ft.add_argument('--horizon', type=_positive, default=FIT_HORIZON,
+                    metavar='H', help='steps over which the long-run noise '
+                    'variances are fitted (1: the one-step variances; '
+                    f'default: {FIT_HORIZON}, 20 s)')
     ft.add_argument('--output', required=True, metavar='FILE.json',
                     help='the scenario file written')
     ft.set_defaults(run=_fit, threads=None, device='cpu')

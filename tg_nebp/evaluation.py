@@ -165,7 +165,9 @@ def summarize(errors: torch.Tensor, nees: torch.Tensor,
               confidence: Sequence[float] = CONFIDENCE,
               dof: int = 2,
               angle_errors: Optional[torch.Tensor] = None) -> dict:
-    r"""The :obj:`metrics.json` entry of a method: RMSE, outage
+    r"""The :obj:`metrics.json` entry of a method: RMSE, the median and
+    the largest error (:obj:`"median_error"`, :obj:`"max_error"`: one lost
+    agent-step shows here before it moves the RMSE), outage
     probabilities keyed by threshold (:obj:`"0.5"`, ...) and
     :math:`\mathbb{P}(\text{accept } H_0)` keyed by confidence level
     (:obj:`"0.95"`, ...), the NEES tested with :obj:`dof` degrees of
@@ -176,6 +178,8 @@ def summarize(errors: torch.Tensor, nees: torch.Tensor,
     accept = metrics.consistency_curve(nees, confidence, dof=dof)
     entry = {
         'rmse': metrics.rmse_from_errors(errors),
+        'median_error': float(errors.double().median()),
+        'max_error': float(errors.double().max()),
         'outage': {f'{t:.1f}': float(p) for t, p in zip(thresholds, outage)},
         'accept': {f'{c:.2f}': float(p) for c, p in zip(confidence, accept)},
     }

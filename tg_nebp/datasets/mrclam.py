@@ -359,8 +359,11 @@ def fit_models(data: Realization, max_range: float = 10.0,
       \delta_\theta^2 + s_{\theta d}^2 \delta_d^2` by non-negative
       least squares of the squared block errors against the blocks' sums of
       those terms, the constants at least :math:`10^{-3}` m and rad; the
-      input-free prediction (a step without odometry) a random walk of the
-      true moves' root mean square per coordinate and of the heading.
+      input-free prediction (a step without odometry) a random walk whose
+      variance per step is the mean square of the true moves (per
+      coordinate, and of the heading) summed over blocks of :math:`H`
+      steps, divided by :math:`H` (robots drive smoothly: over 20 s they
+      move much further than independent steps of their size would).
 
     Returns the :class:`~tg_nebp.models.UnicycleOdometry`, the
     :class:`~tg_nebp.models.StudentTRangeBearing` (with :obj:`max_range`
@@ -420,9 +423,14 @@ def fit_models(data: Realization, max_range: float = 10.0,
                                  1e-6)
     turn_fit = _variance_fit(e_t[whole]**2, np.stack([ones, turn2, d2], -1),
                              1e-6)
-    # the input-free prediction: a random walk of the true moves' size
-    idle_position = float(np.sqrt(np.mean(moved.numpy()**2)))
-    idle_heading = float(np.sqrt(np.mean(true_turn**2)))
+    # the input-free prediction: a random walk that spreads over the
+    # horizon as far as the true moves summed over it
+    moves = moved.numpy()
+    position_sums = np.concatenate([_block_sums(moves[..., c], horizon)
+                                    for c in range(moves.shape[-1])])
+    idle_position = float(np.sqrt(np.mean(position_sums**2) / horizon))
+    turn_sums = _block_sums(true_turn.reshape(shape), horizon)
+    idle_heading = float(np.sqrt(np.mean(turn_sums**2) / horizon))
     motion = UnicycleOdometry(
         idle_position=idle_position, idle_heading=idle_heading,
         sigma_distance=float(np.sqrt(distance_fit[0])),

@@ -19,8 +19,8 @@ from torch_geometric.data import InMemoryDataset
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_positive_int, check_realization
-from tg_nebp.datasets.mrclam import (LINKS, fit_models, mrclam_realization,
-                                     read_mrclam)
+from tg_nebp.datasets.mrclam import (FIT_HORIZON, LINKS, fit_models,
+                                     mrclam_realization, read_mrclam)
 from tg_nebp.io import read_json, write_text
 from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config,
                             model_like)
@@ -380,11 +380,13 @@ def sequence_source(root: Union[str, os.PathLike], sequence: int,
 
 
 def fitted_scenario(source: Union[str, os.PathLike], sequence: int,
-                    name: Optional[str] = None
+                    name: Optional[str] = None,
+                    horizon: int = FIT_HORIZON
                     ) -> Tuple[MRCLAMScenario, Dict[str, Any]]:
     r"""The test protocol of :obj:`sequence` (named :obj:`name`,
     :obj:`"mrclam-N"` by default) with the noise models fitted
-    (:func:`~tg_nebp.datasets.fit_models`) on its test protocol's
+    (:func:`~tg_nebp.datasets.fit_models`, long-run variances over
+    :obj:`horizon` steps) on its test protocol's
     realization, the sequence read from :obj:`source` (its zip or folder),
     and the fit's report: what :obj:`tg-nebp fit` writes and prints (a
     sequence shorter than the protocol's 600 s is fitted on all of it).
@@ -394,13 +396,14 @@ def fitted_scenario(source: Union[str, os.PathLike], sequence: int,
     span = sequence_read.end() - sequence_read.start()
     data, _ = mrclam_realization(sequence_read, duration=min(
         600.0, 0.5 * math.floor(span / 0.5)))
-    motion, measurement, report = fit_models(data)
+    motion, measurement, report = fit_models(data, horizon=horizon)
     scenario = MRCLAMScenario(
         name=name or f'mrclam-{sequence}', sequence=sequence,
         motion=motion, measurement=measurement,
         description=(f'the test protocol of MRCLAM sequence {sequence}, the '
                      f'models fitted on its {report["links"]} links and '
-                     f'{report["agent_steps"]} robot-steps of odometry'))
+                     f'{report["agent_steps"]} robot-steps of odometry '
+                     f'(long-run variances over {horizon} steps)'))
     return scenario, report
 
 

@@ -10,8 +10,9 @@ from typing import Callable, List, NamedTuple, Optional, Sequence, Union
 import torch
 
 from tg_nebp.data.validation import check_positive_int
-from tg_nebp.datasets import Scenario, load_datasets
-from tg_nebp.experiments.evaluate import scenario_of, tracker_measurement
+from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
+from tg_nebp.experiments.evaluate import (realizations_of, scenario_of,
+                                          tracker_measurement)
 from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
 from tg_nebp.training import (BASES, checkpoint_history, gaussian_step_loss,
                               step_loss, steps_per_epoch, train)
@@ -93,8 +94,9 @@ class TrainedScenario(NamedTuple):
 def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
                    variant: str = 'paper', particles: Optional[int] = None,
                    iterations: Optional[int] = None,
-                   realizations: int = 100,
-                   val_realizations: int = 10, epochs: int = 10,
+                   realizations: Optional[int] = None,
+                   val_realizations: Optional[int] = None,
+                   epochs: int = 10,
                    batch_size: int = 2, lr: float = 1e-4, seed: int = 1,
                    measurement: Optional[str] = None,
                    samples: Union[int, str] = 1,
@@ -105,11 +107,15 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
                    compile: bool = False,
                    progress_factory: Optional[Callable] = None,
                    description: str = 'train', base: str = 'particle',
-                   hidden_dim: int = _GAUSSIAN_HIDDEN_DIM
+                   hidden_dim: int = _GAUSSIAN_HIDDEN_DIM,
+                   val_scenario: Union[str, Scenario, Sequence,
+                                       None] = None
                    ) -> TrainedScenario:
     r"""Trains NEBP on :obj:`realizations` realizations of
-    :obj:`scenario` drawn from :obj:`seed`, validated on
-    :obj:`val_realizations` drawn from :obj:`seed + 1`, and writes
+    :obj:`scenario` drawn from :obj:`seed` (100 by default), validated on
+    :obj:`val_realizations` (10 by default) drawn from :obj:`seed + 1` of
+    the same scenario or of :obj:`val_scenario` (one or a list), and
+    writes
     :obj:`out/nebp.pt` after every epoch (:func:`~tg_nebp.training.train`);
     :obj:`resume` continues from it. :obj:`log_dir` adds a
     :class:`~tg_nebp.training_log.TrainingLog` (rank 0 writes it under
@@ -128,6 +134,11 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
     scenario (:obj:`realizations` and :obj:`val_realizations` of each)
     are mixed (:class:`MixedRealizations`), and the tracker takes the
     first's models.
+
+    A real sequence (:class:`~tg_nebp.datasets.MRCLAMScenario`) gives its
+    windows (all of them by default), the same ones for every seed: its
+    validation windows come from :obj:`val_scenario` (other windows of
+    the sequence, or another), which it needs.
 
     Args:
         progress_factory (callable, optional): :obj:`(total, description)`
@@ -164,10 +175,25 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
                  [scenario_of(scenario)])
     if not scenarios:
         raise ValueError("'scenario' is an empty list")
+    if val_scenario is None:
+        real = next((s for s in scenarios
+                     if isinstance(s, MRCLAMScenario)), None)
+        if real is not None:
+            raise ValueError(
+                f"the windows of the real sequence '{real.name}' are the "
+                f"same for every seed: give validation windows elsewhere "
+                f"('val_scenario', --val-scenario)")
+        val_scenarios = scenarios
+    else:
+        val_scenarios = ([scenario_of(s) for s in val_scenario]
+                         if isinstance(val_scenario, (list, tuple)) else
+                         [scenario_of(val_scenario)])
     rank = process_group()[1]
     datasets = load_datasets(
-        root, *[(s, realizations, seed) for s in scenarios],
-        *[(s, val_realizations, seed + 1) for s in scenarios])
+        root, *[(s, realizations_of(s, realizations, 100), seed)
+                for s in scenarios],
+        *[(s, realizations_of(s, val_realizations, 10), seed + 1)
+          for s in val_scenarios])
     first = datasets[0].scenario
     inside = tracker_measurement(first, measurement)
     features = len(inside.features)
