@@ -1,8 +1,9 @@
 from .scenario import Scenario
-from .mrclam import (MRCLAMSequence, fit_models, integrate_odometry,
-                     interpolate_pose, mrclam_realization, read_mrclam)
-from .mrclam_dataset import (MRCLAM, MRCLAMScenario, fitted_scenario,
-                             range_part)
+from .mrclam import (FIT_HORIZON, MRCLAMSequence, fit_models,
+                     integrate_odometry, interpolate_pose, long_run_factor,
+                     mrclam_realization, read_mrclam)
+from .mrclam_dataset import (MRCLAM, PARTS, MRCLAMScenario, fitted_scenario,
+                             range_part, sequence_source, MRCLAM_URL)
 from .cooperative_localization import (CooperativeLocalizationDataset,
                                        load_datasets, load_scenario)
 
@@ -10,4 +11,5 @@ __all__ = ['Scenario', 'CooperativeLocalizationDataset', 'load_datasets',
            'load_scenario', 'MRCLAM', 'MRCLAMScenario', 'fitted_scenario',
            'range_part', 'MRCLAMSequence', 'read_mrclam',
            'mrclam_realization', 'integrate_odometry', 'interpolate_pose',
-           'fit_models']
+           'fit_models', 'long_run_factor', 'FIT_HORIZON', 'PARTS',
+           'sequence_source', 'MRCLAM_URL']

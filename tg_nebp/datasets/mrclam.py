@@ -43,7 +43,7 @@ __all__ = ['MRCLAMSequence', 'read_mrclam', 'mrclam_realization',
 
 #: The robots of every sequence (subjects 1 to 5).
 NUM_ROBOTS = 5
-#: The steps over which :func:`fit_models` fits the long-run noise by
+#: The steps over which :func:`~tg_nebp.datasets.fit_models` fits the long-run noise by
 #: default: 40 steps of 0.5 s, 20 s. Chosen on sequence 6 as the shortest
 #: of 1, 10, 20 and 40 steps with which the centralized IEKF's P(accept
 #: 0.95) reaches 0.85 (0.34, 0.72, 0.848, 0.92 at RMSE 0.108, 0.117,
@@ -339,12 +339,12 @@ def fit_models(data: Realization, max_range: float = 10.0,
     variances that keep it consistent are the long-run ones: the
     variance of a sum of :math:`H` steps' errors divided by :math:`H`
     (:obj:`horizon` 1: the one-step variances; by default
-    :data:`FIT_HORIZON`).
+    :data:`~tg_nebp.datasets.mrclam.FIT_HORIZON`).
 
     * **Range and bearing**: the residuals of every link against the
       interpolated true poses; the scales :math:`\sigma` are robust
       (1.4826 times the median absolute deviation) times the square root of
-      the :func:`long_run_factor` of the residuals of each link (receiver
+      the :func:`~tg_nebp.datasets.long_run_factor` of the residuals of each link (receiver
       and sender) over :math:`H` steps (from the residuals standardized
       and clipped at three scales); the Student-t's :math:`\nu` the
       maximum-likelihood one on a grid (2, 3, 4, 6, 8, 16, 32) over both

@@ -32,9 +32,9 @@ __all__ = ['MRCLAMScenario', 'MRCLAM', 'PARTS', 'fitted_scenario',
 MRCLAM_URL = ('http://asrl.utias.utoronto.ca/datasets/mrclam/'
               'MRCLAM_Dataset{}.zip')
 
-#: The parts of a sequence a scenario's windows lie in: all of its span in
-#: which every robot has ground truth and odometry, or the first or the
-#: second half of that span (to train a learned correction on one half and
+#: The parts of a sequence that a scenario's windows lie in, all of the
+#: span in which every robot has ground truth and odometry or the first or
+#: the second half of it (to train a learned correction on one half and
 #: test it on the other).
 PARTS = ('all', 'first-half', 'second-half')
 
@@ -96,7 +96,7 @@ class MRCLAMScenario:
             into the part. (default: :obj:`0.0`)
         stride (float, optional): Seconds between windows; :obj:`None` for
             one window. (default: :obj:`None`)
-        part (str, optional): One of :data:`PARTS`. (default: :obj:`"all"`)
+        part (str, optional): One of :data:`~tg_nebp.datasets.mrclam_dataset.PARTS`. (default: :obj:`"all"`)
         features (tuple, optional): :obj:`("range", "bearing")` or
             :obj:`("range",)`. (default: both)
         odometry (bool, optional): The odometry as known inputs.
@@ -354,7 +354,7 @@ def sequence_source(root: Union[str, os.PathLike], sequence: int,
     r"""Where sequence :obj:`sequence` lies in :obj:`root`: its zip
     :obj:`MRCLAM_DatasetN.zip` or, where there is none, its extracted
     folder :obj:`MRCLAM_DatasetN/`; where neither is there, the official
-    zip (:data:`MRCLAM_URL`) is downloaded into :obj:`root` first (with
+    zip (:data:`~tg_nebp.datasets.mrclam_dataset.MRCLAM_URL`) is downloaded into :obj:`root` first (with
     :obj:`download`; a :class:`ValueError` saying where it looked
     otherwise, or when the download fails)."""
     zipped = Path(root) / f'MRCLAM_Dataset{sequence}.zip'

@@ -61,7 +61,7 @@ def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
                       scenario.measurement_model)
 
 
-#: What a scenario argument may be: a simulated network or a real sequence.
+#: The scenarios of a run, a simulated network or a real sequence.
 SCENARIO_TYPES = (Scenario, MRCLAMScenario)
 
 
