@@ -57,7 +57,7 @@ _METHOD_OF_BASE = {'particle': 'nebp', 'gaussian': 'gnebp'}
 #: the 2-D regimes (:obj:`"mix"`) and on the 3-D training network
 #: (:obj:`"box3d"`). The commands that made them are in
 #: :obj:`tg_nebp/pretrained/README.md`.
-PRETRAINED = ('paper', 'nlos', 'mix', 'box3d', 'robots')
+PRETRAINED = ('paper', 'nlos', 'mix', 'box3d', 'robots', 'mrclam')
 
 
 def checkpoint_path(checkpoint: Union[str, Path]) -> Path:
