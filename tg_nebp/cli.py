@@ -452,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument('--scenario', nargs='+', default=['paper_train'],
                     help='scenario name or JSON file of the training and '
                     'validation data; several: a mix, --realizations of '
-                    'each (default: paper_train)')
+                    'each (default: paper_train)' + _REAL_SCENARIOS)
     _add_measurement(tr, 'NEBP')
     tr.add_argument('--val-scenario', nargs='+', default=None,
                     metavar='NAME|FILE', help='scenarios of the validation '
@@ -613,7 +613,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument('--scenario', default='paper_test',
                     help='scenario name or JSON file whose motion and '
                     'measurement models the tracker uses (default: '
-                    'paper_test)')
+                    'paper_test; mrclam-N: the models fitted on a UTIAS '
+                    'MRCLAM sequence)')
     tk.add_argument('--seed', type=_non_negative, default=0,
                     help='seed of the session\'s draws (default: 0)')
     _add_method_options(tk)
