@@ -233,9 +233,11 @@ def load_scenario(name_or_path: Union[str, os.PathLike]
     if text.startswith('mrclam-') and not text.endswith('.json'):
         return MRCLAMScenario.load(text)
     if text.endswith('.json') and os.path.isfile(text):
+        # read once: a real sequence's file has a 'sequence' field
         fields = read_json(text)
-        if isinstance(fields, dict) and 'sequence' in fields:
-            return MRCLAMScenario.from_fields(fields, text)
+        kind = (MRCLAMScenario if isinstance(fields, dict)
+                and 'sequence' in fields else Scenario)
+        return kind.from_fields(fields, text)
     return Scenario.load(name_or_path)
 
 

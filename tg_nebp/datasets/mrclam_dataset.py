@@ -21,6 +21,7 @@ from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_positive_int, check_realization
 from tg_nebp.datasets.mrclam import (FIT_HORIZON, LINKS, fit_models,
                                      mrclam_realization, read_mrclam)
+from tg_nebp.datasets.scenario import scenario_from_fields
 from tg_nebp.io import read_json, write_text
 from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config,
                             model_like)
@@ -221,25 +222,10 @@ class MRCLAMScenario:
     @classmethod
     def from_fields(cls, fields: Any, where: str) -> 'MRCLAMScenario':
         r"""A scenario from the fields of a JSON object, every problem a
-        :class:`ValueError` that names :obj:`where` and the field."""
-        if not isinstance(fields, dict):
-            raise ValueError(f"scenario '{where}' must be a JSON object of "
-                             f"fields")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(fields) - known
-        if unknown:
-            raise ValueError(f"scenario '{where}' has unknown fields "
-                             f"{sorted(unknown)}")
-        missing = sorted(f.name for f in dataclasses.fields(cls)
-                         if f.name not in fields
-                         and f.default is dataclasses.MISSING)
-        if missing:
-            raise ValueError(f"scenario '{where}' lacks the fields "
-                             f"{missing}")
-        try:
-            return cls(**fields)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"scenario '{where}': {e}") from None
+        :class:`ValueError` that names :obj:`where` and the field, as
+        :meth:`Scenario.from_fields
+        <tg_nebp.datasets.Scenario.from_fields>`."""
+        return scenario_from_fields(cls, fields, where)
 
     def to_fields(self) -> dict:
         r"""The fields as a JSON object (:meth:`from_fields` reads it)."""

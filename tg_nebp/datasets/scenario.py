@@ -23,6 +23,31 @@ __all__ = ['Scenario']
 _FILE_NAME = re.compile(r'[A-Za-z0-9_+-][A-Za-z0-9_.+-]*\Z')
 
 
+def scenario_from_fields(cls, fields: Any, where: str):
+    r"""The scenario dataclass :obj:`cls` built from the fields of a JSON
+    object; a value that is not an object, an unknown or missing field and
+    a field the class refuses are each a :class:`ValueError` that names
+    :obj:`where` (the file) and the field."""
+    if not isinstance(fields, dict):
+        raise ValueError(f"scenario '{where}' must be a JSON object of "
+                         f"fields")
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(fields) - known
+    if unknown:
+        raise ValueError(f"scenario '{where}' has unknown fields "
+                         f"{sorted(unknown)}")
+    missing = sorted(f.name for f in dataclasses.fields(cls)
+                     if f.name not in fields
+                     and f.default is dataclasses.MISSING
+                     and f.default_factory is dataclasses.MISSING)
+    if missing:
+        raise ValueError(f"scenario '{where}' lacks the fields {missing}")
+    try:
+        return cls(**fields)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"scenario '{where}': {e}") from None
+
+
 def _is_real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
@@ -226,25 +251,15 @@ class Scenario:
                                  f"{known} or a path to a .json file")
         elif not path.is_file():
             raise ValueError(f"scenario file '{path}' does not exist")
-        fields = read_json(path)
-        if not isinstance(fields, dict):
-            raise ValueError(f"scenario '{path}' must be a JSON object of "
-                             f"fields")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(fields) - known
-        if unknown:
-            raise ValueError(f"scenario '{path}' has unknown fields "
-                             f"{sorted(unknown)}")
-        missing = sorted(f.name for f in dataclasses.fields(cls)
-                         if f.name not in fields
-                         and f.default is dataclasses.MISSING
-                         and f.default_factory is dataclasses.MISSING)
-        if missing:
-            raise ValueError(f"scenario '{path}' lacks the fields {missing}")
-        try:
-            return cls(**fields)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"scenario '{path}': {e}") from None
+        return cls.from_fields(read_json(path), str(path))
+
+    @classmethod
+    def from_fields(cls, fields: Any, where: str) -> 'Scenario':
+        r"""A scenario from the fields of a JSON object; a value that is
+        not an object, an unknown or missing field and a field the class
+        refuses are each a :class:`ValueError` that names :obj:`where`
+        (the file) and the field."""
+        return scenario_from_fields(cls, fields, where)
 
     def replace(self, **changes) -> 'Scenario':
         r"""A copy with some parameters changed."""
