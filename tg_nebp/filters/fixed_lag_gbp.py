@@ -1,0 +1,498 @@
+import math
+from typing import List, NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.validation import check_positive_int
+from tg_nebp.filters.gaussian_bp import GaussianBP, _inverse
+from tg_nebp.filters.tracker import StepOutput
+from tg_nebp.gaussian import bounded_inflation, rts_backward
+from tg_nebp.models import MeasurementModel, MotionModel, inputs
+from tg_nebp.nn.conv.gaussian_bp_conv import (FactorMessages,
+                                              GaussianBelief, RangeMessages,
+                                              as_factor_messages)
+
+__all__ = ['FixedLagGaussianBP', 'WindowState']
+
+
+class WindowState(NamedTuple):
+    r"""What fixed-lag Gaussian BP carries from one time step to the next:
+    the Gaussian that precedes the window (the fields of
+    :class:`~tg_nebp.filters.GaussianState`: the filtered belief of the
+    last step marginalized out, or the prior, :obj:`mean` :math:`(N, S)`,
+    :obj:`cov` :math:`(N, S, S)`, :obj:`fresh`, :obj:`memory` and the
+    :obj:`predicted` covariance that bounds its inflation), then the
+    window of the :math:`W < L` steps after it: every node's means
+    :obj:`window` :math:`(N, W, S)` (the linearization points; angles
+    lifted), the links of every step :obj:`links` :math:`(2, E)` in
+    space-time numbering (node :math:`i` at window step :math:`k` is
+    :math:`kN + i`) with features :obj:`link_attr` :math:`(E, F)`, the
+    time step of each step's transition :obj:`time_step` :math:`(W)` (NaN:
+    the tracker's motion model), the nodes' known inputs :obj:`control`
+    :math:`(N, W, C)` (NaN rows: none; :obj:`None` for a motion model
+    without inputs), and the last messages of the window's factors
+    :obj:`messages` (the fields of
+    :class:`~tg_nebp.nn.conv.RangeMessages` or
+    :class:`~tg_nebp.nn.conv.FactorMessages`, on the message edges of
+    the conv's :meth:`~tg_nebp.nn.conv.GaussianBPConv.factors` of
+    :obj:`links`; :obj:`None` without links)."""
+    mean: Tensor
+    cov: Tensor
+    fresh: Tensor
+    memory: Optional[Tensor]
+    predicted: Tensor
+    window: Tensor
+    links: Tensor
+    link_attr: Tensor
+    time_step: Tensor
+    control: Optional[Tensor]
+    messages: Optional[Tuple[Tensor, ...]]
+
+
+def _moved(old_index: Tensor, messages, new_index: Tensor, out):
+    # the 'messages' on the message edges 'old_index' (2, M) written into
+    # 'out' at the same (source, target) of 'new_index'; 'out' elsewhere
+    if old_index.size(1) == 0:
+        return out
+    span = int(torch.cat([old_index, new_index], 1).max()) + 1
+    old_key = old_index[0] * span + old_index[1]
+    new_key = new_index[0] * span + new_index[1]
+    order = torch.argsort(old_key)
+    at = torch.searchsorted(old_key[order], new_key).clamp_max(
+        old_key.numel() - 1)
+    found = old_key[order][at] == new_key
+    source = order[at[found]]
+    rows = found.nonzero().view(-1)
+    return type(out)(*(o.index_copy(0, rows, s[source].to(o))
+                       for o, s in zip(out, messages)))
+
+
+class _Window(NamedTuple):
+    # one step's window: the prior of its first step (belief and
+    # covariance), the motion models and inputs of its transitions, the
+    # space-time links, anchor mask and factors
+    prior: GaussianBelief
+    prior_cov: Tensor
+    motions: List[MotionModel]
+    control: Optional[Tensor]
+    links: Tensor
+    link_attr: Tensor
+    anchor: Tensor
+    factors: object
+
+
+class _Solved(NamedTuple):
+    # the window's beliefs (space-time rows, slot-major), covariances
+    # (N, W, S, S) and the filtered belief of its first step
+    belief: GaussianBelief
+    cov: Tensor
+    first: GaussianBelief
+
+
+class FixedLagGaussianBP(GaussianBP):
+    r"""Fixed-lag Gaussian belief propagation over the space-time factor
+    graph: every agent keeps its states of the last :obj:`lag` steps as
+    variables, tied by motion factors between consecutive states and by
+    the range factors of every step in the window, and Gaussian BP
+    relinearizes and iterates all of them at every step. This is the
+    space-time graph of the GBP literature (the Robot Web of `"Distributed
+    Simultaneous Localisation and Mapping for Mobile Robots with Gaussian
+    Belief Propagation" <https://arxiv.org/abs/2202.03314>`_, Murai,
+    Ortiz, Saeedi, Kelly and Davison, IEEE T-RO 2024, keeps a window per
+    robot). Messages travel along the links of each step (the
+    :class:`~tg_nebp.nn.conv.GaussianBPConv` of
+    :class:`~tg_nebp.filters.GaussianBP`, both ends, extrinsic) and along
+    each agent's own time chain, which the agent solves exactly: its
+    window's posterior given the prior of the window's first step, its
+    motion factors linearized at the current means (the motion role's
+    :meth:`~tg_nebp.models.MotionModel.mean`,
+    :meth:`~tg_nebp.models.MotionModel.jacobian` and
+    :meth:`~tg_nebp.models.MotionModel.noise_covariance`: a user's model
+    works) and the summed range messages of each step, by a Kalman filter
+    and a Rauch-Tung-Striebel backward pass
+    (:func:`~tg_nebp.gaussian.rts_backward`; covariance form, so the
+    singular driving noise of the constant-velocity models and of
+    odometry is fine). That chain is a tree, so its part of the messages
+    is exact: each iteration is one sweep of the space messages and the
+    exact time marginals,
+
+    .. math::
+        p(\mathbf{x}_{i,n-L+1:n}) \propto p(\mathbf{x}_{i,n-L+1}) \prod_k
+        p(\mathbf{x}_{i,k} | \mathbf{x}_{i,k-1}) \prod_k \prod_{f \ni i}
+        m_{f \to (i,k)}(\mathbf{x}_{i,k}),
+
+    and a range message to a step :math:`k` of agent :math:`i` reads the
+    source's marginal at :math:`k` without the factor's previous message
+    (the extrinsic belief; a message on one step's block comes off that
+    block's marginal exactly). Every step: the new step's links join the
+    window (its messages start at zero, the older ones carry on), the
+    iterations run until no mean of the window moves by more than
+    :obj:`tolerance` (each graph of a batch on its own, as
+    :class:`~tg_nebp.filters.GaussianBP`), and once the window holds
+    :obj:`lag` steps the oldest is marginalized out: its filtered belief
+    (prior and its final messages), inflated as
+    :class:`~tg_nebp.filters.GaussianBP` inflates (bounded), predicted
+    into the next step, is the next window's prior (each agent its own,
+    in information form).
+
+    Each step yields the newest state (the filtered estimate, its past
+    relinearized) and the window (:obj:`window_mean`, :obj:`window_cov`
+    of :class:`~tg_nebp.filters.StepOutput`); the estimate of the window's
+    oldest step is final (:class:`~tg_nebp.filters.Smoothed` reads it).
+    With :obj:`lag=1` it is :class:`~tg_nebp.filters.GaussianBP` (equal to
+    rounding: the first belief of a step is the window solved with its
+    carried messages). The cost per iteration is :math:`L` times Gaussian
+    BP's, plus each agent's :math:`O(L S^3)` chain.
+
+    Args:
+        lag (int, optional): Steps :math:`L` in the window, the newest
+            counted. (default: :obj:`5`)
+        num_iterations (int, optional): Iterations per time step (at most,
+            with :obj:`tolerance`). (default: :obj:`20`)
+        motion (MotionModel, optional): Motion model with an
+            additive-Gaussian-noise form.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (MeasurementModel, optional): Measurement model.
+            (default: :obj:`GaussianRange()`)
+        ends, damping, tolerance, inflation, compile: As
+            :class:`~tg_nebp.filters.GaussianBP`.
+
+    Shapes:
+        - **input:** a :class:`~tg_nebp.data.Realization`
+        - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean
+          :math:`(N, T, S)` and covariance :math:`(N, T, S, S)` (the
+          filtered estimates)
+    """
+    state_type = WindowState
+
+    def __init__(self, lag: int = 5, num_iterations: int = 20,
+                 motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None,
+                 ends: str = 'both', damping: float = 0.0,
+                 tolerance: Optional[float] = 0.01, inflation: float = 1.0,
+                 compile: bool = False):
+        super().__init__(num_iterations, motion, measurement, ends, damping,
+                         tolerance, inflation, compile)
+        self.lag = check_positive_int(lag, 'lag')
+
+    def initial_state(self, data, generator=None) -> WindowState:
+        r"""The state before the first step of the nodes of :obj:`data`:
+        :class:`~tg_nebp.filters.GaussianBP`'s, with an empty window."""
+        base = super().initial_state(data, generator)
+        num, size = data.prior_mean.shape
+        control_dim = self.motion.control_dim
+        return WindowState(
+            *base, base.mean.new_zeros(num, 0, size),
+            torch.zeros(2, 0, dtype=torch.long, device=base.mean.device),
+            base.mean.new_zeros(0, len(self.measurement.features)),
+            base.mean.new_zeros(0),
+            None if control_dim == 0 else
+            base.mean.new_zeros(num, 0, control_dim), None)
+
+    def step(self, state: WindowState, edge_index: Tensor,
+             edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
+             motion: Optional[MotionModel] = None,
+             graph_of: Optional[Tensor] = None, num_graphs: int = 1,
+             control: Optional[Tensor] = None
+             ) -> Tuple[StepOutput, WindowState]:
+        r"""One time step: the step's links :obj:`edge_index`
+        :math:`(2, E)` (sorted by receiver), features :obj:`edge_attr`
+        :math:`(E, F)`, motion model :obj:`motion` (the tracker's by
+        default) and known inputs :obj:`control` :math:`(N, C)` join the
+        window, the iterations run over the window, and a full window's
+        oldest step is marginalized out. Returns the step's
+        :class:`~tg_nebp.filters.StepOutput` (the newest state, and the
+        window) and the state after it; :obj:`graph_of` and
+        :obj:`num_graphs` as :class:`~tg_nebp.filters.GaussianBP`."""
+        num, size = state.mean.shape
+        if graph_of is None:
+            graph_of = torch.zeros_like(anchor, dtype=torch.long)
+        width = state.window.size(1) + 1
+        window = self._window(state, edge_index.long(), edge_attr.double(),
+                              anchor, motion, control)
+        # the messages of the older steps carry on; the new step's start
+        # at zero
+        messages = self._carried(state, window, anchor)
+        if state.messages is None and width == 1:
+            # no message yet: a window of one step is its prior
+            belief = window.prior
+            covs = window.prior_cov.unsqueeze(1)
+        else:
+            start = self._points(state, window, anchor)
+            solved = self._solve(window, start, messages, anchor)
+            belief, covs = solved.belief, solved.cov
+        belief, messages, covs = self._iterate_window(
+            window, belief, messages, covs, anchor, graph_of, num_graphs,
+            generator)
+        layout = self.motion.layout(size)
+        means = belief.mean.view(width, num, size).transpose(0, 1)
+        output = StepOutput(t, layout.wrap(means[:, -1]), covs[:, -1],
+                            window_mean=layout.wrap(means),
+                            window_cov=covs)
+        state = WindowState(state.mean, state.cov, state.fresh, state.memory,
+                            state.predicted, means, window.links,
+                            window.link_attr, self._time_steps(state, motion),
+                            window.control, tuple(messages))
+        if width == self.lag:
+            state = self._slide(state, window, messages, anchor)
+        return output, state
+
+    def _time_steps(self, state: WindowState,
+                    motion: Optional[MotionModel]) -> Tensor:
+        # every window step's time step, the new one's appended (NaN: the
+        # tracker's own motion model)
+        dt = math.nan
+        if motion is not None and motion is not self.motion:
+            dt = float(motion.params()['dt'])
+        return torch.cat([state.time_step, state.time_step.new_full((1, ),
+                                                                    dt)])
+
+    def _motion_of(self, dt: float) -> MotionModel:
+        return self.motion if math.isnan(dt) else \
+            self.motion.with_time_step(dt)
+
+    def _window(self, state: WindowState, edge_index: Tensor,
+                edge_attr: Tensor, anchor: Tensor,
+                motion: Optional[MotionModel],
+                control: Optional[Tensor]) -> _Window:
+        # the window with the step joined: the prior of its first step
+        # (the state's Gaussian, inflated unless fresh, predicted), its
+        # transitions and its space-time links and factors
+        num, size = state.mean.shape
+        width = state.window.size(1) + 1
+        motions = [self._motion_of(float(dt)) for dt in state.time_step]
+        motions.append(self.motion if motion is None else motion)
+        controls = state.control
+        if controls is not None:
+            new = (controls.new_full((num, 1, controls.size(-1)), math.nan)
+                   if control is None else
+                   control.to(controls).view(num, 1, -1))
+            controls = torch.cat([controls, new], 1)
+        mean, cov = state.mean, state.cov
+        if not bool(state.fresh.all()):
+            inflated = bounded_inflation(
+                cov, state.predicted,
+                self.inflation_of(cov, state.memory, anchor))
+            cov = torch.where(state.fresh.view(-1, 1, 1), cov, inflated)
+        mean, cov = self.predict(mean, cov, anchor, motions[0],
+                                 self._control_at(controls, 0, control))
+        info = torch.zeros_like(cov)
+        agents = ~anchor
+        info[agents] = _inverse(cov[agents])
+        links = torch.cat([state.links, edge_index + (width - 1) * num], 1)
+        link_attr = torch.cat([state.link_attr.to(edge_attr), edge_attr])
+        anchors = anchor.repeat(width)
+        return _Window(GaussianBelief(mean, info), cov, motions, controls,
+                       links, link_attr, anchors,
+                       self.conv.factors(links, anchors, size))
+
+    @staticmethod
+    def _control_at(controls: Optional[Tensor], k: int,
+                    given: Optional[Tensor] = None) -> Optional[Tensor]:
+        # the known inputs of window step k (the step's own as given where
+        # it is the newest of a one-step window: the motion model reads
+        # them exactly as Gaussian BP hands them)
+        if controls is None:
+            return None
+        if k == controls.size(1) - 1 and given is not None:
+            return given
+        return controls[:, k]
+
+    def _carried(self, state: WindowState, window: _Window,
+                 anchor: Tensor):
+        # the state's messages on the message edges of the window's
+        # factors (by source and target), zero on the new step's
+        index = window.factors.index
+        count = index.size(1)
+        width = len(self.measurement.scope(state.mean.size(1)))
+        dtype, device = state.mean.dtype, state.mean.device
+        if self.conv.rank_one:
+            out = RangeMessages(torch.zeros(count, dtype=dtype, device=device),
+                                torch.zeros(count, dtype=dtype,
+                                            device=device),
+                                torch.zeros(count, width, dtype=dtype,
+                                            device=device))
+        else:
+            out = FactorMessages(
+                torch.zeros(count, width, width, dtype=dtype, device=device),
+                torch.zeros(count, width, dtype=dtype, device=device))
+        if state.messages is None:
+            return out
+        old = self.conv.factors(state.links,
+                                anchor.repeat(state.window.size(1)),
+                                state.mean.size(1)).index
+        return _moved(old, state.messages, index, out)
+
+    def _points(self, state: WindowState, window: _Window,
+                anchor: Tensor) -> Tensor:
+        # the window's means to linearize at when a step starts: the last
+        # step's, and the new step's prediction from its last
+        if state.window.size(1) == 0:
+            return window.prior.mean.unsqueeze(1)
+        last = state.window[:, -1]
+        agents = ~anchor
+        moved = last.clone()
+        k = state.window.size(1)
+        given = inputs(None if window.control is None else
+                       window.control[agents, k])
+        moved[agents] = window.motions[k].mean(last[agents], **given)
+        return torch.cat([state.window, moved.unsqueeze(1)], 1)
+
+    def _solve(self, window: _Window, points: Tensor, messages,
+               anchor: Tensor) -> _Solved:
+        # every agent's window given its first step's prior, its motion
+        # factors linearized at 'points' (N, W, S) and the summed messages
+        # of each step: a Kalman filter (each update Gaussian BP's belief
+        # of the step) and the backward pass
+        num, width, size = points.shape
+        sums = self.conv.message_sums(as_factor_messages(messages),
+                                      window.factors, num * width).view(
+                                          width, num, -1)
+        agents = ~anchor
+        prior, cov = window.prior, window.prior_cov
+        filtered, predicted = [], []
+        for k in range(width):
+            if k > 0:
+                prior, cov, cross = self._transition(
+                    window, k, points[:, k - 1], filtered[-1], anchor)
+                predicted.append((prior.mean, cov, cross))
+            belief = self.conv.updated(prior, points[:, k], sums[k], anchor)
+            belief_cov = torch.zeros_like(belief.info)
+            belief_cov[agents] = _inverse(belief.info[agents])
+            filtered.append((belief, belief_cov))
+        means = [filtered[-1][0].mean]
+        infos = [filtered[-1][0].info]
+        covs = [filtered[-1][1]]
+        for k in range(width - 2, -1, -1):
+            (belief, belief_cov), (ahead, ahead_cov, cross) = \
+                filtered[k], predicted[k]
+            mean, cov = belief.mean.clone(), belief_cov.clone()
+            mean[agents], cov[agents] = rts_backward(
+                belief_cov[agents], cross[agents], ahead_cov[agents],
+                covs[0][agents], belief.mean[agents], ahead[agents],
+                means[0][agents])
+            info = torch.zeros_like(cov)
+            info[agents] = _inverse(cov[agents])
+            means.insert(0, mean)
+            infos.insert(0, info)
+            covs.insert(0, cov)
+        return _Solved(GaussianBelief(torch.cat(means), torch.cat(infos)),
+                       torch.stack(covs, 1), filtered[0][0])
+
+    def _transition(self, window: _Window, k: int, point: Tensor,
+                    previous: tuple, anchor: Tensor):
+        # the prior of window step k from the filtered belief of step k - 1
+        # through the motion factor linearized at 'point': the prediction,
+        # its covariance and the cross covariance P F^T (anchors keep their
+        # known state)
+        belief, cov = previous
+        agents = ~anchor
+        given = inputs(None if window.control is None else
+                       window.control[agents, k])
+        motion = window.motions[k]
+        here = point[agents]
+        jacobian = motion.jacobian(here, **given)
+        mean = belief.mean.clone()
+        mean[agents] = motion.mean(here, **given) + (
+            jacobian @ (belief.mean[agents] - here).unsqueeze(-1)).squeeze(-1)
+        cross = torch.zeros_like(cov)
+        cross[agents] = cov[agents] @ jacobian.transpose(-1, -2)
+        moved = torch.zeros_like(cov)
+        moved[agents] = jacobian @ cross[agents] + motion.noise_covariance(
+            here, **given)
+        moved = 0.5 * (moved + moved.transpose(-1, -2))
+        info = torch.zeros_like(cov)
+        info[agents] = _inverse(moved[agents])
+        return GaussianBelief(mean, info), moved, cross
+
+    def _iterate_window(self, window: _Window, belief: GaussianBelief,
+                        messages, covs: Tensor, anchor: Tensor,
+                        graph_of: Tensor, num_graphs: int, generator):
+        # the iterations of one step over the window: the range messages
+        # of every step from the current beliefs, then every agent's chain
+        # solved; a graph whose window means all moved by at most the
+        # tolerance in an iteration keeps that iteration's beliefs and
+        # stops (each graph of a batch as alone)
+        num = anchor.numel()
+        width = belief.mean.size(0) // num
+        done = torch.zeros(num_graphs, dtype=torch.bool,
+                           device=anchor.device)
+        for _ in range(self.num_iterations):
+            new_messages = self.conv.step_messages(
+                belief, window.links, window.link_attr, window.anchor,
+                window.factors, messages, generator)
+            points = belief.mean.view(width, num, -1).transpose(0, 1)
+            solved = self._solve(window, points, new_messages, anchor)
+            move = (solved.belief.mean - belief.mean).abs().amax(-1).view(
+                width, num).amax(0)
+            still = ~done[graph_of]  # the nodes whose graphs iterate
+            rows = still.repeat(width)
+            edges = rows[window.factors.index[1]]
+            belief = GaussianBelief(*(
+                torch.where(rows.view((-1, ) + (1, ) * (n.dim() - 1)), n, o)
+                for n, o in zip(solved.belief, belief)))
+            covs = torch.where(still.view(-1, 1, 1, 1), solved.cov, covs)
+            messages = type(messages)(*(
+                torch.where(edges.view((-1, ) + (1, ) * (n.dim() - 1)), n, o)
+                for n, o in zip(new_messages, messages)))
+            if self.tolerance is None:
+                continue
+            largest = self.largest_moves(move, graph_of, num_graphs)
+            # NaN compares false: a diverged graph is not converged
+            done = done | (largest <= self.tolerance)
+            if bool(done.all()):
+                break
+        return belief, messages, covs
+
+    def _slide(self, state: WindowState, window: _Window, messages,
+               anchor: Tensor) -> WindowState:
+        # the window's oldest step marginalized out: its filtered belief
+        # from its prior and its final messages becomes the Gaussian before
+        # the window, and its links, messages and inputs leave
+        num, size = state.mean.shape
+        sums = self.conv.message_sums(as_factor_messages(messages),
+                                      window.factors,
+                                      window.anchor.numel())[:num]
+        first = self.conv.updated(window.prior, state.window[:, 0], sums,
+                                  anchor)
+        cov = torch.zeros_like(first.info)
+        agents = ~anchor
+        cov[agents] = _inverse(first.info[agents])
+        mean = self.motion.layout(size).wrap(first.mean)
+        kept = state.links[0] >= num  # a link's two ends share its step
+        links = state.links[:, kept] - num
+        carried = None
+        if bool(kept.any()):
+            # the later steps' messages, on the message edges of their
+            # factors renumbered
+            keep = window.factors.index[1] >= num
+            index = self.conv.factors(links, anchor.repeat(
+                state.window.size(1) - 1), size).index
+            carried = tuple(_moved(
+                window.factors.index[:, keep] - num,
+                tuple(m[keep] for m in messages), index,
+                type(messages)(*(torch.zeros((index.size(1), ) +
+                                             m.shape[1:], dtype=m.dtype,
+                                             device=m.device)
+                                 for m in messages))))
+        return WindowState(
+            mean, cov, torch.zeros_like(state.fresh), state.memory,
+            window.prior_cov, state.window[:, 1:], links,
+            state.link_attr[kept], state.time_step[1:],
+            None if state.control is None else state.control[:, 1:],
+            carried)
+
+    def select_state(self, state, keep, anchor):
+        raise NotImplementedError('fixed-lag Gaussian BP does not take '
+                                  'nodes that leave yet')
+
+    def join_state(self, state, joined):
+        raise NotImplementedError('fixed-lag Gaussian BP does not take '
+                                  'nodes that join yet')
+
+    def settings(self) -> dict:
+        return dict(super().settings(), lag=self.lag)
+
+    def __repr__(self) -> str:
+        return super().__repr__()[:-1] + f', lag={self.lag})'
