@@ -351,11 +351,12 @@ class FixedLagGaussianBP(GaussianBP):
                                           width, num, -1)
         agents = ~anchor
         prior, cov = window.prior, window.prior_cov
+        motion = self._motion_factors(window, points, anchor)
         filtered, predicted = [], []
         for k in range(width):
             if k > 0:
                 prior, cov, cross = self._transition(
-                    window, k, points[:, k - 1], filtered[-1], anchor)
+                    motion, k, points[:, k - 1], filtered[-1], anchor)
                 predicted.append((prior.mean, cov, cross))
             belief = self.conv.updated(prior, points[:, k], sums[k], anchor)
             belief_cov = torch.zeros_like(belief.info)
@@ -380,27 +381,50 @@ class FixedLagGaussianBP(GaussianBP):
         return _Solved(GaussianBelief(torch.cat(means), torch.cat(infos)),
                        torch.stack(covs, 1), filtered[0][0])
 
-    def _transition(self, window: _Window, k: int, point: Tensor,
-                    previous: tuple, anchor: Tensor):
+    def _motion_factors(self, window: _Window, points: Tensor,
+                        anchor: Tensor) -> List[Tuple[Tensor, ...]]:
+        # every transition of the window linearized at 'points': per window
+        # step k > 0 the agents' f, F and Q at their step k - 1 (one call
+        # of the model for all steps where they share it)
+        agents = ~anchor
+        here = points[agents][:, :-1]
+        count = here.size(1)
+        if count == 0:
+            return []
+        control = (None if window.control is None else
+                   window.control[agents][:, 1:])
+        groups = [list(range(count))]
+        if any(m is not window.motions[1] for m in window.motions[1:]):
+            groups = [[k] for k in range(count)]
+        out = [None] * count
+        for group in groups:
+            motion = window.motions[group[0] + 1]
+            given = inputs(None if control is None else control[:, group])
+            at = here[:, group]
+            linearized = (motion.mean(at, **given),
+                          motion.jacobian(at, **given),
+                          motion.noise_covariance(at, **given))
+            for j, k in enumerate(group):
+                out[k] = tuple(part[:, j] for part in linearized)
+        return [None] + out
+
+    def _transition(self, motion: List[Tuple[Tensor, ...]], k: int,
+                    point: Tensor, previous: tuple, anchor: Tensor):
         # the prior of window step k from the filtered belief of step k - 1
-        # through the motion factor linearized at 'point': the prediction,
-        # its covariance and the cross covariance P F^T (anchors keep their
-        # known state)
+        # through the motion factor linearized at 'point' (its f, F and Q
+        # in 'motion'): the prediction, its covariance and the cross
+        # covariance P F^T (anchors keep their known state)
         belief, cov = previous
         agents = ~anchor
-        given = inputs(None if window.control is None else
-                       window.control[agents, k])
-        motion = window.motions[k]
+        moved_mean, jacobian, noise = motion[k]
         here = point[agents]
-        jacobian = motion.jacobian(here, **given)
         mean = belief.mean.clone()
-        mean[agents] = motion.mean(here, **given) + (
+        mean[agents] = moved_mean + (
             jacobian @ (belief.mean[agents] - here).unsqueeze(-1)).squeeze(-1)
         cross = torch.zeros_like(cov)
         cross[agents] = cov[agents] @ jacobian.transpose(-1, -2)
         moved = torch.zeros_like(cov)
-        moved[agents] = jacobian @ cross[agents] + motion.noise_covariance(
-            here, **given)
+        moved[agents] = jacobian @ cross[agents] + noise
         moved = 0.5 * (moved + moved.transpose(-1, -2))
         info = torch.zeros_like(cov)
         info[agents] = _inverse(moved[agents])
