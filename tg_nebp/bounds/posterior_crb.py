@@ -1,5 +1,5 @@
 from collections import deque
-from typing import Iterator, NamedTuple, Optional
+from typing import Iterator, List, NamedTuple, Optional
 
 import torch
 from torch import Tensor
@@ -145,27 +145,29 @@ class PosteriorCRB(torch.nn.Module):
             window.append(joints)
             if len(window) == self.lag:
                 yield BoundStep(last - self.lag + 1,
-                                self._smoothed(window, 0))
+                                self._smoothed(window, 0)[0])
         # the window's later steps, from every measurement there is
         done = 1 if len(window) == self.lag else 0
-        for k in range(done, len(window)):
-            yield BoundStep(last - len(window) + 1 + k,
-                            self._smoothed(window, k))
+        for k, out in enumerate(self._smoothed(window, done), done):
+            yield BoundStep(last - len(window) + 1 + k, out)
 
-    def _smoothed(self, window: deque, k: int) -> Tensor:
-        # the marginal bound of every node at the window's step k given
-        # every step of the window: the backward pass from its last step
+    def _smoothed(self, window: deque, first: int) -> List[Tensor]:
+        # the marginal bounds of every node at the window's steps from
+        # 'first' on, given every step of the window: one backward pass
+        # from its last step
         newest = window[-1]
-        out = newest[0][0].new_zeros(self._layout.agent_index.numel(),
-                                     self._size, self._size)
+        outs = [newest[0][0].new_zeros(self._layout.agent_index.numel(),
+                                       self._size, self._size)
+                for _ in range(first, len(window))]
         for g, nodes in enumerate(self._layout.agents):
             cov = newest[g][0]
-            for step in range(len(window) - 2, k - 1, -1):
+            outs[-1][nodes] = marginal_blocks(cov, self._size)
+            for step in range(len(window) - 2, first - 1, -1):
                 filtered = window[step][g][0]
                 _, predicted, cross = window[step + 1][g]
                 _, cov = rts_backward(filtered, cross, predicted, cov)
-            out[nodes] = marginal_blocks(cov, self._size)
-        return out
+                outs[step - first][nodes] = marginal_blocks(cov, self._size)
+        return outs
 
     def _filtering(self, data: Realization,
                    generator: Optional[torch.Generator]):

@@ -213,7 +213,7 @@ class FixedLagGaussianBP(GaussianBP):
                               anchor, motion, control)
         # the messages of the older steps carry on; the new step's start
         # at zero
-        messages = self._carried(state, window, anchor)
+        messages, fresh = self._carried(state, window, anchor)
         if state.messages is None and width == 1:
             # no message yet: a window of one step is its prior
             belief = window.prior
@@ -223,8 +223,8 @@ class FixedLagGaussianBP(GaussianBP):
             solved = self._solve(window, start, messages, anchor)
             belief, covs = solved.belief, solved.cov
         belief, messages, covs = self._iterate_window(
-            window, belief, messages, covs, anchor, graph_of, num_graphs,
-            generator)
+            window, belief, messages, fresh, covs, anchor, graph_of,
+            num_graphs, generator)
         layout = self.motion.layout(size)
         means = belief.mean.view(width, num, size).transpose(0, 1)
         output = StepOutput(t, layout.wrap(means[:, -1]), covs[:, -1],
@@ -302,7 +302,8 @@ class FixedLagGaussianBP(GaussianBP):
     def _carried(self, state: WindowState, window: _Window,
                  anchor: Tensor):
         # the state's messages on the message edges of the window's
-        # factors (by source and target), zero on the new step's
+        # factors (by source and target), zero on the new step's, and the
+        # mask of those without a previous message (the new step's)
         index = window.factors.index
         count = index.size(1)
         width = len(self.measurement.scope(state.mean.size(1)))
@@ -318,11 +319,15 @@ class FixedLagGaussianBP(GaussianBP):
                 torch.zeros(count, width, width, dtype=dtype, device=device),
                 torch.zeros(count, width, dtype=dtype, device=device))
         if state.messages is None:
-            return out
+            return out, torch.ones(count, dtype=torch.bool, device=device)
         old = self.conv.factors(state.links,
                                 anchor.repeat(state.window.size(1)),
                                 state.mean.size(1)).index
-        return _moved(old, state.messages, index, out)
+        fresh = _moved(old, (torch.zeros(old.size(1), dtype=torch.bool,
+                                         device=device), ),
+                       index, (torch.ones(count, dtype=torch.bool,
+                                          device=device), ))[0]
+        return _moved(old, state.messages, index, out), fresh
 
     def _points(self, state: WindowState, window: _Window,
                 anchor: Tensor) -> Tensor:
@@ -431,8 +436,9 @@ class FixedLagGaussianBP(GaussianBP):
         return GaussianBelief(mean, info), moved, cross
 
     def _iterate_window(self, window: _Window, belief: GaussianBelief,
-                        messages, covs: Tensor, anchor: Tensor,
-                        graph_of: Tensor, num_graphs: int, generator):
+                        messages, fresh: Tensor, covs: Tensor,
+                        anchor: Tensor, graph_of: Tensor, num_graphs: int,
+                        generator):
         # the iterations of one step over the window: the range messages
         # of every step from the current beliefs, then every agent's chain
         # solved; a graph whose window means all moved by at most the
@@ -445,7 +451,8 @@ class FixedLagGaussianBP(GaussianBP):
         for _ in range(self.num_iterations):
             new_messages = self.conv.step_messages(
                 belief, window.links, window.link_attr, window.anchor,
-                window.factors, messages, generator)
+                window.factors, messages, generator, fresh)
+            fresh = torch.zeros_like(fresh)
             points = belief.mean.view(width, num, -1).transpose(0, 1)
             solved = self._solve(window, points, new_messages, anchor)
             move = (solved.belief.mean - belief.mean).abs().amax(-1).view(

@@ -483,13 +483,17 @@ class GaussianBPConv(MessagePassing):
     def step_messages(self, belief: GaussianBelief, edge_index: Tensor,
                       edge_attr: Tensor, anchor: Tensor, factors: Factors,
                       messages=None,
-                      generator: Optional[torch.Generator] = None):
+                      generator: Optional[torch.Generator] = None,
+                      fresh: Optional[Tensor] = None):
         r"""The messages of one iteration from the current beliefs and
         the previous :obj:`messages` (the first half of :meth:`forward`):
         rank-one (:meth:`range_messages`) for a range model
         (:attr:`rank_one`) unless given general ones, else
-        :meth:`messages` of the :meth:`linearize` d factors. Inputs as
-        :meth:`prepare` gives them."""
+        :meth:`messages` of the :meth:`linearize` d factors. The message
+        edges of the mask :obj:`fresh` :math:`(M)` have no previous message
+        (their entries of :obj:`messages` are zero): they are not damped,
+        as none is at the first iteration. Inputs as :meth:`prepare` gives
+        them."""
         if self.rank_one and not isinstance(messages, FactorMessages):
             return self._range_messages(belief, edge_index, edge_attr,
                                         anchor, factors, messages)
@@ -498,7 +502,7 @@ class GaussianBPConv(MessagePassing):
         linearization = self.linearize(belief, edge_index, edge_attr,
                                        factors, generator)
         return self.messages(belief, anchor, factors, linearization,
-                             messages)
+                             messages, fresh)
 
     def prepare(self, prior: GaussianBelief, belief: GaussianBelief,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
@@ -668,12 +672,13 @@ class GaussianBPConv(MessagePassing):
 
     def messages(self, belief: GaussianBelief, anchor: Tensor,
                  factors: Factors, linearization: Linearization,
-                 messages: Optional[FactorMessages] = None
-                 ) -> FactorMessages:
+                 messages: Optional[FactorMessages] = None,
+                 fresh: Optional[Tensor] = None) -> FactorMessages:
         r"""The factor-to-variable messages of one iteration from the
         factors' :obj:`linearization` (:meth:`linearize`) and the sources'
         extrinsic beliefs (without the previous :obj:`messages`), damped
-        as configured."""
+        as configured (but for the message edges :obj:`fresh`, which have
+        no previous message)."""
         width = linearization.grad.size(-1) // 2
         marginal_info, marginal_eta = _marginal_information(
             belief.info, belief.mean, width, anchor)
@@ -683,9 +688,14 @@ class GaussianBPConv(MessagePassing):
             factor_info=linearization.info, factor_eta=linearization.eta,
             reverse=factors.reverse, messages=messages)
         if self.damping > 0 and messages is not None:
-            new = FactorMessages(*(
+            damped = FactorMessages(*(
                 torch.lerp(n, o, self.damping) for n, o in zip(new,
                                                                messages)))
+            if fresh is None:
+                return damped
+            new = FactorMessages(*(
+                torch.where(fresh.view((-1, ) + (1, ) * (n.dim() - 1)), n, d)
+                for n, d in zip(new, damped)))
         return new
 
     def beliefs(self, prior: GaussianBelief, belief: GaussianBelief,

@@ -1,0 +1,148 @@
+r"""Fixed-lag Gaussian BP: a window of one step is Gaussian BP; on a network
+whose space-time graph is a tree it is exact (the Kalman filter and the
+Rauch-Tung-Striebel smoother, written in the test); each graph of a batch
+converges on its own; streaming and save/resume are in
+tests/filters/test_session.py (live_trackers)."""
+import numpy as np
+import pytest
+import torch
+
+from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, Smoothed,
+                             TrackingSession)
+from tg_nebp.models import StudentTRange
+
+from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
+                     linear_rts_smoother, linear_scenario, tiny_scenario)
+
+
+@pytest.mark.parametrize('options', [
+    dict(), dict(inflation=1.5), dict(ends='receiver'),
+    dict(damping=0.3, num_iterations=30, tolerance=1e-3),
+    dict(measurement=StudentTRange())])
+def test_a_one_step_window_is_gaussian_bp_bit_for_bit(options):
+    # the same arithmetic: the step's prior, the conv's messages and
+    # beliefs, the early stop, the inflation before the next prediction
+    data = tiny_scenario(steps=6).generate(gen(3))
+    expected = GaussianBP(**options)(data)
+    out = FixedLagGaussianBP(1, **options)(data)
+    assert torch.equal(out.mean, expected.mean)
+    assert torch.equal(out.cov, expected.cov)
+
+
+def tree_realization(steps=4):
+    # two agents each measured by its own anchor at every step, measuring
+    # each other at step 1 only: the space-time graph is a tree (the two
+    # time chains joined by one factor), where Gaussian BP is exact
+    scenario = linear_scenario(steps=steps, num_agents=2)
+    data = scenario.generate(gen(6))
+    own = {0: 2, 1: 3}
+    edges, attrs, times = [], [], []
+    for t in range(steps):
+        links = [(own[0], 0), (own[1], 1)] + ([(1, 0), (0, 1)] if t == 1
+                                              else [])
+        for j, i in sorted(links, key=lambda link: link[1]):
+            noise = 0.5 * torch.randn(2, dtype=torch.float64,
+                                      generator=gen(100 * t + 10 * j + i))
+            attrs.append(data.states[j, t, :2] - data.states[i, t, :2] +
+                         scenario.measurement_model.OFFSET + noise)
+            edges.append((j, i))
+            times.append(t)
+    out = data.clone()
+    out.edge_index = torch.tensor(edges).t()
+    out.edge_attr = torch.stack(attrs)
+    out.edge_time = torch.tensor(times)
+    return scenario, out
+
+
+def test_on_a_space_time_tree_it_is_the_kalman_filter_and_smoother():
+    # a window as long as the sequence never slides: every step's newest
+    # state is the Kalman filter's and the last window is the full
+    # smoother's, means and covariances, once the messages converge
+    scenario, data = tree_realization()
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    tracker = FixedLagGaussianBP(4, num_iterations=60, tolerance=1e-12,
+                                 **models)
+    steps = list(tracker.steps(data))
+    means, covs, agents = linear_kalman_filter(data, *models.values())
+    mean = torch.stack([s.mean for s in steps], 1)
+    cov = torch.stack([s.cov for s in steps], 1)
+    np.testing.assert_allclose(mean[agents].numpy(), means, atol=1e-8)
+    np.testing.assert_allclose(cov[agents].numpy(), covs, atol=1e-8)
+    means, covs, _ = linear_rts_smoother(data, *models.values())
+    np.testing.assert_allclose(steps[-1].window_mean[agents].numpy(), means,
+                               atol=1e-8)
+    np.testing.assert_allclose(steps[-1].window_cov[agents].numpy(), covs,
+                               atol=1e-8)
+    # a shorter window slides: its smoothed estimates beat its filtered
+    # ones, and its covariances stay symmetric positive definite
+    tracker = FixedLagGaussianBP(2, num_iterations=60, tolerance=1e-12,
+                                 **models)
+    smoothed = Smoothed(tracker)(data)
+    assert bool((smoothed.cov[agents].diagonal(dim1=-2, dim2=-1).sum(-1)[
+        :, :-1] < tracker(data).cov[agents].diagonal(
+            dim1=-2, dim2=-1).sum(-1)[:, :-1]).all())
+    torch.testing.assert_close(smoothed.cov, smoothed.cov.transpose(-1, -2),
+                               rtol=0, atol=0)
+    assert bool((torch.linalg.eigvalsh(smoothed.cov[agents]) > 0).all())
+
+
+def test_smoothing_ranges_beats_filtering():
+    # ranges on a loopy network: over a few realizations the smoothed
+    # estimates are closer to the truth than Gaussian BP's, and so is the
+    # filtered estimate of the relinearized window
+    errors = {'gbp': 0.0, 'filtered': 0.0, 'smoothed': 0.0}
+    for seed in range(3):
+        data = tiny_scenario(steps=10).generate(gen(20 + seed))
+        agents = ~data.anchor
+        for name, method in (
+                ('gbp', GaussianBP.recommended()),
+                ('filtered', FixedLagGaussianBP.recommended(lag=4)),
+                ('smoothed', Smoothed(FixedLagGaussianBP.recommended(
+                    lag=4)))):
+            out = method(data)
+            errors[name] += float((out.mean[agents, :, :2] - data.states[
+                agents, :, :2]).square().sum())
+    assert errors['smoothed'] < 0.8 * errors['gbp']
+    assert errors['filtered'] < errors['gbp']
+
+
+def test_each_graph_of_a_batch_converges_on_its_own():
+    assert_batch_equals_alone(FixedLagGaussianBP.recommended(lag=3), rtol=0,
+                              atol=0)
+    assert_batch_equals_alone(Smoothed(FixedLagGaussianBP.recommended(
+        lag=3)), rtol=0, atol=0)
+
+
+def test_the_window_of_every_step():
+    data = tiny_scenario(steps=5).generate(gen(3))
+    steps = list(FixedLagGaussianBP(3).steps(data))
+    assert [s.window_mean.size(1) for s in steps] == [1, 2, 3, 3, 3]
+    for s in steps:
+        assert torch.equal(s.window_mean[:, -1], s.mean)
+        assert torch.equal(s.window_cov[:, -1], s.cov)
+        # anchors: their known state, no uncertainty, in every window step
+        assert s.window_cov[data.anchor].abs().max() == 0
+    smoothed = list(Smoothed(FixedLagGaussianBP(3)).steps(data))
+    assert [s.t for s in smoothed] == list(range(5))
+    # a step's smoothed estimate is its window's oldest as it leaves
+    assert torch.equal(smoothed[1].mean, steps[3].window_mean[:, 0])
+    assert torch.equal(smoothed[4].mean, steps[4].window_mean[:, 2])
+
+
+def test_settings_and_errors():
+    tracker = FixedLagGaussianBP(3)
+    assert tracker.settings()['lag'] == 3
+    assert 'lag=3' in repr(tracker)
+    assert Smoothed(tracker).settings()['smoothed'] is True
+    with pytest.raises(ValueError, match="'lag' must be positive"):
+        FixedLagGaussianBP(0)
+
+
+def test_a_session_refuses_nodes_that_join_or_leave_a_window():
+    data = tiny_scenario(steps=3).generate(gen(3))
+    session = TrackingSession(FixedLagGaussianBP(3))
+    from helpers import stream_realization
+    stream_realization(session, data, steps=2)
+    with pytest.raises(NotImplementedError, match='leave'):
+        session.update([], [], leave=['n0'])
