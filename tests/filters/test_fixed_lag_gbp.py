@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, Smoothed,
-                             TrackingSession)
-from tg_nebp.models import StudentTRange
+from tg_nebp.filters import (AgentPrior, FixedLagGaussianBP, GaussianBP,
+                             Smoothed, TrackingSession)
+from tg_nebp.models import ConstantVelocity, StudentTRange
 
 from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
-                     linear_rts_smoother, linear_scenario, tiny_scenario)
+                     linear_rts_smoother, linear_scenario, stream_realization,
+                     tiny_scenario)
 
 
 @pytest.mark.parametrize('options', [
@@ -139,10 +140,87 @@ def test_settings_and_errors():
         FixedLagGaussianBP(0)
 
 
-def test_a_session_refuses_nodes_that_join_or_leave_a_window():
-    data = tiny_scenario(steps=3).generate(gen(3))
-    session = TrackingSession(FixedLagGaussianBP(3))
-    from helpers import stream_realization
-    stream_realization(session, data, steps=2)
-    with pytest.raises(NotImplementedError, match='leave'):
-        session.update([], [], leave=['n0'])
+def _without_links(data, node, steps):
+    # the realization without the links of 'node' at the time indices of
+    # 'steps'
+    drop = (data.edge_index == node).any(0) & torch.isin(
+        data.edge_time, torch.tensor(list(steps)))
+    out = data.clone()
+    out.edge_index = data.edge_index[:, ~drop]
+    out.edge_attr = data.edge_attr[~drop]
+    out.edge_time = data.edge_time[~drop]
+    return out
+
+
+# tiny_scenario: agents 0-2, anchors 3-5; the late agent is the last row
+STEPS, SPLIT, LATE, ORDER = 7, 4, 2, [0, 1, 3, 4, 5, 2]
+
+
+def test_an_agent_that_joins_equals_one_present_with_that_prior():
+    # the late agent has no links before SPLIT. In one session it is there
+    # from the start (its row last), in the other it joins at SPLIT with
+    # the belief the first holds for it then: from SPLIT on the newest
+    # estimates of every node agree, and the joined agent's window rows
+    # before its join hold its prior predicted into its first step. (With
+    # a linear motion model: the first session's window relinearizes the
+    # lonely agent's chain where its first link moves it, a drag model's
+    # prediction
+    # changes by 1e-4 m/s there)
+    data = _without_links(tiny_scenario(STEPS).generate(gen(3)), LATE,
+                          range(SPLIT))
+    tracker = FixedLagGaussianBP(3, tolerance=None,
+                                 motion=ConstantVelocity(0.05))
+    present = TrackingSession(tracker, dtype=torch.float64)
+    before = stream_realization(present, data, steps=SPLIT, order=ORDER)
+    mean, cov = before[-1].mean[-1], before[-1].cov[-1]
+    after = stream_realization(present, data, start=SPLIT)
+    late = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(late, data, steps=SPLIT, order=ORDER[:-1])
+    edge_index, edge_attr = data.edges_by_step()[SPLIT]
+    links = [(f'n{j}', f'n{i}') for j, i in edge_index.t().tolist()]
+    joined = [late.update(links, edge_attr[:, 0].tolist(), join={
+        f'n{LATE}': AgentPrior(mean.tolist(), cov.tolist())})]
+    joined += stream_realization(late, data, start=SPLIT + 1)
+    assert late.ids == present.ids
+    for ours, theirs in zip(joined, after):
+        torch.testing.assert_close(ours.mean, theirs.mean, rtol=0,
+                                   atol=1e-12)
+        torch.testing.assert_close(ours.cov, theirs.cov, rtol=0,
+                                   atol=1e-12)
+    assert float((after[-1].mean[-1, :2] - mean[:2]).norm()) > 0.1
+    window = joined[0].window_mean
+    assert window.size(1) == 3 and torch.equal(window[-1, 0], window[-1, 1])
+    assert torch.equal(joined[0].window_cov[-1, 0],
+                       joined[0].window_cov[-1, 1])
+
+
+def test_an_agent_that_leaves_no_longer_influences_anyone():
+    # the leaver has no links in the window when it leaves: the others'
+    # estimates are those of a session where it stays without links; one
+    # that leaves with links in the window takes them along (the others'
+    # window estimates lose them) and the session goes on
+    data = _without_links(tiny_scenario(STEPS).generate(gen(4)), LATE,
+                          range(SPLIT - 2, STEPS))
+    tracker = FixedLagGaussianBP(3, tolerance=None)
+    stay = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(stay, data, steps=SPLIT, order=ORDER)
+    stayed = stream_realization(stay, data, start=SPLIT)
+    gone = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(gone, data, steps=SPLIT, order=ORDER)
+    edge_index, edge_attr = data.edges_by_step()[SPLIT]
+    links = [(f'n{j}', f'n{i}') for j, i in edge_index.t().tolist()]
+    left = [gone.update(links, edge_attr[:, 0].tolist(),
+                        leave=[f'n{LATE}'])]
+    left += stream_realization(gone, data, start=SPLIT + 1)
+    assert gone.ids == stay.ids[:-1]
+    for ours, theirs in zip(left, stayed):
+        torch.testing.assert_close(ours.mean, theirs.mean[:-1], rtol=0,
+                                   atol=1e-9)
+        torch.testing.assert_close(ours.cov, theirs.cov[:-1], rtol=0,
+                                   atol=1e-9)
+    linked = TrackingSession(tracker, dtype=torch.float64)
+    full = tiny_scenario(STEPS).generate(gen(4))
+    stream_realization(linked, full, steps=SPLIT, order=ORDER)
+    assert linked.state.links.size(1) > 0
+    out = linked.update([], [], leave=[f'n{LATE}'])
+    assert bool(torch.isfinite(out.window_cov).all())

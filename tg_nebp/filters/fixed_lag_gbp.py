@@ -31,12 +31,14 @@ class WindowState(NamedTuple):
     time step of each step's transition :obj:`time_step` :math:`(W)` (NaN:
     the tracker's motion model), the nodes' known inputs :obj:`control`
     :math:`(N, W, C)` (NaN rows: none; :obj:`None` for a motion model
-    without inputs), and the last messages of the window's factors
+    without inputs), the last messages of the window's factors
     :obj:`messages` (the fields of
     :class:`~tg_nebp.nn.conv.RangeMessages` or
-    :class:`~tg_nebp.nn.conv.FactorMessages`, on the message edges of
-    the conv's :meth:`~tg_nebp.nn.conv.GaussianBPConv.factors` of
-    :obj:`links`; :obj:`None` without links)."""
+    :class:`~tg_nebp.nn.conv.FactorMessages`; :obj:`None` without links)
+    on their message edges :obj:`message_index` :math:`(2, M)` (source,
+    target; space-time numbering), and every node's first step in the
+    window :obj:`start` :math:`(N)` (a node that joined a live session
+    has no state before it; its Gaussian is the prior it joined with)."""
     mean: Tensor
     cov: Tensor
     fresh: Tensor
@@ -48,6 +50,21 @@ class WindowState(NamedTuple):
     time_step: Tensor
     control: Optional[Tensor]
     messages: Optional[Tuple[Tensor, ...]]
+    message_index: Optional[Tensor]
+    start: Tensor
+
+
+def _renumbered(index: Tensor, num: int, num_new: int,
+                node_map: Optional[Tensor] = None, shift: int = 0):
+    # space-time indices (2, E) of 'num' nodes per step, k num + i, as
+    # (k - shift) num_new + map[i]; the mask of the columns kept (both
+    # ends at a step and node kept)
+    slot, node = torch.div(index, num, rounding_mode='floor'), index % num
+    if node_map is not None:
+        node = node_map[node]
+    slot = slot - shift
+    keep = ((node >= 0) & (slot >= 0)).all(0)
+    return (slot * num_new + node)[:, keep], keep
 
 
 def _moved(old_index: Tensor, messages, new_index: Tensor, out):
@@ -69,11 +86,12 @@ def _moved(old_index: Tensor, messages, new_index: Tensor, out):
 
 
 class _Window(NamedTuple):
-    # one step's window: the prior of its first step (belief and
-    # covariance), the motion models and inputs of its transitions, the
-    # space-time links, anchor mask and factors
+    # one step's window: every node's prior at its first step (belief and
+    # covariance) and that step, the motion models and inputs of its
+    # transitions, the space-time links, anchor mask and factors
     prior: GaussianBelief
     prior_cov: Tensor
+    start: Tensor
     motions: List[MotionModel]
     control: Optional[Tensor]
     links: Tensor
@@ -188,7 +206,8 @@ class FixedLagGaussianBP(GaussianBP):
             base.mean.new_zeros(0, len(self.measurement.features)),
             base.mean.new_zeros(0),
             None if control_dim == 0 else
-            base.mean.new_zeros(num, 0, control_dim), None)
+            base.mean.new_zeros(num, 0, control_dim), None, None,
+            torch.zeros(num, dtype=torch.long, device=base.mean.device))
 
     def step(self, state: WindowState, edge_index: Tensor,
              edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
@@ -219,8 +238,8 @@ class FixedLagGaussianBP(GaussianBP):
             belief = window.prior
             covs = window.prior_cov.unsqueeze(1)
         else:
-            start = self._points(state, window, anchor)
-            solved = self._solve(window, start, messages, anchor)
+            points = self._points(state, window, anchor)
+            solved = self._solve(window, points, messages, anchor)
             belief, covs = solved.belief, solved.cov
         belief, messages, covs = self._iterate_window(
             window, belief, messages, fresh, covs, anchor, graph_of,
@@ -233,7 +252,8 @@ class FixedLagGaussianBP(GaussianBP):
         state = WindowState(state.mean, state.cov, state.fresh, state.memory,
                             state.predicted, means, window.links,
                             window.link_attr, self._time_steps(state, motion),
-                            window.control, tuple(messages))
+                            window.control, tuple(messages),
+                            window.factors.index, state.start)
         if width == self.lag:
             state = self._slide(state, window, messages, anchor)
         return output, state
@@ -275,16 +295,26 @@ class FixedLagGaussianBP(GaussianBP):
                 cov, state.predicted,
                 self.inflation_of(cov, state.memory, anchor))
             cov = torch.where(state.fresh.view(-1, 1, 1), cov, inflated)
-        mean, cov = self.predict(mean, cov, anchor, motions[0],
-                                 self._control_at(controls, 0, control))
+        # every node's Gaussian predicted into its first window step (the
+        # first, but for nodes that joined a live session since)
+        entry = mean, cov
+        for first in state.start.unique().tolist():
+            moved = self.predict(mean, cov, anchor | (state.start != first),
+                                 motions[first],
+                                 self._control_at(controls, first, control))
+            entry = moved if first == 0 else tuple(
+                torch.where((state.start == first).view(
+                    (-1, ) + (1, ) * (m.dim() - 1)), m, e)
+                for m, e in zip(moved, entry))
+        mean, cov = entry
         info = torch.zeros_like(cov)
         agents = ~anchor
         info[agents] = _inverse(cov[agents])
         links = torch.cat([state.links, edge_index + (width - 1) * num], 1)
         link_attr = torch.cat([state.link_attr.to(edge_attr), edge_attr])
         anchors = anchor.repeat(width)
-        return _Window(GaussianBelief(mean, info), cov, motions, controls,
-                       links, link_attr, anchors,
+        return _Window(GaussianBelief(mean, info), cov, state.start, motions,
+                       controls, links, link_attr, anchors,
                        self.conv.factors(links, anchors, size))
 
     @staticmethod
@@ -320,9 +350,7 @@ class FixedLagGaussianBP(GaussianBP):
                 torch.zeros(count, width, dtype=dtype, device=device))
         if state.messages is None:
             return out, torch.ones(count, dtype=torch.bool, device=device)
-        old = self.conv.factors(state.links,
-                                anchor.repeat(state.window.size(1)),
-                                state.mean.size(1)).index
+        old = state.message_index
         fresh = _moved(old, (torch.zeros(old.size(1), dtype=torch.bool,
                                          device=device), ),
                        index, (torch.ones(count, dtype=torch.bool,
@@ -342,6 +370,9 @@ class FixedLagGaussianBP(GaussianBP):
         given = inputs(None if window.control is None else
                        window.control[agents, k])
         moved[agents] = window.motions[k].mean(last[agents], **given)
+        # a node that joins at this step starts at its prior
+        moved = torch.where((window.start == k).view(-1, 1),
+                            window.prior.mean, moved)
         return torch.cat([state.window, moved.unsqueeze(1)], 1)
 
     def _solve(self, window: _Window, points: Tensor, messages,
@@ -363,6 +394,14 @@ class FixedLagGaussianBP(GaussianBP):
                 prior, cov, cross = self._transition(
                     motion, k, points[:, k - 1], filtered[-1], anchor)
                 predicted.append((prior.mean, cov, cross))
+                entering = window.start >= k
+                if bool(entering.any()):  # not yet in the window: its prior
+                    prior = GaussianBelief(*(
+                        torch.where(entering.view(
+                            (-1, ) + (1, ) * (e.dim() - 1)), e, p)
+                        for e, p in zip(window.prior, prior)))
+                    cov = torch.where(entering.view(-1, 1, 1),
+                                      window.prior_cov, cov)
             belief = self.conv.updated(prior, points[:, k], sums[k], anchor)
             belief_cov = torch.zeros_like(belief.info)
             belief_cov[agents] = _inverse(belief.info[agents])
@@ -380,6 +419,14 @@ class FixedLagGaussianBP(GaussianBP):
                 means[0][agents])
             info = torch.zeros_like(cov)
             info[agents] = _inverse(cov[agents])
+            absent = window.start > k
+            if bool(absent.any()):  # not yet in the window: its prior
+                mean = torch.where(absent.view(-1, 1), window.prior.mean,
+                                   mean)
+                info = torch.where(absent.view(-1, 1, 1), window.prior.info,
+                                   info)
+                cov = torch.where(absent.view(-1, 1, 1), window.prior_cov,
+                                  cov)
             means.insert(0, mean)
             infos.insert(0, info)
             covs.insert(0, cov)
@@ -480,7 +527,8 @@ class FixedLagGaussianBP(GaussianBP):
                anchor: Tensor) -> WindowState:
         # the window's oldest step marginalized out: its filtered belief
         # from its prior and its final messages becomes the Gaussian before
-        # the window, and its links, messages and inputs leave
+        # the window (of the nodes there at that step; the others keep the
+        # prior they joined with), and its links, messages and inputs leave
         num, size = state.mean.shape
         sums = self.conv.message_sums(as_factor_messages(messages),
                                       window.factors,
@@ -490,37 +538,75 @@ class FixedLagGaussianBP(GaussianBP):
         cov = torch.zeros_like(first.info)
         agents = ~anchor
         cov[agents] = _inverse(first.info[agents])
-        mean = self.motion.layout(size).wrap(first.mean)
-        kept = state.links[0] >= num  # a link's two ends share its step
-        links = state.links[:, kept] - num
-        carried = None
-        if bool(kept.any()):
-            # the later steps' messages, on the message edges of their
-            # factors renumbered
-            keep = window.factors.index[1] >= num
-            index = self.conv.factors(links, anchor.repeat(
-                state.window.size(1) - 1), size).index
-            carried = tuple(_moved(
-                window.factors.index[:, keep] - num,
-                tuple(m[keep] for m in messages), index,
-                type(messages)(*(torch.zeros((index.size(1), ) +
-                                             m.shape[1:], dtype=m.dtype,
-                                             device=m.device)
-                                 for m in messages))))
+        there = state.start == 0
+        mean = torch.where(there.view(-1, 1),
+                           self.motion.layout(size).wrap(first.mean),
+                           state.mean)
+        cov = torch.where(there.view(-1, 1, 1), cov, state.cov)
+        predicted = torch.where(there.view(-1, 1, 1), window.prior_cov,
+                                state.predicted)
+        links, kept = _renumbered(state.links, num, num, shift=1)
+        index, carried = _renumbered(state.message_index, num, num, shift=1)
         return WindowState(
-            mean, cov, torch.zeros_like(state.fresh), state.memory,
-            window.prior_cov, state.window[:, 1:], links,
-            state.link_attr[kept], state.time_step[1:],
+            mean, cov, state.fresh & ~there, state.memory, predicted,
+            state.window[:, 1:], links, state.link_attr[kept],
+            state.time_step[1:],
             None if state.control is None else state.control[:, 1:],
-            carried)
+            tuple(m[carried] for m in messages) if index.size(1) else None,
+            index if index.size(1) else None,
+            (state.start - 1).clamp_min(0))
 
-    def select_state(self, state, keep, anchor):
-        raise NotImplementedError('fixed-lag Gaussian BP does not take '
-                                  'nodes that leave yet')
+    def select_state(self, state: WindowState, keep: Tensor,
+                     anchor: Tensor) -> WindowState:
+        r"""The state of the nodes :obj:`keep` :math:`(N)` (a mask; the
+        others leave): their rows, and the window's links and messages
+        between them (renumbered)."""
+        num = keep.numel()
+        node_map = torch.full((num, ), -1, dtype=torch.long,
+                              device=keep.device)
+        count = int(keep.sum())
+        node_map[keep] = torch.arange(count, device=keep.device)
+        links, kept = _renumbered(state.links, num, count, node_map)
+        messages, index = state.messages, state.message_index
+        if index is not None:
+            index, carried = _renumbered(index, num, count, node_map)
+            messages = tuple(m[carried] for m in messages)
+            if index.size(1) == 0:
+                messages = index = None
+        return state._replace(
+            mean=state.mean[keep], cov=state.cov[keep],
+            fresh=state.fresh[keep], predicted=state.predicted[keep],
+            window=state.window[keep], links=links,
+            link_attr=state.link_attr[kept],
+            control=None if state.control is None else state.control[keep],
+            messages=messages, message_index=index, start=state.start[keep])
 
-    def join_state(self, state, joined):
-        raise NotImplementedError('fixed-lag Gaussian BP does not take '
-                                  'nodes that join yet')
+    def join_state(self, state: WindowState,
+                   joined: WindowState) -> WindowState:
+        r"""The state of the nodes of :obj:`state` followed by those of
+        :obj:`joined` (an :meth:`initial_state`): the joining nodes enter
+        the window at the next step (their rows before it hold their
+        prior, never measured), the links and messages renumbered."""
+        num, width = state.window.shape[:2]
+        count = num + joined.mean.size(0)
+        links, _ = _renumbered(state.links, num, count)
+        index = state.message_index
+        if index is not None:
+            index, _ = _renumbered(index, num, count)
+        control = state.control
+        if control is not None:
+            control = torch.cat([control, control.new_full(
+                (joined.mean.size(0), width, control.size(-1)), math.nan)])
+        return state._replace(
+            mean=torch.cat([state.mean, joined.mean]),
+            cov=torch.cat([state.cov, joined.cov]),
+            fresh=torch.cat([state.fresh, joined.fresh]),
+            predicted=torch.cat([state.predicted, joined.predicted]),
+            window=torch.cat([state.window, joined.mean.unsqueeze(1).expand(
+                -1, width, -1)]),
+            links=links, control=control, message_index=index,
+            start=torch.cat([state.start, torch.full_like(joined.start,
+                                                          width)]))
 
     def settings(self) -> dict:
         return dict(super().settings(), lag=self.lag)
