@@ -164,8 +164,7 @@ def test_an_agent_that_joins_equals_one_present_with_that_prior():
     # before its join hold its prior predicted into its first step. (With
     # a linear motion model: the first session's window relinearizes the
     # lonely agent's chain where its first link moves it, a drag model's
-    # prediction
-    # changes by 1e-4 m/s there)
+    # prediction changes by 1e-4 m/s there)
     data = _without_links(tiny_scenario(STEPS).generate(gen(3)), LATE,
                           range(SPLIT))
     tracker = FixedLagGaussianBP(3, tolerance=None,
