@@ -67,11 +67,13 @@ def _renumbered(index: Tensor, num: int, num_new: int,
     return (slot * num_new + node)[:, keep], keep
 
 
-def _moved(old_index: Tensor, messages, new_index: Tensor, out):
-    # the 'messages' on the message edges 'old_index' (2, M) written into
-    # 'out' at the same (source, target) of 'new_index'; 'out' elsewhere
-    if old_index.size(1) == 0:
-        return out
+def _matched(old_index: Tensor, new_index: Tensor
+             ) -> Tuple[Tensor, Tensor]:
+    # the message edges of 'new_index' (2, M') that 'old_index' (2, M) has
+    # too, by source and target: their positions in both
+    if old_index.size(1) == 0 or new_index.size(1) == 0:
+        empty = old_index.new_zeros(0)
+        return empty, empty
     span = int(torch.cat([old_index, new_index], 1).max()) + 1
     old_key = old_index[0] * span + old_index[1]
     new_key = new_index[0] * span + new_index[1]
@@ -79,10 +81,7 @@ def _moved(old_index: Tensor, messages, new_index: Tensor, out):
     at = torch.searchsorted(old_key[order], new_key).clamp_max(
         old_key.numel() - 1)
     found = old_key[order][at] == new_key
-    source = order[at[found]]
-    rows = found.nonzero().view(-1)
-    return type(out)(*(o.index_copy(0, rows, s[source].to(o))
-                       for o, s in zip(out, messages)))
+    return found.nonzero().view(-1), order[at[found]]
 
 
 class _Window(NamedTuple):
@@ -101,11 +100,10 @@ class _Window(NamedTuple):
 
 
 class _Solved(NamedTuple):
-    # the window's beliefs (space-time rows, slot-major), covariances
-    # (N, W, S, S) and the filtered belief of its first step
+    # the window's beliefs (space-time rows, slot-major) and covariances
+    # (N, W, S, S)
     belief: GaussianBelief
     cov: Tensor
-    first: GaussianBelief
 
 
 class FixedLagGaussianBP(GaussianBP):
@@ -350,12 +348,11 @@ class FixedLagGaussianBP(GaussianBP):
                 torch.zeros(count, width, dtype=dtype, device=device))
         if state.messages is None:
             return out, torch.ones(count, dtype=torch.bool, device=device)
-        old = state.message_index
-        fresh = _moved(old, (torch.zeros(old.size(1), dtype=torch.bool,
-                                         device=device), ),
-                       index, (torch.ones(count, dtype=torch.bool,
-                                          device=device), ))[0]
-        return _moved(old, state.messages, index, out), fresh
+        rows, source = _matched(state.message_index, index)
+        fresh = torch.ones(count, dtype=torch.bool, device=device)
+        fresh[rows] = False
+        return type(out)(*(o.index_copy(0, rows, s[source].to(o))
+                           for o, s in zip(out, state.messages))), fresh
 
     def _points(self, state: WindowState, window: _Window,
                 anchor: Tensor) -> Tensor:
@@ -380,71 +377,80 @@ class FixedLagGaussianBP(GaussianBP):
         # every agent's window given its first step's prior, its motion
         # factors linearized at 'points' (N, W, S) and the summed messages
         # of each step: a Kalman filter (each update Gaussian BP's belief
-        # of the step) and the backward pass
+        # of the step) and the backward pass, on the agents' rows (anchors
+        # keep their known states)
         num, width, size = points.shape
         sums = self.conv.message_sums(as_factor_messages(messages),
                                       window.factors, num * width).view(
                                           width, num, -1)
-        agents = ~anchor
-        prior, cov = window.prior, window.prior_cov
-        motion = self._motion_factors(window, points, anchor)
+        rows = (~anchor).nonzero().view(-1)
+
+        def agents(tensor: Tensor) -> Tensor:
+            return tensor.index_select(0, rows)
+
+        start = agents(window.start)
+        entry = GaussianBelief(*map(agents, window.prior))
+        entry_cov = agents(window.prior_cov)
+        here = agents(points)
+        known = torch.zeros_like(start, dtype=torch.bool)
+        motion = self._motion_factors(window, here, rows)
+        prior, cov = entry, entry_cov
         filtered, predicted = [], []
         for k in range(width):
             if k > 0:
                 prior, cov, cross = self._transition(
-                    motion, k, points[:, k - 1], filtered[-1], anchor)
+                    motion[k], here[:, k - 1], filtered[-1])
                 predicted.append((prior.mean, cov, cross))
-                entering = window.start >= k
+                entering = start >= k
                 if bool(entering.any()):  # not yet in the window: its prior
                     prior = GaussianBelief(*(
                         torch.where(entering.view(
                             (-1, ) + (1, ) * (e.dim() - 1)), e, p)
-                        for e, p in zip(window.prior, prior)))
-                    cov = torch.where(entering.view(-1, 1, 1),
-                                      window.prior_cov, cov)
-            belief = self.conv.updated(prior, points[:, k], sums[k], anchor)
-            belief_cov = torch.zeros_like(belief.info)
-            belief_cov[agents] = _inverse(belief.info[agents])
-            filtered.append((belief, belief_cov))
+                        for e, p in zip(entry, prior)))
+                    cov = torch.where(entering.view(-1, 1, 1), entry_cov,
+                                      cov)
+            belief = self.conv.updated(prior, here[:, k], agents(sums[k]),
+                                       known)
+            filtered.append((belief, _inverse(belief.info)))
         means = [filtered[-1][0].mean]
         infos = [filtered[-1][0].info]
         covs = [filtered[-1][1]]
         for k in range(width - 2, -1, -1):
             (belief, belief_cov), (ahead, ahead_cov, cross) = \
                 filtered[k], predicted[k]
-            mean, cov = belief.mean.clone(), belief_cov.clone()
-            mean[agents], cov[agents] = rts_backward(
-                belief_cov[agents], cross[agents], ahead_cov[agents],
-                covs[0][agents], belief.mean[agents], ahead[agents],
-                means[0][agents])
-            info = torch.zeros_like(cov)
-            info[agents] = _inverse(cov[agents])
-            absent = window.start > k
+            mean, cov = rts_backward(belief_cov, cross, ahead_cov, covs[0],
+                                     belief.mean, ahead, means[0])
+            info = _inverse(cov)
+            absent = start > k
             if bool(absent.any()):  # not yet in the window: its prior
-                mean = torch.where(absent.view(-1, 1), window.prior.mean,
-                                   mean)
-                info = torch.where(absent.view(-1, 1, 1), window.prior.info,
-                                   info)
-                cov = torch.where(absent.view(-1, 1, 1), window.prior_cov,
-                                  cov)
+                mean = torch.where(absent.view(-1, 1), entry.mean, mean)
+                info = torch.where(absent.view(-1, 1, 1), entry.info, info)
+                cov = torch.where(absent.view(-1, 1, 1), entry_cov, cov)
             means.insert(0, mean)
             infos.insert(0, info)
             covs.insert(0, cov)
-        return _Solved(GaussianBelief(torch.cat(means), torch.cat(infos)),
-                       torch.stack(covs, 1), filtered[0][0])
+        # every node of every window step (anchors: known, no uncertainty)
+        mean = points.transpose(0, 1).clone(
+            memory_format=torch.contiguous_format)
+        mean[:, rows] = torch.stack(means)
+        info = points.new_zeros(width, num, size, size)
+        info[:, rows] = torch.stack(infos)
+        cov = points.new_zeros(num, width, size, size)
+        cov[rows] = torch.stack(covs, 1)
+        return _Solved(GaussianBelief(mean.view(-1, size),
+                                      info.view(-1, size, size)), cov)
 
     def _motion_factors(self, window: _Window, points: Tensor,
-                        anchor: Tensor) -> List[Tuple[Tensor, ...]]:
-        # every transition of the window linearized at 'points': per window
-        # step k > 0 the agents' f, F and Q at their step k - 1 (one call
-        # of the model for all steps where they share it)
-        agents = ~anchor
-        here = points[agents][:, :-1]
+                        rows: Tensor) -> List[Tuple[Tensor, ...]]:
+        # every transition of the window linearized at the agents' 'points'
+        # (A, W, S): per window step k > 0 their f, F and Q at step k - 1
+        # (one call of the model for all steps where they share it)
+        here = points[:, :-1]
         count = here.size(1)
         if count == 0:
             return []
         control = (None if window.control is None else
-                   window.control[agents][:, 1:])
+                   window.control.index_select(0, rows)[:, 1:])
         groups = [list(range(count))]
         if any(m is not window.motions[1] for m in window.motions[1:]):
             groups = [[k] for k in range(count)]
@@ -460,27 +466,21 @@ class FixedLagGaussianBP(GaussianBP):
                 out[k] = tuple(part[:, j] for part in linearized)
         return [None] + out
 
-    def _transition(self, motion: List[Tuple[Tensor, ...]], k: int,
-                    point: Tensor, previous: tuple, anchor: Tensor):
-        # the prior of window step k from the filtered belief of step k - 1
-        # through the motion factor linearized at 'point' (its f, F and Q
-        # in 'motion'): the prediction, its covariance and the cross
-        # covariance P F^T (anchors keep their known state)
+    @staticmethod
+    def _transition(linearized: Tuple[Tensor, ...], point: Tensor,
+                    previous: tuple):
+        # the prior of a window step from the filtered belief of the step
+        # before through the motion factor linearized at 'point' (its f, F
+        # and Q): the prediction, its covariance and the cross covariance
+        # P F^T, of the agents
         belief, cov = previous
-        agents = ~anchor
-        moved_mean, jacobian, noise = motion[k]
-        here = point[agents]
-        mean = belief.mean.clone()
-        mean[agents] = moved_mean + (
-            jacobian @ (belief.mean[agents] - here).unsqueeze(-1)).squeeze(-1)
-        cross = torch.zeros_like(cov)
-        cross[agents] = cov[agents] @ jacobian.transpose(-1, -2)
-        moved = torch.zeros_like(cov)
-        moved[agents] = jacobian @ cross[agents] + noise
+        moved_mean, jacobian, noise = linearized
+        mean = moved_mean + (
+            jacobian @ (belief.mean - point).unsqueeze(-1)).squeeze(-1)
+        cross = cov @ jacobian.transpose(-1, -2)
+        moved = jacobian @ cross + noise
         moved = 0.5 * (moved + moved.transpose(-1, -2))
-        info = torch.zeros_like(cov)
-        info[agents] = _inverse(moved[agents])
-        return GaussianBelief(mean, info), moved, cross
+        return GaussianBelief(mean, _inverse(moved)), moved, cross
 
     def _iterate_window(self, window: _Window, belief: GaussianBelief,
                         messages, fresh: Tensor, covs: Tensor,
