@@ -59,7 +59,7 @@ class CentralizedSmoother(CentralizedIEKF):
         \min_{\mathbf{x}_{n-L+1:n}} \tfrac{1}{2} \|\mathbf{x}_{n-L+1} -
         \boldsymbol{\mu}^-_{n-L+1}\|^2_{(\mathbf{P}^-_{n-L+1})^{-1}} +
         \sum_k \tfrac{1}{2} \|\mathbf{x}_k -
-        f(\mathbf{x}_{k-1})\|^2_{\mathbf{Q}_k^{+}} - \sum_k \sum_{j \to i}
+        f(\mathbf{x}_{k-1})\|^2_{\mathbf{Q}_k^{-1}} - \sum_k \sum_{j \to i}
         \log p\big(z^{(k)}_{j \to i} \,\big|\, d_{ji}(\mathbf{x}_k)\big),
 
     by Gauss-Newton: each iteration linearizes every motion and
@@ -70,8 +70,12 @@ class CentralizedSmoother(CentralizedIEKF):
     <https://doi.org/10.1137/0804035>`_, Bell, SIAM J. Optim. 1994; the
     covariance form takes the singular driving noise of the
     constant-velocity models and of odometry), with the step halved until
-    the cost decreases (the motion terms by the pseudo-inverse of the
-    noise covariance, which is all the cost a singular noise defines).
+    the cost decreases. The cost is that of the window's first state and
+    every transition's driving noise (:math:`\mathbf{x}_k =
+    f(\mathbf{x}_{k-1}) + \mathbf{L}_k \mathbf{w}_k`, :math:`\mathbf{Q}_k =
+    \mathbf{L}_k \mathbf{L}_k^\top`, :math:`\mathbf{w}_k` white): a trial
+    is rolled out through the motion model, so every iterate lies on the
+    model's own trajectories, where a singular noise keeps it.
     Each update is the centralized IEKF's
     (:class:`~tg_nebp.filters.CentralizedIEKF`: the measurement model's own
     likelihood, Woodbury on the entries the links inform). When the window
@@ -288,22 +292,52 @@ class CentralizedSmoother(CentralizedIEKF):
                      [(o.view(shape), c) for o, c in filtered],
                      [(o.view(shape), c) for o, c in smoothed])
 
-    def _window_cost(self, slots: List[_Slot],
-                     points: List[Tensor], factor: Tensor, prior: Tensor,
-                     noise_pinv: List[Tensor]) -> Tensor:
+    def _noise_factors(self, slots: List[_Slot], points: List[Tensor]):
+        # per transition into window step k > 0, linearized at the agents'
+        # step k - 1: the Jacobian F, a square root L of the driving noise
+        # (Q = L L^T; zero columns where Q is singular) and its
+        # pseudo-inverse, which maps a move off f(x_{k-1}) to the noise
+        # that makes it
+        out = []
+        for k in range(1, len(slots)):
+            given = inputs(slots[k].control)
+            values, vectors = torch.linalg.eigh(self.motion.noise_covariance(
+                points[k - 1], **given))
+            keep = values > values.amax(-1, keepdim=True) * 1e-12
+            root = values.clamp_min(0).sqrt()
+            inverse = torch.where(keep, 1 / torch.where(keep, root, 1.0),
+                                  0.0)
+            out.append((self.motion.jacobian(points[k - 1], **given),
+                        vectors * root.unsqueeze(-2),
+                        inverse.unsqueeze(-1) * vectors.transpose(-1, -2)))
+        return out
+
+    def _rolled_out(self, slots: List[_Slot], first: Tensor,
+                    noises: List[Tensor], factors) -> List[Tensor]:
+        # the window's states from its first step's and every transition's
+        # driving noise: on the motion model's own trajectory, so that a
+        # singular noise (a constant-velocity model's, odometry's) is kept
+        # exactly
+        states = [first]
+        for k, (noise, (_, root, _)) in enumerate(zip(noises, factors), 1):
+            states.append(self.motion.mean(states[-1],
+                                           **inputs(slots[k].control)) +
+                          (root @ noise.unsqueeze(-1)).squeeze(-1))
+        return states
+
+    def _window_cost(self, slots: List[_Slot], states: List[Tensor],
+                     noises: List[Tensor], factor: Tensor,
+                     prior: Tensor) -> Tensor:
         # the negative log-posterior of the window (up to a constant): the
-        # first step's prior and links (the IEKF's cost of a step), then
-        # every transition's motion term and links
+        # first step's prior and links (the IEKF's cost of a step), every
+        # transition's driving noise (white, unit variance) and links
         first = slots[0]
-        cost = self._cost(points[0], prior, factor, first.z, first.sender,
+        cost = self._cost(states[0], prior, factor, first.z, first.sender,
                           first.receiver, first.known)
         for k in range(1, len(slots)):
             slot = slots[k]
-            residual = points[k] - self.motion.mean(points[k - 1],
-                                                    **inputs(slot.control))
-            cost = cost + 0.5 * (residual.unsqueeze(-2) @ noise_pinv[k - 1] @
-                                 residual.unsqueeze(-1)).sum()
-            cost = cost - self._log_likelihood(points[k], slot.z,
+            cost = cost + 0.5 * noises[k - 1].square().sum()
+            cost = cost - self._log_likelihood(states[k], slot.z,
                                                slot.sender, slot.receiver,
                                                slot.known)
         return cost
@@ -311,28 +345,40 @@ class CentralizedSmoother(CentralizedIEKF):
     def _solve(self, base: _Base, slots: List[_Slot],
                points: List[Tensor]) -> Tuple[List[Tensor], _Pass]:
         # Gauss-Newton over the window from 'points' with step halving:
-        # the solution and the forward-backward pass at it
+        # the solution and the forward-backward pass at it. The window is
+        # parametrized by its first state and the driving noise of every
+        # transition; each step is the iterated Kalman smoother's, mapped
+        # to them, and a trial is rolled out through the motion model
         prior, prior_cov, _ = self._predicted(base, slots[0].control)
         factor = torch.linalg.cholesky(prior_cov)
         for _ in range(self.num_iterations):
-            noise_pinv = [torch.linalg.pinv(
-                self.motion.noise_covariance(points[k - 1],
-                                             **inputs(slots[k].control)),
-                hermitian=True) for k in range(1, len(slots))]
-            cost = self._window_cost(slots, points, factor, prior,
-                                     noise_pinv)
+            factors = self._noise_factors(slots, points)
+            noises = [(inverse @ (points[k] - self.motion.mean(
+                points[k - 1], **inputs(slots[k].control))).unsqueeze(-1)
+                      ).squeeze(-1)
+                      for k, (_, _, inverse) in enumerate(factors, 1)]
+            points = self._rolled_out(slots, points[0], noises, factors)
+            cost = self._window_cost(slots, points, noises, factor, prior)
             step = [offset for offset, _ in
                     self._forward_backward(base, slots, points).smoothed]
+            moves = [(inverse @ (step[k] - (jacobian @ step[k - 1].unsqueeze(
+                -1)).squeeze(-1)).unsqueeze(-1)).squeeze(-1)
+                for k, (jacobian, _, inverse) in enumerate(factors, 1)]
+            scale = 1.0
             for _ in range(self.max_halvings + 1):
-                trial = [p + s for p, s in zip(points, step)]
-                if bool(self._window_cost(slots, trial, factor, prior,
-                                          noise_pinv) <= cost):
+                trial_noises = [n + scale * m for n, m in zip(noises, moves)]
+                trial = self._rolled_out(slots, points[0] + scale * step[0],
+                                         trial_noises, factors)
+                if bool(self._window_cost(slots, trial, trial_noises, factor,
+                                          prior) <= cost):
                     break
-                step = [0.5 * s for s in step]
+                scale = 0.5 * scale
             else:  # no decrease along the Gauss-Newton direction: converged
                 break
+            moved = max(float((t - p).abs().amax())
+                        for t, p in zip(trial, points))
             points = trial
-            if bool(max(s.abs().amax() for s in step) <= self.tolerance):
+            if moved <= self.tolerance:
                 break
         return points, self._forward_backward(base, slots, points)
 
