@@ -223,3 +223,16 @@ def test_an_agent_that_leaves_no_longer_influences_anyone():
     assert linked.state.links.size(1) > 0
     out = linked.update([], [], leave=[f'n{LATE}'])
     assert bool(torch.isfinite(out.window_cov).all())
+
+
+def test_links_with_features_the_model_does_not_read():
+    # generated NLOS links carry their true NLOS flag after the range; a
+    # Gaussian model reads the range: the window holds the links as given
+    from tg_nebp.models import NLOSRange
+    data = tiny_scenario(steps=4).replace(
+        measurement=NLOSRange()).generate(gen(1))
+    assert data.edge_attr.size(1) == 2
+    assert torch.equal(FixedLagGaussianBP(1)(data).mean,
+                       GaussianBP()(data).mean)
+    steps = list(FixedLagGaussianBP(3).steps(data))
+    assert bool(torch.isfinite(steps[-1].window_mean).all())

@@ -156,10 +156,14 @@ class FixedLagGaussianBP(GaussianBP):
     relinearized) and the window (:obj:`window_mean`, :obj:`window_cov`
     of :class:`~tg_nebp.filters.StepOutput`); the estimate of the window's
     oldest step is final (:class:`~tg_nebp.filters.Smoothed` reads it).
-    With :obj:`lag=1` it is :class:`~tg_nebp.filters.GaussianBP` (equal to
-    rounding: the first belief of a step is the window solved with its
-    carried messages). The cost per iteration is :math:`L` times Gaussian
-    BP's, plus each agent's :math:`O(L S^3)` chain.
+    With :obj:`lag=1` it is :class:`~tg_nebp.filters.GaussianBP` bit for
+    bit (the same arithmetic: a new step's messages start at zero and are
+    not damped at their first iteration). The cost per iteration is the
+    messages of :math:`L` steps' links plus each agent's :math:`O(L S^3)`
+    chain. Live (:class:`~tg_nebp.filters.TrackingSession`), a node that
+    joins enters the window at the next step (its rows before it hold its
+    prior predicted into that step), and a node that leaves takes its
+    links of the window along.
 
     Args:
         lag (int, optional): Steps :math:`L` in the window, the newest
@@ -309,7 +313,12 @@ class FixedLagGaussianBP(GaussianBP):
         agents = ~anchor
         info[agents] = _inverse(cov[agents])
         links = torch.cat([state.links, edge_index + (width - 1) * num], 1)
-        link_attr = torch.cat([state.link_attr.to(edge_attr), edge_attr])
+        # the links' features as the data gives them (the model's leading
+        # columns, and any carried along)
+        held = state.link_attr.to(edge_attr)
+        if held.size(0) == 0:
+            held = edge_attr[:0]
+        link_attr = torch.cat([held, edge_attr])
         anchors = anchor.repeat(width)
         return _Window(GaussianBelief(mean, info), cov, state.start, motions,
                        controls, links, link_attr, anchors,
