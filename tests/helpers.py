@@ -187,7 +187,7 @@ def linear_offset_model():
 
 
 def linear_kalman_filter(data, motion, measurement, inflation=1.0,
-                         marginal=False):
+                         marginal=False, record=None):
     r"""The Kalman filter of a realization with a linear motion model and
     :func:`linear_offset_model`'s measurements, written independently of
     the library: one joint state over the agents, float64 numpy, one
@@ -201,7 +201,11 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
     is linear). With :obj:`marginal`, the cross-agent covariances are
     dropped after every step (what a filter of marginals keeps). Returns
     the agents' means :math:`(A, T, S)`, their marginal covariances
-    :math:`(A, T, S, S)` and the agents' node indices."""
+    :math:`(A, T, S, S)` and the agents' node indices. Every step's joint
+    prediction and update (:obj:`x_pred`, :obj:`P_pred`, :obj:`x`,
+    :obj:`P`) and the joint transition :obj:`F` are appended to the list
+    :obj:`record` as a dict, if given (for
+    :func:`linear_rts_smoother`)."""
     import numpy as np
     anchor = data.anchor.numpy()
     agents = np.flatnonzero(~anchor)
@@ -236,6 +240,7 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
                                 ).numpy().reshape(-1)
         P = Fj @ P @ Fj.T + np.kron(np.eye(count), Q)
         predicted = P
+        x_pred = x.copy()
         for e in np.flatnonzero(data.edge_time.numpy() == t):
             j, i = (int(v) for v in data.edge_index[:, e])
             z = data.edge_attr[e, :2].double().numpy() - measurement.OFFSET
@@ -253,11 +258,46 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
             P = A @ P @ A.T + sigma2 * K @ K.T
         if marginal:
             P = np.kron(np.eye(count), np.ones((size, size))) * P
+        if record is not None:
+            record.append(dict(x_pred=x_pred, P_pred=predicted, x=x.copy(),
+                               P=P.copy(), F=Fj))
         means.append(x.reshape(count, size).copy())
         covs.append(np.stack([P[a * size:(a + 1) * size,
                                 a * size:(a + 1) * size]
                               for a in range(count)]))
     return (np.stack(means, 1), np.stack(covs, 1), agents)
+
+
+def linear_rts_smoother(data, motion, measurement, lag=None):
+    r"""The Rauch-Tung-Striebel smoother of the same problem as
+    :func:`linear_kalman_filter`, written independently of the library:
+    the filter's joints, then for every step :math:`t` a backward pass
+    from step :math:`t + L - 1` (the sequence's last at most; from its
+    last with :obj:`lag=None`), :math:`\mathbf{G} = \mathbf{P}_k
+    \mathbf{F}^\top (\mathbf{P}^-_{k+1})^{-1}`, in numpy. Returns the
+    agents' smoothed means :math:`(A, T, S)`, marginal covariances
+    :math:`(A, T, S, S)` and node indices."""
+    import numpy as np
+    record = []
+    _, _, agents = linear_kalman_filter(data, motion, measurement,
+                                        record=record)
+    size = data.prior_mean.size(1)
+    count = len(agents)
+    steps = len(record)
+    means, covs = [], []
+    for t in range(steps):
+        last = steps - 1 if lag is None else min(t + lag - 1, steps - 1)
+        x, P = record[last]['x'], record[last]['P']
+        for k in range(last - 1, t - 1, -1):
+            ahead = record[k + 1]
+            G = record[k]['P'] @ ahead['F'].T @ np.linalg.inv(ahead['P_pred'])
+            x = record[k]['x'] + G @ (x - ahead['x_pred'])
+            P = record[k]['P'] + G @ (P - ahead['P_pred']) @ G.T
+        means.append(x.reshape(count, size))
+        covs.append(np.stack([P[a * size:(a + 1) * size,
+                                a * size:(a + 1) * size]
+                              for a in range(count)]))
+    return np.stack(means, 1), np.stack(covs, 1), agents
 
 
 def linear_scenario(steps=4, num_agents=4, sigma=0.5):
@@ -373,12 +413,14 @@ def live_trackers():
     process (the learned ones with fixed random weights), for the live
     session tests: Gaussian BP plain and recommended, the IEKF joint and
     marginal, particle BP plain and recommended (M-sample messages,
-    regularized), NEBP and the Gaussian NEBP."""
-    from tg_nebp.filters import (NEBP, CentralizedIEKF, GaussianBP,
-                                 GaussianNEBP, ParticleBP)
+    regularized), NEBP, the Gaussian NEBP and fixed-lag Gaussian BP (a
+    window of 3 steps)."""
+    from tg_nebp.filters import (NEBP, CentralizedIEKF, FixedLagGaussianBP,
+                                 GaussianBP, GaussianNEBP, ParticleBP)
     return {
         'gbp': lambda: GaussianBP(),
         'gbp-recommended': lambda: GaussianBP.recommended(),
+        'gbp-lag3': lambda: FixedLagGaussianBP.recommended(lag=3),
         'iekf': lambda: CentralizedIEKF(),
         'iekf-marginal': lambda: CentralizedIEKF(marginal=True),
         'bp': lambda: ParticleBP(num_particles=40),

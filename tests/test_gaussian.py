@@ -3,9 +3,9 @@ import pytest
 import torch
 
 from tg_nebp.gaussian import (WoodburyPrior, add_link_information,
-                              block_diagonal, check_dense_joint,
+                              block_diagonal, check_dense_joint, joint_cross,
                               marginal_blocks, predict_joint, range_blocks,
-                              scope_index, unit_vectors)
+                              rts_backward, scope_index, unit_vectors)
 
 from helpers import gen
 
@@ -138,3 +138,48 @@ def test_bounded_inflation_against_the_generalized_eigenproblem():
     wide = bounded_inflation(cov, 10 * cov, torch.full((count, ), 1.5,
                                                        dtype=torch.float64))
     torch.testing.assert_close(wide, 1.5 * cov, rtol=1e-10, atol=1e-10)
+
+
+def test_rts_step_is_the_conditional_of_the_joint_gaussian():
+    # x0 ~ N(m, P), x1 = F x0 + w (w singular: the constant-velocity
+    # models'), y = H x1 + v: the smoothed x0 given y from one backward
+    # step equals the conditional of the dense joint of (x0, x1, y)
+    g = gen(4)
+    size, count = 4, 3
+    A = torch.randn(count * size, count * size, dtype=torch.float64,
+                    generator=g)
+    P = A @ A.t() + 0.5 * torch.eye(count * size, dtype=torch.float64)
+    m = torch.randn(count * size, dtype=torch.float64, generator=g)
+    blocks = torch.randn(count, size, size, dtype=torch.float64,
+                         generator=g)
+    F = block_diagonal(blocks)
+    W = torch.randn(count * size, 2, dtype=torch.float64, generator=g)
+    Q = W @ W.t()
+    H = torch.randn(5, count * size, dtype=torch.float64, generator=g)
+    R = 0.3 * torch.eye(5, dtype=torch.float64)
+    y = torch.randn(5, dtype=torch.float64, generator=g)
+    # the filter: predict, update; the backward step
+    predicted = F @ P @ F.t() + Q
+    predicted_mean = F @ m
+    gain = predicted @ H.t() @ torch.linalg.inv(H @ predicted @ H.t() + R)
+    updated_mean = predicted_mean + gain @ (y - H @ predicted_mean)
+    updated = predicted - gain @ H @ predicted
+    cross = joint_cross(P, blocks)
+    torch.testing.assert_close(cross, P @ F.t())
+    mean, cov = rts_backward(P, cross, predicted, updated, m,
+                             predicted_mean, updated_mean)
+    # the dense joint of (x0, y): cov(x0, y) = P F^T H^T
+    cov_xy = P @ F.t() @ H.t()
+    cov_yy = H @ predicted @ H.t() + R
+    expected = m + cov_xy @ torch.linalg.solve(cov_yy, y - H @ predicted_mean)
+    expected_cov = P - cov_xy @ torch.linalg.solve(cov_yy, cov_xy.t())
+    torch.testing.assert_close(mean, expected, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(cov, expected_cov, rtol=1e-9, atol=1e-10)
+    assert torch.equal(cov, cov.t())
+    # the covariance alone, and many small ones at once
+    _, alone = rts_backward(P, cross, predicted, updated)
+    torch.testing.assert_close(alone, cov)
+    _, batched = rts_backward(P.expand(2, -1, -1), cross.expand(2, -1, -1),
+                              predicted.expand(2, -1, -1),
+                              updated.expand(2, -1, -1))
+    torch.testing.assert_close(batched[1], cov)

@@ -134,3 +134,32 @@ def test_a_lost_line_is_a_longer_time_step_and_scores_by_time(data):
 def test_score_names_the_line_it_cannot_read(data, estimates, match):
     with pytest.raises(ValueError, match=match):
         score(estimates, truth_lines(data))
+
+
+def test_a_smoothers_line_holds_its_revised_window():
+    # fixed-lag Gaussian BP: every line adds the revised estimates of the
+    # window's earlier steps, oldest first, read back bit for bit; the
+    # newest is the line's own estimates
+    from tg_nebp.filters import FixedLagGaussianBP
+    data = tiny_scenario(steps=4).generate(gen(2))
+    session = TrackingSession(FixedLagGaussianBP(3))
+    lines = []
+    track_lines(session, realization_lines(data), lines.append)
+    offline = list(FixedLagGaussianBP(3).steps(data))
+    agents = ~data.anchor
+    for t, (text, step) in enumerate(zip(lines, offline)):
+        line = json.loads(text)
+        window = line.get('window', [])
+        assert [w['t'] for w in window] == list(range(max(0, t - 2), t))
+        for k, entry in enumerate(window):
+            means = torch.tensor([e['mean'] for e in entry['estimates']],
+                                 dtype=torch.float64)
+            covs = torch.tensor([e['cov'] for e in entry['estimates']],
+                                dtype=torch.float64)
+            assert torch.equal(means, step.window_mean[agents, k])
+            assert torch.equal(covs, step.window_cov[agents, k])
+    # a filter's line has none
+    session = TrackingSession(GaussianBP())
+    plain = []
+    track_lines(session, realization_lines(data), plain.append)
+    assert 'window' not in json.loads(plain[-1])

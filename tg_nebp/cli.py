@@ -16,6 +16,7 @@ from tg_nebp.datasets.mrclam_dataset import sequence_source
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
 from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
+                                          WHOLE_SEQUENCE,
                                           evaluate_scenario)
 from tg_nebp.experiments.frontier import frontier
 from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
@@ -44,6 +45,13 @@ def _number(text: str) -> float:
         raise argparse.ArgumentTypeError(f'must be a finite number, got '
                                          f'{text}')
     return value
+
+
+def _lag(text: str):
+    # a smoother's window: a positive number of steps, or the whole sequence
+    if text == WHOLE_SEQUENCE:
+        return text
+    return _at_least(1)(text)
 
 
 def _at_least(minimum, kind: Callable = int) -> Callable:
@@ -237,15 +245,17 @@ def _evaluate(args) -> int:
             **options)
         if process_group()[1] > 0:
             return 0
-    entry, key = result['entry'], result['key']
-    what = 'RMSE floor' if key == 'pcrb' else 'RMSE'
-    heading = (f", heading {entry['heading_rmse']:.4f} rad"
-               if 'heading_rmse' in entry else '')
-    largest = (f", median {entry['median_error']:.3f} m, max "
-               f"{entry['max_error']:.2f} m" if 'max_error' in entry else '')
-    print(f"{key}: {what} {entry['rmse']:.3f} m{largest}{heading}, outage "
-          f"{entry['outage']}, P(accept) {entry['accept']}, "
-          f"{entry['seconds']:.1f} s -> {Path(args.out) / 'metrics.json'}")
+    for key, entry in result['entries']:
+        what = 'RMSE floor' if key.startswith('pcrb') else 'RMSE'
+        heading = (f", heading {entry['heading_rmse']:.4f} rad"
+                   if 'heading_rmse' in entry else '')
+        largest = (f", median {entry['median_error']:.3f} m, max "
+                   f"{entry['max_error']:.2f} m" if 'max_error' in entry
+                   else '')
+        print(f"{key}: {what} {entry['rmse']:.3f} m{largest}{heading}, "
+              f"outage {entry['outage']}, P(accept) {entry['accept']}, "
+              f"{entry['seconds']:.1f} s -> "
+              f"{Path(args.out) / 'metrics.json'}")
     return 0
 
 
@@ -332,7 +342,8 @@ def _compare(args) -> int:
                      scenarios=args.scenario,
                      realizations=args.realizations, seed=args.seed,
                      checkpoints=args.checkpoint, device=args.device,
-                     batch_size=args.batch_size, methods=args.methods)
+                     batch_size=args.batch_size, methods=args.methods,
+                     lag=args.lag)
     print(f"{sum(map(len, result['results'].values()))} rows -> "
           f"{out / 'compare.json'}, {out / 'compare.md'}, "
           f"{out / 'compare.png'}")
@@ -357,6 +368,12 @@ def _add_method_options(parser: argparse.ArgumentParser):
         help='ignore the known inputs (odometry) of the data: every step '
         'is the motion model\'s input-free prediction (what odometry is '
         'worth)')
+    add('--lag', type=_lag, default=None, metavar='L',
+        help='smooth over a window of L steps, the newest counted (gbp: '
+        'fixed-lag Gaussian BP; iekf: the centralized smoother; pcrb: the '
+        'smoothing bound at lag L), or over the whole sequence with '
+        "'all' (iekf, pcrb); a smoother writes its filtered entry and its "
+        "smoothed one (KEY-smoothed)")
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '
         'ideal of a distributed filter)')
@@ -579,6 +596,11 @@ def build_parser() -> argparse.ArgumentParser:
                     'these (pcrb, iekf, iekf-marginal, gbp, gbp-plain, '
                     'bp-paper, bp-recommended, nebp; default: all); a '
                     'prefix that selects no row is an error')
+    cp.add_argument('--lag', type=_at_least(2), default=None, metavar='L',
+                    help='add the smoothers over a window of L steps: their '
+                    'filtered and smoothed rows (gbp-lagL, iekf-lagL, and '
+                    'the full smoother iekf-smoother), each beside its '
+                    'bound (pcrb, pcrb-lagL, pcrb-smoother)')
     cp.add_argument('--out', default='results/compare',
                     help='output folder (default: results/compare)')
     cp.add_argument('--quiet', action='store_true', help='no progress bar')

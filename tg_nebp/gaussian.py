@@ -23,7 +23,8 @@ __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'check_predicted_prior', 'predict_joint', 'range_blocks',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
            'unit_vectors', 'scope_index', 'WoodburyPrior', 'WoodburyUpdate',
-           'JOINT_COPIES', 'bounded_inflation']
+           'JOINT_COPIES', 'bounded_inflation', 'joint_cross',
+           'rts_backward']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
 #: recursion (covariance, information, factor, temporaries), for the
@@ -208,6 +209,62 @@ def predict_joint(cov: Tensor, jacobian: Tensor, noise: Tensor) -> Tensor:
     moved[index, :, index, :] += noise
     moved = moved.reshape(count * size, count * size)
     return 0.5 * (moved + moved.transpose(0, 1))
+
+
+def joint_cross(cov: Tensor, jacobian: Tensor) -> Tensor:
+    r""":math:`\mathbf{P} \mathbf{F}^\top` :math:`(AS, AS)` for a joint
+    covariance :math:`\mathbf{P}` and per-agent Jacobians
+    :math:`\mathbf{F}` :math:`(A, S, S)` (block-diagonal): the
+    covariance between the joint state and its prediction, which a
+    smoother's backward pass reads (:func:`rts_backward`)."""
+    count, size = jacobian.shape[:2]
+    blocks = cov.view(count, size, count, size)
+    return torch.einsum('aibk,blk->aibl', blocks, jacobian).reshape(
+        count * size, count * size)
+
+
+def rts_backward(filtered_cov: Tensor, cross: Tensor, predicted_cov: Tensor,
+                 smoothed_cov: Tensor, filtered_mean: Optional[Tensor] = None,
+                 predicted_mean: Optional[Tensor] = None,
+                 smoothed_mean: Optional[Tensor] = None
+                 ) -> Tuple[Optional[Tensor], Tensor]:
+    r"""One step of the Rauch-Tung-Striebel backward pass of `"Maximum
+    Likelihood Estimates of Linear Dynamic Systems"
+    <https://doi.org/10.2514/3.3166>`_ (Rauch, Tung and Striebel, AIAA J.
+    1965): the smoothed Gaussian of step :math:`k` from its filtered one
+    (:obj:`filtered_mean`, :obj:`filtered_cov`
+    :math:`\mathbf{P}_k`), the prediction of step :math:`k + 1` from it
+    (:obj:`predicted_mean` :math:`\boldsymbol{\mu}^-_{k+1}`,
+    :obj:`predicted_cov` :math:`\mathbf{P}^-_{k+1}`), their covariance
+    :obj:`cross` :math:`\mathbf{P}_k \mathbf{F}_{k+1}^\top` and the
+    smoothed Gaussian of step :math:`k + 1`:
+
+    .. math::
+        \mathbf{G} = \mathbf{P}_k \mathbf{F}^\top
+        (\mathbf{P}^-_{k+1})^{-1}, \quad
+        \boldsymbol{\mu}^s_k = \boldsymbol{\mu}_k + \mathbf{G}
+        (\boldsymbol{\mu}^s_{k+1} - \boldsymbol{\mu}^-_{k+1}), \quad
+        \mathbf{P}^s_k = \mathbf{P}_k + \mathbf{G} (\mathbf{P}^s_{k+1} -
+        \mathbf{P}^-_{k+1}) \mathbf{G}^\top.
+
+    Covariance form, so a singular driving noise (the constant-velocity
+    models', a robot's odometry) is fine as long as the prediction is
+    not. Batched over leading dimensions (a joint :math:`(n, n)` or many
+    small ones :math:`(*, n, n)`); the means are optional (a bound has
+    none). Returns the smoothed mean (or :obj:`None`) and covariance,
+    symmetrized."""
+    # G^T = P^-^{-1} F P: one solve with the prediction's Cholesky factor
+    factor = torch.linalg.cholesky(predicted_cov)
+    gain = torch.cholesky_solve(cross.transpose(-1, -2),
+                                factor).transpose(-1, -2)
+    cov = filtered_cov + gain @ (smoothed_cov - predicted_cov) @ \
+        gain.transpose(-1, -2)
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    if filtered_mean is None:
+        return None, cov
+    mean = filtered_mean + (gain @ (smoothed_mean - predicted_mean)
+                            .unsqueeze(-1)).squeeze(-1)
+    return mean, cov
 
 
 def unit_vectors(diff: Tensor) -> Tuple[Tensor, Tensor]:

@@ -20,7 +20,10 @@ A measurement line is a JSON object with any of
 
 Identifiers are strings or integers. An estimate line is
 :obj:`{"t": ..., "time": ..., "estimates": [{"id": ..., "mean": [...],
-"cov": [[...]]}, ...]}` with every agent's mean and covariance.
+"cov": [[...]]}, ...]}` with every agent's mean and covariance; a
+smoother's line adds :obj:`"window": [{"t": ..., "estimates": [...]},
+...]`, the revised estimates of the earlier steps of its window, oldest
+first (:func:`estimate_line`).
 :func:`realization_lines` writes a recorded realization in that format
 (measurements only; :func:`truth_lines` the true states apart), so that
 it can be replayed through the live path and scored (:func:`score`)."""
@@ -122,13 +125,27 @@ def parse_step(text: str) -> StreamStep:
 def estimate_line(session: TrackingSession, output: StepOutput) -> str:
     r"""The estimate line of a step's :obj:`output`: its time index, the
     session's time and every agent's mean and covariance (floats written
-    exactly: they read back bit for bit)."""
+    exactly: they read back bit for bit); a smoother's
+    (:class:`~tg_nebp.filters.FixedLagGaussianBP`) adds the revised
+    estimates of the earlier steps of its window, oldest first,
+    :obj:`"window": [{"t": ..., "estimates": [...]}, ...]` (the oldest is
+    final: it leaves the window at the next step)."""
     agents = ~session.anchor
-    estimates = [dict(id=node, mean=mean, cov=cov) for node, mean, cov in zip(
-        session.agent_ids, output.mean[agents].tolist(),
-        output.cov[agents].tolist())]
-    return json.dumps(dict(t=output.t, time=session.time,
-                           estimates=estimates))
+
+    def estimates(mean, cov):
+        return [dict(id=node, mean=m, cov=c) for node, m, c in zip(
+            session.agent_ids, mean[agents].tolist(), cov[agents].tolist())]
+
+    line = dict(t=output.t, time=session.time,
+                estimates=estimates(output.mean, output.cov))
+    if output.window_mean is not None and output.window_mean.size(1) > 1:
+        width = output.window_mean.size(1)
+        line['window'] = [
+            dict(t=output.t - width + 1 + k,
+                 estimates=estimates(output.window_mean[:, k],
+                                     output.window_cov[:, k]))
+            for k in range(width - 1)]
+    return json.dumps(line)
 
 
 def _step_times(data: Data, dt: float) -> List[float]:

@@ -10,7 +10,7 @@ from tg_nebp.datasets import Scenario
 from tg_nebp.models import ConstantVelocity, GaussianRange
 
 from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
-                     linear_scenario, tiny_scenario)
+                     linear_rts_smoother, linear_scenario, tiny_scenario)
 
 
 def test_linear_gaussian_bound_is_the_kalman_covariance():
@@ -132,3 +132,52 @@ def test_bound_grows_without_measurements():
     assert math.isclose(float(torch.linalg.det(bound[0, 1, :2, :2])),
                         float(torch.linalg.det(expected[:2, :2])),
                         rel_tol=1e-9)
+
+
+@pytest.mark.parametrize('lag', [2, 3, None])
+def test_linear_gaussian_smoothing_bound_is_the_rts_covariance(lag):
+    # linear-Gaussian: the smoothing bound at a lag (and of the whole
+    # sequence) is the covariance of a Rauch-Tung-Striebel smoother
+    # written in the test over the Kalman filter's joints
+    scenario = linear_scenario(steps=6, num_agents=3)
+    data = scenario.generate(gen(3))
+    _, covs, agents = linear_rts_smoother(data, scenario.motion_model,
+                                          scenario.measurement_model, lag)
+    bound = PosteriorCRB(scenario.motion_model, scenario.measurement_model,
+                         lag=lag)
+    steps = list(bound.steps(data))
+    assert [s.t for s in steps] == list(range(6))  # in order
+    out = torch.stack([s.cov for s in steps], 1)
+    np.testing.assert_allclose(out[agents].numpy(), covs, rtol=1e-9,
+                               atol=1e-12)
+    assert out[data.anchor].abs().max() == 0
+
+
+def test_smoothing_bound_is_never_above_the_filtering_bound():
+    # ranges (nonlinear): more measurements never raise the floor, step by
+    # step and agent by agent; a longer lag never raises it either, and
+    # the last step of a sequence has nothing later
+    data = tiny_scenario(steps=6).generate(gen(2))
+    agents = ~data.anchor
+    floors = {}
+    for lag in (1, 2, 4, None):
+        cov = PosteriorCRB(lag=lag)(data)[agents][..., :2, :2]
+        floors[lag] = cov.diagonal(dim1=-2, dim2=-1).sum(-1)
+    tight = 1e-12
+    assert bool((floors[2] <= floors[1] + tight).all())
+    assert bool((floors[4] <= floors[2] + tight).all())
+    assert bool((floors[None] <= floors[4] + tight).all())
+    assert bool((floors[2] < floors[1] - 1e-6).any())
+    torch.testing.assert_close(floors[None][:, -1], floors[1][:, -1])
+
+
+def test_smoothing_bound_of_a_batch_equals_each_alone():
+    assert_batch_equals_alone(PosteriorCRB(lag=3), fields=None, rtol=1e-12,
+                              atol=1e-12)
+
+
+def test_smoothing_bound_refuses_a_lag_below_one():
+    with pytest.raises(ValueError, match="'lag' must be positive"):
+        PosteriorCRB(lag=0)
+    with pytest.raises(TypeError, match="'lag' must be an integer"):
+        PosteriorCRB(lag=2.5)

@@ -202,8 +202,8 @@ def test_damaged_rows_are_refused_on_resume(tmp_path):
         floor_ratios(rows)
     rows = copy.deepcopy(good['results']['tiny'])
     rows['iekf gaussian']['spread']['realizations'].pop()
-    with pytest.raises(ValueError, match="'iekf gaussian' holds 1 "
-                       "realizations, the bound's 2"):
+    with pytest.raises(ValueError, match=re.escape(
+            "'iekf gaussian' holds 1 realizations, the bound's ('pcrb') 2")):
         floor_ratios(rows)
 
 
@@ -285,3 +285,56 @@ def test_a_gaussian_nebp_checkpoint_gets_its_own_row(tmp_path):
     plain, learned = table['gbp-plain gaussian'], table[key[0]]
     assert plain['outage'] == learned['outage']
     assert plain['rmse'] == pytest.approx(learned['rmse'], rel=1e-9)
+
+
+def test_smoother_rows_each_beside_its_bound(tmp_path, capsys):
+    # with a lag the smoothers join the table, their smoothed rows divided
+    # by the smoothing bound of the same realizations and lag
+    from tg_nebp.experiments.compare import floor_row
+    from tg_nebp.filters import (CentralizedSmoother, FixedLagGaussianBP,
+                                 Smoothed)
+    rows = list(compare_methods(tiny_scenario(), lag=3))
+    assert rows[:3] == ['pcrb', 'pcrb-lag3', 'pcrb-smoother']
+    for key in ('iekf-lag3 gaussian', 'iekf-lag3-smoothed gaussian',
+                'iekf-smoother gaussian', 'gbp-lag3 gaussian',
+                'gbp-lag3-smoothed gaussian', 'gbp-lag3 student-t',
+                'gbp-lag3-smoothed student-t'):
+        assert key in rows
+    built = compare_methods(tiny_scenario(), lag=3)
+    assert isinstance(built['gbp-lag3 student-t'][1](), FixedLagGaussianBP)
+    smoothed = built['iekf-lag3-smoothed gaussian'][1]()
+    assert isinstance(smoothed, Smoothed) and isinstance(
+        smoothed.tracker, CentralizedSmoother)
+    assert 'pcrb-lag3' not in compare_methods(tiny_scenario())
+    assert [floor_row(k) for k in (
+        'pcrb', 'pcrb-lag3', 'pcrb-smoother', 'pcrb-range-only',
+        'gbp-lag3 gaussian', 'gbp-lag3-smoothed gaussian',
+        'iekf-lag3-smoothed student-t', 'iekf-smoother gaussian',
+        'gbp-plain gaussian')] == [
+            'pcrb', 'pcrb-lag3', 'pcrb-smoother', 'pcrb', 'pcrb',
+            'pcrb-lag3', 'pcrb-lag3', 'pcrb-smoother', 'pcrb']
+    scenarios = scenario_files(tmp_path)[:1]
+    assert main(['compare', '--scenario', *scenarios, '--realizations',
+                 '2', '--lag', '3', '--methods', 'pcrb', 'gbp-lag3 gaussian',
+                 'gbp-lag3-smoothed gaussian', 'iekf-smoother', '--root',
+                 str(tmp_path / 'data'), '--out', str(tmp_path / 'out'),
+                 '--quiet']) == 0
+    result = read_json(tmp_path / 'out' / 'compare.json')['results']['tiny']
+    ratios = floor_ratios(result)
+    for key, bound in (('gbp-lag3-smoothed gaussian', 'pcrb-lag3'),
+                       ('iekf-smoother gaussian', 'pcrb-smoother'),
+                       ('gbp-lag3 gaussian', 'pcrb')):
+        per = [r[2] / f[2] for r, f in zip(
+            result[key]['spread']['realizations'],
+            result[bound]['spread']['realizations'])]
+        assert ratios[key][0] == pytest.approx(sum(per) / 2)
+    # the smoothing floor lies below the filtering one (of three steps, a
+    # window of three is the whole sequence)
+    assert result['pcrb-smoother']['rmse'] == pytest.approx(
+        result['pcrb-lag3']['rmse'], rel=1e-12)
+    assert result['pcrb-lag3']['rmse'] < result['pcrb']['rmse']
+    with pytest.raises(SystemExit):
+        main(['compare', '--scenario', *scenarios, '--lag', '1', '--quiet'])
+    assert 'must be at least 2' in capsys.readouterr().err
+    with pytest.raises(ValueError, match="'lag' must be at least 2"):
+        run_compare(scenarios=scenarios, lag=1)

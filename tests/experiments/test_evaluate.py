@@ -67,7 +67,8 @@ def test_method_tracker_refusals(scenario):
 GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
              resampler='systematic', regularize=0.2, ess_threshold=0.5,
              measurement='student-t', iterations=2, ends='both',
-             marginal=True, inflation=1.2, tolerance=0.0, no_control=True)
+             marginal=True, inflation=1.2, tolerance=0.0, no_control=True,
+             lag=3)
 
 
 def test_an_option_is_refused_by_the_methods_that_do_not_take_it(scenario):
@@ -231,3 +232,57 @@ def test_a_checkpoint_on_data_of_other_models_is_refused_or_said(
     with pytest.raises(ValueError, match=r"the data of scenario 'mrclam-6'"):
         method_tracker('nebp', load_scenario('mrclam-6'),
                        checkpoint=particle)
+
+
+def test_method_tracker_builds_the_smoothers(scenario):
+    from tg_nebp.filters import CentralizedSmoother, FixedLagGaussianBP
+    gbp, key = method_tracker('gbp', scenario, lag=4)
+    assert isinstance(gbp, FixedLagGaussianBP) and key == 'gbp-lag4'
+    assert gbp.lag == 4 and gbp.inflation == 1.5  # recommended otherwise
+    iekf, key = method_tracker('iekf', scenario, lag=3)
+    assert isinstance(iekf, CentralizedSmoother) and key == 'iekf-lag3'
+    full, key = method_tracker('iekf', scenario, lag='all')
+    assert full.lag is None and key == 'iekf-smoother'
+    bound, key = method_tracker('pcrb', scenario, lag=5)
+    assert bound.lag == 5 and key == 'pcrb-lag5'
+    assert method_tracker('pcrb', scenario, lag='all')[1] == 'pcrb-smoother'
+    with pytest.raises(ValueError, match="'lag' 'all' .* is for method "
+                       "iekf or pcrb"):
+        method_tracker('gbp', scenario, lag='all')
+    with pytest.raises(ValueError, match="'lag' and 'marginal'"):
+        method_tracker('iekf', scenario, lag=3, marginal=True)
+    with pytest.raises(ValueError, match=r"'lag' \(--lag\) is for method "
+                       r"gbp or iekf or pcrb, not bp"):
+        method_tracker('bp', scenario, lag=3)
+    with pytest.raises(ValueError, match="'lag' must be positive"):
+        method_tracker('gbp', scenario, lag=0)
+
+
+def test_cli_evaluates_a_smoother_filtered_and_smoothed(tmp_path, capsys):
+    # two entries, each tracked on its own: the newest step of every
+    # window, and every step's estimate as it leaves the window; the
+    # smoothed one is closer to the truth
+    from tg_nebp.datasets import CooperativeLocalizationDataset
+    from tg_nebp.evaluation import summarize_result, track_dataset
+    from tg_nebp.filters import FixedLagGaussianBP, Smoothed
+    root, out = tmp_path / 'data', tmp_path / 'out'
+    args = ['evaluate', '--scenario', 'paper_test', '--realizations', '1',
+            '--root', str(root), '--out', str(out), '--quiet', '--threads',
+            '1']
+    assert main(args + ['--method', 'gbp', '--lag', '3']) == 0
+    printed = capsys.readouterr().out
+    assert 'gbp-lag3: RMSE' in printed and 'gbp-lag3-smoothed: RMSE' in \
+        printed
+    assert main(args + ['--method', 'pcrb', '--lag', '3']) == 0
+    written = json.loads((out / 'metrics.json').read_text())
+    assert written['gbp-lag3']['lag'] == 3
+    assert written['gbp-lag3-smoothed']['smoothed'] is True
+    assert written['gbp-lag3-smoothed']['rmse'] < written['gbp-lag3']['rmse']
+    assert 'pcrb-lag3' in written
+    scenario = Scenario.load('paper_test')
+    dataset = CooperativeLocalizationDataset(str(root), scenario, 1)
+    expected = summarize_result(track_dataset(Smoothed(
+        FixedLagGaussianBP.recommended(
+            lag=3, motion=scenario.motion_model,
+            measurement=scenario.measurement_model)), dataset))
+    assert written['gbp-lag3-smoothed']['rmse'] == expected['rmse']

@@ -1,16 +1,18 @@
-from typing import Iterator, NamedTuple, Optional
+from collections import deque
+from typing import Iterator, List, NamedTuple, Optional
 
 import torch
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.realization import controls_of, position_dim_of
-from tg_nebp.data.validation import (check_control, check_realization,
-                                     check_state_dim)
+from tg_nebp.data.validation import (check_control, check_lag,
+                                     check_realization, check_state_dim)
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
                               check_dense_joint, check_predicted_prior,
-                              marginal_blocks, predict_joint, scope_index)
+                              joint_cross, marginal_blocks, predict_joint,
+                              rts_backward, scope_index)
 from tg_nebp.models import (MeasurementModel, MotionModel, inputs,
                             resolve_models)
 
@@ -73,11 +75,32 @@ class PosteriorCRB(torch.nn.Module):
     confidence level. :func:`~tg_nebp.evaluation.bound_dataset` gives
     these for a dataset.
 
+    **Smoothing.** With :obj:`lag` :math:`L > 1` the bound is that of the
+    estimate of step :math:`n` from the measurements up to step
+    :math:`n + L - 1` (a fixed-lag smoother whose window holds :math:`L`
+    steps; the last :math:`L - 1` steps of a sequence, which have fewer
+    later measurements, from all there are), and with :obj:`lag=None`
+    from all measurements of the sequence (the full smoother's floor): the
+    Rauch-Tung-Striebel backward pass
+    (:func:`~tg_nebp.gaussian.rts_backward`) over the filtering
+    recursion's joints, with the same Jacobians at the true states, as in
+    `"Filtering, Predictive, and Smoothing Cramér-Rao Bounds for
+    Discrete-Time Nonlinear Dynamic Systems"
+    <https://doi.org/10.1016/S0005-1098(01)00122-8>`_ (Šimandl, Královec
+    and Tichavský, Automatica 2001). It is exact for linear-Gaussian
+    models and never above the filtering bound. The pass keeps the joints
+    of the window (:math:`L` of them per graph; the whole sequence's with
+    :obj:`lag=None`).
+
     Args:
         motion (MotionModel, optional): The motion model of the data.
             (default: :obj:`ConstantVelocityDrag()`)
         measurement (MeasurementModel, optional): The measurement model of
             the data. (default: :obj:`GaussianRange()`)
+        lag (int, optional): Steps of measurements the bound of a step
+            reads, counting its own: :obj:`1` filters, :math:`L > 1` is a
+            fixed-lag smoother's floor, :obj:`None` the full smoother's.
+            (default: :obj:`1`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization` with true
@@ -90,15 +113,18 @@ class PosteriorCRB(torch.nn.Module):
     use_control: bool = True
 
     def __init__(self, motion: Optional[MotionModel] = None,
-                 measurement: Optional[MeasurementModel] = None):
+                 measurement: Optional[MeasurementModel] = None,
+                 lag: Optional[int] = 1):
         super().__init__()
         self.motion, self.measurement = resolve_models(motion, measurement)
+        self.lag = check_lag(lag)
 
     def steps(self, data: Realization,
               generator: Optional[torch.Generator] = None
               ) -> Iterator[BoundStep]:
         r"""Runs the recursion lazily, yielding a :class:`BoundStep` per
-        time step.
+        time step, in order (a smoothing bound's as soon as its lag's
+        measurements are in).
 
         Args:
             data (Realization): A single or batched realization with true
@@ -107,6 +133,47 @@ class PosteriorCRB(torch.nn.Module):
                 measurement model whose Fisher information is a Monte Carlo
                 (none for the library's models). (default: :obj:`None`)
         """
+        if self.lag == 1:
+            for t, out, _ in self._filtering(data, generator):
+                yield BoundStep(t, out)
+            return
+        # every graph's joints of the window: (filtered, predicted, cross)
+        # of each step, the last two of the transition into it
+        window = deque(maxlen=self.lag)
+        last = -1
+        for last, _, joints in self._filtering(data, generator):
+            window.append(joints)
+            if len(window) == self.lag:
+                yield BoundStep(last - self.lag + 1,
+                                self._smoothed(window, 0)[0])
+        # the window's later steps, from every measurement there is
+        done = 1 if len(window) == self.lag else 0
+        for k, out in enumerate(self._smoothed(window, done), done):
+            yield BoundStep(last - len(window) + 1 + k, out)
+
+    def _smoothed(self, window: deque, first: int) -> List[Tensor]:
+        # the marginal bounds of every node at the window's steps from
+        # 'first' on, given every step of the window: one backward pass
+        # from its last step
+        newest = window[-1]
+        outs = [newest[0][0].new_zeros(self._layout.agent_index.numel(),
+                                       self._size, self._size)
+                for _ in range(first, len(window))]
+        for g, nodes in enumerate(self._layout.agents):
+            cov = newest[g][0]
+            outs[-1][nodes] = marginal_blocks(cov, self._size)
+            for step in range(len(window) - 2, first - 1, -1):
+                filtered = window[step][g][0]
+                _, predicted, cross = window[step + 1][g]
+                _, cov = rts_backward(filtered, cross, predicted, cov)
+                outs[step - first][nodes] = marginal_blocks(cov, self._size)
+        return outs
+
+    def _filtering(self, data: Realization,
+                   generator: Optional[torch.Generator]):
+        # the filtering recursion: per step its index, every node's
+        # marginal bound and, per graph, (filtered joint, predicted joint,
+        # cross covariance of the transition into the step)
         check_realization(data, self.measurement.features)
         states = getattr(data, 'states', None)
         if states is None:
@@ -118,7 +185,8 @@ class PosteriorCRB(torch.nn.Module):
             check_control(data, self.motion)
         check_predicted_prior(data, self.motion, 'the posterior CRB',
                               self.use_control)
-        layout = GraphLayout.of(data)
+        layout = self._layout = GraphLayout.of(data)
+        self._size = size
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the posterior CRB', states.device)
         states = states.double()
@@ -137,14 +205,17 @@ class PosteriorCRB(torch.nn.Module):
                 edge_attr.double(), truth[src], truth[dst], generator)
             edge_graph = layout.graph_of[dst]
             out = truth.new_zeros(data.num_nodes, size, size)
+            joints = []
             for g, nodes in enumerate(layout.agents):
                 given = inputs(None if control is None else
                                control[nodes].double())
-                cov = predict_joint(covs[g],
-                                    self.motion.jacobian(previous[nodes],
-                                                         **given),
+                jacobian = self.motion.jacobian(previous[nodes], **given)
+                cov = predict_joint(covs[g], jacobian,
                                     self.motion.noise_covariance(
                                         previous[nodes], **given))
+                # the smoothers' backward pass reads the transition
+                cross = (None if self.lag == 1 else
+                         joint_cross(covs[g], jacobian))
                 mine = edge_graph == g
                 count = nodes.numel()
                 info = cov.new_zeros(count * len(scope), count * len(scope))
@@ -155,8 +226,9 @@ class PosteriorCRB(torch.nn.Module):
                     count, size, scope, cov.device)).updated(
                         info).covariance()
                 out[nodes] = marginal_blocks(covs[g], size)
+                joints.append((covs[g], cov, cross))
             previous = truth
-            yield BoundStep(t, out)
+            yield t, out, joints
 
     def forward(self, data: Realization,
                 generator: Optional[torch.Generator] = None) -> Tensor:
@@ -167,4 +239,4 @@ class PosteriorCRB(torch.nn.Module):
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}(motion={self.motion}, '
-                f'measurement={self.measurement})')
+                f'measurement={self.measurement}, lag={self.lag})')

@@ -19,6 +19,7 @@ if TYPE_CHECKING:  # the models import this module
     from tg_nebp.models import MotionModel
 
 __all__ = [
+    'check_lag',
     'check_graph',
     'check_position_dim',
     'check_link_features',
@@ -67,6 +68,13 @@ def check_positive_int(value, name: str) -> int:
     if value < 1:
         raise ValueError(f"'{name}' must be positive, got {value}")
     return int(value)
+
+
+def check_lag(lag) -> Optional[int]:
+    r"""Returns a smoother's :obj:`lag` (the steps of its window, its own
+    counted: a positive integer, :obj:`1` a filter) or :obj:`None` (every
+    step of the sequence)."""
+    return None if lag is None else check_positive_int(lag, 'lag')
 
 
 def check_number(value, name: str, minimum: float = 0.0,

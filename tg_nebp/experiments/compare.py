@@ -17,18 +17,23 @@ from typing import (Callable, Dict, Iterable, List, Optional, Sequence,
                     Tuple, Union)
 
 from tg_nebp.bounds import PosteriorCRB
+from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
-from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, check_run,
+from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, WHOLE_SEQUENCE,
+                                          check_run, lag_key,
                                           realizations_of, scenario_of)
-from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
+from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
+                             FixedLagGaussianBP, GaussianBP, ParticleBP,
+                             Smoothed, Tracker)
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
 __all__ = ['compare_methods', 'run_compare', 'compare', 'compare_table',
-           'compare_points', 'floor_ratios', 'row_schema', 'COMPARE_VERSION',
-           'COMPARE_SCENARIOS', 'BOUND', 'CHECKPOINT_ROWS']
+           'compare_points', 'floor_ratios', 'floor_row', 'row_schema',
+           'COMPARE_VERSION', 'COMPARE_SCENARIOS', 'BOUND',
+           'CHECKPOINT_ROWS', 'SMOOTHED']
 
 #: The format version of :obj:`compare.json`.
 COMPARE_VERSION = 1
@@ -37,6 +42,8 @@ COMPARE_VERSION = 1
 COMPARE_SCENARIOS = ('paper_test', 'paper_test_nlos')
 #: The key of the bound's row.
 BOUND = 'pcrb'
+#: The end of the first word of a smoother's row of smoothed estimates.
+SMOOTHED = '-smoothed'
 #: The first word of a checkpoint's row, by the checkpoint's base.
 CHECKPOINT_ROWS = {'particle': 'nebp', 'gaussian': 'gnebp'}
 
@@ -52,7 +59,8 @@ def _file_hash(path: Union[str, Path]) -> str:
 
 
 def compare_methods(scenario: Scenario,
-                    checkpoints: Sequence[Union[str, Path]] = ()
+                    checkpoints: Sequence[Union[str, Path]] = (),
+                    lag: Optional[int] = None
                     ) -> Dict[str, Tuple[str, Callable[[], Method]]]:
     r"""The rows of the table on :obj:`scenario`, in order, each a
     description and a function that builds the method: the bound
@@ -70,7 +78,17 @@ def compare_methods(scenario: Scenario,
     (:obj:`"nebp <file> <hash>"`) or Gaussian (:obj:`"gnebp <file>
     <hash>"`; a name of :data:`~tg_nebp.training.PRETRAINED` is the
     shipped checkpoint): the file's hash is part of the key, so a changed
-    checkpoint is a new row."""
+    checkpoint is a new row.
+
+    With a :obj:`lag` :math:`L \geq 2` the smoothers join the table, each
+    as two rows, its filtered estimates and its smoothed ones (the key's
+    first word ending in :obj:`"-smoothed"`): the smoothing bounds at lag
+    :math:`L` (:obj:`"pcrb-lagL"`) and of the whole sequence
+    (:obj:`"pcrb-smoother"`), the centralized fixed-lag smoother with the
+    scenario's likelihood (:obj:`"iekf-lagL ..."`) and the full one
+    (:obj:`"iekf-smoother ..."`), and fixed-lag Gaussian BP with every
+    likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
+    :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended)."""
     from tg_nebp.training import (checkpoint_base, checkpoint_path,
                                   tracker_from_checkpoint)
 
@@ -90,6 +108,15 @@ def compare_methods(scenario: Scenario,
         likelihoods = ['gaussian', 'student-t']
     if own.name not in likelihoods:
         likelihoods.append(own.name)
+    suffix = None if lag is None else lag_key(lag)
+    if lag is not None:
+        methods[BOUND + suffix] = (
+            f'the smoothing bound at lag {lag} (the measurements up to '
+            f't + {lag - 1})',
+            lambda: PosteriorCRB(motion, own, lag=lag))
+        methods[BOUND + lag_key(WHOLE_SEQUENCE)] = (
+            'the smoothing bound of the whole sequence',
+            lambda: PosteriorCRB(motion, own, lag=None))
     shown = {likelihood: likelihood for likelihood in likelihoods}
     if 'bearing' in own.features:
         shown['gaussian'] = 'gaussian range-only'
@@ -116,6 +143,18 @@ def compare_methods(scenario: Scenario,
                 f'{what}, {shown[likelihood]} likelihood',
                 lambda m=measurement, marginal=marginal: CentralizedIEKF(
                     motion=motion, measurement=m, marginal=marginal))
+    if lag is not None:
+        methods[f'iekf{suffix} {own.name}'] = (
+            f'centralized fixed-lag smoother (window {lag}), filtered',
+            lambda: CentralizedSmoother(lag, motion=motion, measurement=own))
+        methods[f'iekf{suffix}{SMOOTHED} {own.name}'] = (
+            f'centralized fixed-lag smoother (window {lag}), smoothed',
+            lambda: Smoothed(CentralizedSmoother(lag, motion=motion,
+                                                 measurement=own)))
+        methods[f'iekf{lag_key(WHOLE_SEQUENCE)} {own.name}'] = (
+            'centralized full smoother (Gauss-Newton over all steps)',
+            lambda: CentralizedSmoother(None, motion=motion,
+                                        measurement=own))
     for likelihood in likelihoods:
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (
@@ -127,6 +166,18 @@ def compare_methods(scenario: Scenario,
             f'Gaussian BP without inflation, {shown[likelihood]} likelihood',
             lambda m=measurement: GaussianBP.recommended(
                 inflation=1.0, motion=motion, measurement=m))
+    for likelihood in likelihoods if lag is not None else ():
+        measurement = model_like(likelihood, 'measurement', own)
+        methods[f'gbp{suffix} {likelihood}'] = (
+            f'fixed-lag Gaussian BP (window {lag}), recommended, filtered, '
+            f'{shown[likelihood]} likelihood',
+            lambda m=measurement: FixedLagGaussianBP.recommended(
+                lag=lag, motion=motion, measurement=m))
+        methods[f'gbp{suffix}{SMOOTHED} {likelihood}'] = (
+            f'fixed-lag Gaussian BP (window {lag}), recommended, smoothed, '
+            f'{shown[likelihood]} likelihood',
+            lambda m=measurement: Smoothed(FixedLagGaussianBP.recommended(
+                lag=lag, motion=motion, measurement=m)))
     methods[f'bp-paper {own.name}'] = (
         "particle BP, the paper's configuration (K = 1,000, M = 1)",
         lambda: ParticleBP(1000, motion=motion, measurement=own))
@@ -214,7 +265,7 @@ def run_compare(root: str = 'datasets',
                 device: str = 'cpu', batch_size: int = 1,
                 methods: Optional[Sequence[str]] = None,
                 progress: Optional[Callable] = None,
-                log: Callable = print) -> dict:
+                log: Callable = print, lag: Optional[int] = None) -> dict:
     r"""Runs every method of :func:`compare_methods` on
     :obj:`realizations` realizations of every scenario (seed
     :obj:`seed`) and returns the content of :obj:`out/compare.json`,
@@ -269,6 +320,8 @@ def run_compare(root: str = 'datasets',
             realization-steps done. (default: :obj:`None`)
         log (callable, optional): Receives one line per row.
             (default: :obj:`print`)
+        lag (int, optional): With a window of :math:`L \geq 2` steps, the
+            smoothers' rows (:func:`compare_methods`). (default: :obj:`None`)
     """
     scenarios = _listed(scenarios, 'scenarios',
                         (str, os.PathLike) + SCENARIO_TYPES,
@@ -278,6 +331,9 @@ def run_compare(root: str = 'datasets',
     if methods is not None:
         methods = _listed(methods, 'methods', (str, ), 'a str')
     check_run(realizations, batch_size, device)
+    if lag is not None and check_positive_int(lag, 'lag') < 2:
+        raise ValueError(f"'lag' must be at least 2 (a window of one step "
+                         f"is the filter), got {lag}")
     if not scenarios:
         raise ValueError("'scenarios' is empty: name at least one")
     if methods == []:
@@ -287,7 +343,7 @@ def run_compare(root: str = 'datasets',
     _check_names(scenarios, loaded)
     # every row of every scenario, in order; the selected ones are built
     # (their options and checkpoints checked) before the first one runs
-    rows = {s.name: compare_methods(s, checkpoints) for s in loaded}
+    rows = {s.name: compare_methods(s, checkpoints, lag) for s in loaded}
     if methods is not None:
         _check_methods(methods, rows, checkpoints)
     plan = [(name, key, what, build()) for name, table in rows.items()
@@ -308,7 +364,8 @@ def run_compare(root: str = 'datasets',
     settings = _settings(datasets, seed, device)
     result = read_resumable(
         path, settings, 'results', 'a comparison',
-        lambda key: row_schema(realizations, bound=key == BOUND), depth=2)
+        lambda key: row_schema(realizations, bound=floor_row(key) == key),
+        depth=2)
     stranger = next((name for name in result['results']
                      if name not in settings['scenarios']), None)
     if stranger is not None:
@@ -413,26 +470,49 @@ def _in_order(results: Dict[str, dict],
     return ordered
 
 
+def floor_row(key: str) -> str:
+    r"""The key of the bound row that a row's RMSE is divided by: a
+    smoother's smoothed estimates (:obj:`"...-lagL-smoothed ..."`) by the
+    smoothing bound at its lag (:obj:`"pcrb-lagL"`), the full smoother
+    (:obj:`"iekf-smoother ..."`) by that of the whole sequence
+    (:obj:`"pcrb-smoother"`), a smoothing bound by itself, every other row
+    (filters, and the smoothers' filtered estimates) by the filtering
+    bound (:data:`BOUND`)."""
+    first = key.split(' ')[0]
+    whole = lag_key(WHOLE_SEQUENCE)
+    if first.startswith(BOUND + '-lag') or first == BOUND + whole:
+        return first
+    if first.endswith(whole):
+        return BOUND + whole
+    if first.endswith(SMOOTHED):
+        window = first[:-len(SMOOTHED)]
+        return BOUND + window[window.rindex('-lag'):]
+    return BOUND
+
+
 def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:
-    r"""Each row's RMSE as a multiple of the bound's floor on the same
-    realizations: the mean and sample standard deviation over the
-    realizations of RMSE / floor (the rows of one scenario of
-    :obj:`compare.json`; empty without the bound's row). Rows of other
-    realization counts than the bound's, or a floor that is not positive,
-    are a :class:`ValueError` naming the row (a ratio of other
-    realizations would be silently wrong)."""
-    if BOUND not in rows:
-        return {}
-    floors = [r[2] for r in rows[BOUND]['spread']['realizations']]
-    if not floors or not all(f > 0 for f in floors):
-        raise ValueError(f"the bound's row ('{BOUND}') needs a positive "
-                         f"floor for every realization, got {floors}")
+    r"""Each row's RMSE as a multiple of its bound's floor on the same
+    realizations (:func:`floor_row`: the filtering bound, or a smoothed
+    row's smoothing bound): the mean and sample standard deviation over
+    the realizations of RMSE / floor (the rows of one scenario of
+    :obj:`compare.json`; a row whose bound's row is missing has none).
+    Rows of other realization counts than their bound's, or a floor that
+    is not positive, are a :class:`ValueError` naming the row (a ratio of
+    other realizations would be silently wrong)."""
     ratios = {}
     for key, entry in rows.items():
+        bound = floor_row(key)
+        if bound not in rows:
+            continue
+        floors = [r[2] for r in rows[bound]['spread']['realizations']]
+        if not floors or not all(f > 0 for f in floors):
+            raise ValueError(f"the bound's row ('{bound}') needs a positive "
+                             f"floor for every realization, got {floors}")
         realizations = entry['spread']['realizations']
         if len(realizations) != len(floors):
             raise ValueError(f"the row '{key}' holds {len(realizations)} "
-                             f"realizations, the bound's {len(floors)}")
+                             f"realizations, the bound's ('{bound}') "
+                             f"{len(floors)}")
         per = [r[2] / f for r, f in zip(realizations, floors)]
         mean = sum(per) / len(per)
         var = (sum((p - mean)**2 for p in per) / (len(per) - 1)
@@ -450,8 +530,11 @@ def compare_table(compare: dict) -> str:
              f"P(accept) pool every agent and time step; 'per real.' is the "
              f"mean ± standard deviation over the realizations; RMSE / "
              f"floor divides each realization's RMSE by the bound's floor "
-             f"on the same realization. The bound's P(accept) is that of an "
-             f"efficient estimator: the confidence level.", '']
+             f"on the same realization (a smoother's smoothed rows, "
+             f"'-smoothed' and 'iekf-smoother', by the smoothing bound of "
+             f"their lag, 'pcrb-lagL' and 'pcrb-smoother'). The bound's "
+             f"P(accept) is that of an efficient estimator: the confidence "
+             f"level.", '']
     for name, rows in compare['results'].items():
         ratios = floor_ratios(rows)
         lines += [f'### `{name}`', '',

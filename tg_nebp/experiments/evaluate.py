@@ -14,7 +14,9 @@ from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
                               load_scenario)
 from tg_nebp.evaluation import evaluate_method
-from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP, Tracker
+from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
+                             FixedLagGaussianBP, GaussianBP, ParticleBP,
+                             Smoothed, Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -23,7 +25,7 @@ from tg_nebp.utils import check_device, process_group
 __all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
            'tracker_measurement', 'evaluate_scenario', 'scenario_of',
            'check_run', 'realizations_of', 'checked_models',
-           'SCENARIO_TYPES']
+           'SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key']
 
 #: The methods of :func:`method_tracker`, by their :obj:`metrics.json` key
 #: stem: particle BP, NEBP from a checkpoint, Gaussian BP, Gaussian NEBP
@@ -47,8 +49,20 @@ METHOD_OPTIONS = {
     'marginal': ('iekf', ),
     'inflation': ('gbp', ),
     'tolerance': ('gbp', 'gnebp'),
+    'lag': ('gbp', 'iekf', 'pcrb'),
     'no_control': METHODS,
 }
+
+#: The value of :obj:`lag` (:obj:`--lag`) that smooths over the whole
+#: sequence: the full smoother (:obj:`iekf`) and its bound (:obj:`pcrb`).
+WHOLE_SEQUENCE = 'all'
+
+
+def lag_key(lag) -> str:
+    r"""The suffix of a smoother's :obj:`metrics.json` key:
+    :obj:`"-lagL"` for a window of :obj:`lag` steps, :obj:`"-smoother"`
+    for the whole sequence."""
+    return '-smoother' if lag == WHOLE_SEQUENCE else f'-lag{lag}'
 
 
 def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
@@ -156,7 +170,8 @@ def method_tracker(method: str, scenario: Scenario,
                    inflation: Optional[float] = None,
                    tolerance: Optional[float] = None,
                    checkpoint: Optional[str] = None,
-                   compile: bool = False, no_control: bool = False
+                   compile: bool = False, no_control: bool = False,
+                   lag: Union[int, str, None] = None
                    ) -> Tuple[Union[Tracker, PosteriorCRB], str]:
     r"""The tracker of :obj:`method` (one of :data:`METHODS`) for the data
     of :obj:`scenario`, and its :obj:`metrics.json` key. The options left
@@ -179,12 +194,21 @@ def method_tracker(method: str, scenario: Scenario,
     (:attr:`Tracker.use_control <tg_nebp.filters.Tracker.use_control>`).
     The bound takes :obj:`measurement` too: the floor of an estimator
     that reads only that likelihood's features (the range alone of a
-    range-bearing link)."""
+    range-bearing link).
+
+    With a :obj:`lag` :math:`L` (steps in the window, the newest counted)
+    the method smooths: :obj:`gbp` is
+    :class:`~tg_nebp.filters.FixedLagGaussianBP` (recommended otherwise),
+    :obj:`iekf` the :class:`~tg_nebp.filters.CentralizedSmoother` and
+    :obj:`pcrb` the smoothing bound at that lag (keys
+    :obj:`"gbp-lagL"`, :obj:`"iekf-lagL"`, :obj:`"pcrb-lagL"`);
+    :obj:`lag="all"` (:data:`WHOLE_SEQUENCE`) is the full smoother and its
+    bound (:obj:`"iekf-smoother"`, :obj:`"pcrb-smoother"`)."""
     method, key = _method_tracker(method, scenario, measurement, particles,
                                   iterations, samples, resampler,
                                   regularize, ess_threshold, ends, marginal,
                                   inflation, tolerance, checkpoint, compile,
-                                  no_control)
+                                  no_control, lag)
     method.use_control = not no_control
     # its own metrics.json entry: the run with the inputs stays
     return method, key + ('-no-control' if no_control else '')
@@ -193,7 +217,7 @@ def method_tracker(method: str, scenario: Scenario,
 def _method_tracker(method, scenario, measurement, particles, iterations,
                     samples, resampler, regularize, ess_threshold, ends,
                     marginal, inflation, tolerance, checkpoint, compile,
-                    no_control):
+                    no_control, lag):
     # every option by name (all the arguments but the first two), before
     # any other local exists
     options = {name: value for name, value in locals().items()
@@ -217,11 +241,27 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
             check_positive_int(options[name], name)
     if samples is not None and samples != 'all':
         check_positive_int(samples, 'samples')
+    if lag == WHOLE_SEQUENCE and method == 'gbp':
+        raise ValueError(f"'lag' {WHOLE_SEQUENCE!r} (the whole sequence) is "
+                         f"for method iekf or pcrb; gbp takes a window of "
+                         f"L steps")
+    if lag is not None and lag != WHOLE_SEQUENCE:
+        check_positive_int(lag, 'lag')
+    if lag is not None and marginal:
+        raise ValueError("'lag' and 'marginal': the smoother keeps the "
+                         "joint of its window")
+    window = None if lag == WHOLE_SEQUENCE else lag
     models = dict(motion=scenario.motion_model,
                   measurement=tracker_measurement(scenario, measurement))
     if method == 'pcrb':
-        return PosteriorCRB(**models), 'pcrb'
+        if lag is None:
+            return PosteriorCRB(**models), 'pcrb'
+        return PosteriorCRB(**models, lag=window), 'pcrb' + lag_key(lag)
     if method == 'iekf':
+        if lag is not None:
+            return CentralizedSmoother(
+                window, **_given(num_iterations=iterations),
+                **models), 'iekf' + lag_key(lag)
         tracker = CentralizedIEKF(**_given(num_iterations=iterations),
                                   marginal=marginal, **models)
         return tracker, 'iekf-marginal' if marginal else 'iekf'
@@ -230,6 +270,10 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
                        ends=ends, tolerance=tolerance)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
+        if lag is not None:
+            return FixedLagGaussianBP.recommended(
+                lag=lag, **given, compile=compile,
+                **models), 'gbp' + lag_key(lag)
         return GaussianBP.recommended(**given, compile=compile,
                                       **models), 'gbp'
     if method == 'gnebp':
@@ -288,10 +332,17 @@ def evaluate_scenario(method: str,
             every time step (a progress bar); :obj:`total` counts this
             process's steps. (default: :obj:`None`)
 
+    A smoother with a window (:obj:`lag` :math:`L`) writes two entries:
+    its filtered estimates (the newest step of each window) under its key
+    and its smoothed ones (each step's as it leaves the window,
+    :class:`~tg_nebp.filters.Smoothed`) under the key with
+    :obj:`"-smoothed"`; each is tracked on its own.
+
     Returns:
         The result of :func:`~tg_nebp.evaluation.evaluate_method`, its
         :obj:`metrics.json` entry under :obj:`"entry"` and the method's
-        key under :obj:`"key"`.
+        key under :obj:`"key"`; every entry written, in order, under
+        :obj:`"entries"` (key, entry).
     """
     check_run(realizations, batch_size, device)
     scenario = scenario_of(scenario)
@@ -300,13 +351,21 @@ def evaluate_scenario(method: str,
     world_size, rank = process_group()
     dataset, = load_datasets(root, (scenario, realizations, seed))
     share = len(range(rank, len(dataset), world_size))
+    runs = [(key, tracker)]
+    if getattr(tracker, 'lag', None) is not None and \
+            isinstance(tracker, Tracker) and tracker.lag > 1:
+        runs.append((key + '-smoothed', Smoothed(tracker)))
     particles = getattr(tracker, 'num_particles', None)
-    bar = (progress_factory(share * dataset.scenario.num_steps,
+    bar = (progress_factory(share * dataset.scenario.num_steps * len(runs),
                             key + (f' K={particles}' if particles else ''))
            if progress_factory is not None else contextlib.nullcontext())
+    entries = []
     with bar:
-        result = evaluate_method(key, tracker.to(device).eval(), dataset,
-                                 batch_size, device, seed, Path(out),
-                                 progress=getattr(bar, 'update', None))
-    result['key'] = key
-    return result
+        for name, method in runs:
+            result = evaluate_method(name, method.to(device).eval(), dataset,
+                                     batch_size, device, seed, Path(out),
+                                     progress=getattr(bar, 'update', None))
+            entries.append((name, result['entry']))
+    first = result if len(runs) == 1 else dict(result, entry=entries[0][1])
+    first.update(key=key, entries=entries)
+    return first

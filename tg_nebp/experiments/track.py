@@ -72,6 +72,10 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     if method not in LIVE_METHODS:
         raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
                          f"(the bound does not track), got {method!r}")
+    if options.get('lag') is not None and method != 'gbp':
+        raise ValueError(f"'lag' (--lag) tracks live with method gbp "
+                         f"(fixed-lag Gaussian BP); the {method} smoother is "
+                         f"an offline reference")
     tracker, _ = method_tracker(method, scenario_of(scenario), **options)
     tracker = tracker.to(device).eval()
     done = written = 0

@@ -1,12 +1,15 @@
-from .resampling import (RESAMPLERS, effective_sample_size, multinomial_resample,
+from .resampling import (RESAMPLERS, effective_sample_size,
+                         multinomial_resample,
                          residual_resample, silverman_bandwidth,
                          stratified_resample, systematic_resample)
-from .tracker import StepOutput, Tracker, TrackOutput
+from .tracker import Smoothed, StepOutput, Tracker, TrackOutput
 from .particle_bp import ParticleBP, ParticleState
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF, JointState
+from .centralized_smoother import CentralizedSmoother
 from .gaussian_bp import GBP_RECOMMENDED, GaussianBP, GaussianState
 from .gaussian_nebp import GaussianNEBP
+from .fixed_lag_gbp import FixedLagGaussianBP, WindowState
 from .session import AgentPrior, AnchorAt, TrackingSession
 from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
                               strips)
@@ -18,8 +21,12 @@ __all__ = [
     'ParticleBP',
     'NEBP',
     'CentralizedIEKF',
+    'CentralizedSmoother',
+    'Smoothed',
     'GaussianBP',
     'GaussianNEBP',
+    'FixedLagGaussianBP',
+    'WindowState',
     'PartitionedGaussianBP',
     'TrackingSession',
     'GaussianState',

@@ -239,17 +239,20 @@ class CentralizedIEKF(Tracker):
                                 state[sender.clamp_min(0)], known)
         return at_sender, state[receiver]
 
+    def _log_likelihood(self, state: Tensor, z: Tensor, *links) -> Tensor:
+        # the log-likelihood of a step's links at the agents' 'state': the
+        # measurement model's own
+        sender, receiver = self._ends(state, *links)
+        return self.measurement.log_likelihood(
+            z, sender.unsqueeze(1), receiver.unsqueeze(1)).sum()
+
     def _cost(self, state: Tensor, prior: Tensor, factor: Tensor,
               z: Tensor, *links) -> Tensor:
         # the negative log-posterior of the step (up to a constant), the
-        # prior by its covariance's Cholesky factor: the measurement
-        # model's own likelihood
+        # prior by its covariance's Cholesky factor
         offset = (state - prior).view(-1, 1)
-        sender, receiver = self._ends(state, *links)
-        log_lik = self.measurement.log_likelihood(z, sender.unsqueeze(1),
-                                                  receiver.unsqueeze(1))
         return 0.5 * (offset * torch.cholesky_solve(offset, factor)).sum() - \
-            log_lik.sum()
+            self._log_likelihood(state, z, *links)
 
     def _linearized(self, state: Tensor, woodbury: WoodburyPrior,
                     factor: Tensor, prior: Tensor, z: Tensor, sender: Tensor,

@@ -18,7 +18,8 @@ from tg_nebp.data.validation import (check_control, check_realization,
                                      check_state_dim)
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
-__all__ = ['Tracker', 'StepOutput', 'TrackOutput', 'with_control']
+__all__ = ['Tracker', 'StepOutput', 'TrackOutput', 'Smoothed',
+           'with_control']
 
 
 def with_control(method, settings: Dict[str, Any]) -> Dict[str, Any]:
@@ -34,12 +35,18 @@ class StepOutput(NamedTuple):
     S)` and, for the particle trackers, the particle belief
     (:obj:`particles` :math:`(N, K, S)`, normalized :obj:`log_weights`
     :math:`(N, K)`) before resampling (:obj:`None` for the Gaussian
-    trackers)."""
+    trackers). A smoother (a tracker with a :obj:`lag`) adds its window:
+    the revised estimates of the steps :math:`t - W + 1, \dots, t`,
+    :obj:`window_mean` :math:`(N, W, S)` and :obj:`window_cov`
+    :math:`(N, W, S, S)`, the newest last (:obj:`mean` and :obj:`cov`
+    are the newest: the filtered estimate)."""
     t: int
     mean: Tensor
     cov: Tensor
     particles: Optional[Tensor] = None
     log_weights: Optional[Tensor] = None
+    window_mean: Optional[Tensor] = None
+    window_cov: Optional[Tensor] = None
 
 
 class TrackOutput(NamedTuple):
@@ -156,3 +163,51 @@ class Tracker(torch.nn.Module):
         r"""The settings that an evaluation reports next to the accuracy
         (the fields of its :obj:`metrics.json` entry), JSON values."""
         return dict(measurement=self.measurement.config())
+
+
+class Smoothed(Tracker):
+    r"""The smoothed estimates of a smoother :obj:`tracker` (a tracker with
+    a :obj:`lag` whose steps carry their window, the :obj:`window_mean`
+    of a :class:`StepOutput`): each step's estimate as it leaves the
+    window, revised by the measurements of the :math:`L - 1` later steps
+    (the last steps of a sequence by those there are), yielded in order
+    as soon as it is final. Every metric, figure and table reads it as a
+    tracker. A step without a window (the full smoother's, already
+    smoothed) passes through unchanged.
+
+    Args:
+        tracker (Tracker): The smoother.
+    """
+    def __init__(self, tracker: Tracker):
+        super().__init__(tracker.motion, tracker.measurement)
+        self.tracker = tracker
+        self.use_control = tracker.use_control
+
+    def steps(self, data: Realization,
+              generator=None) -> Iterator[StepOutput]:
+        r"""The smoothed estimate of every step, in order; the
+        :obj:`generator` as the smoother takes it."""
+        last = None
+        for step in self.tracker.steps(data, generator):
+            if step.window_mean is None:
+                yield step
+                continue
+            last = step
+            if step.window_mean.size(1) == self.tracker.lag:
+                # a full window: its oldest step leaves it
+                yield StepOutput(step.t - self.tracker.lag + 1,
+                                 step.window_mean[:, 0],
+                                 step.window_cov[:, 0])
+        if last is None:
+            return
+        # the rest of the last window is final as it stands
+        width = last.window_mean.size(1)
+        for k in range(1 if width == self.tracker.lag else 0, width):
+            yield StepOutput(last.t - width + 1 + k, last.window_mean[:, k],
+                             last.window_cov[:, k])
+
+    def settings(self) -> Dict[str, Any]:
+        return dict(self.tracker.settings(), smoothed=True)
+
+    def __repr__(self) -> str:
+        return f'{self.__class__.__name__}({self.tracker})'

@@ -12,7 +12,7 @@ from tg_nebp.utils import compute_dtype, link_factors, long_edge_index
 
 __all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages',
            'RangeMessages', 'Factors', 'Linearization', 'ENDS',
-           'position_covariance']
+           'position_covariance', 'as_factor_messages']
 
 #: Which ends of a link its range informs: :obj:`"both"` (every measured
 #: range is shared with the neighbour it measured) or :obj:`"receiver"`
@@ -223,6 +223,14 @@ def position_covariance(belief: GaussianBelief, width: int,
     cov = cov[:, :width, :width]
     cov = 0.5 * (cov + cov.transpose(-1, -2))
     return cov.masked_fill(anchor.view(-1, 1, 1), 0.0)
+
+
+def as_factor_messages(messages) -> 'FactorMessages':
+    r""":obj:`messages` as :class:`FactorMessages` (rank-one
+    :class:`RangeMessages` expanded)."""
+    if isinstance(messages, RangeMessages):
+        return messages.factor_messages()
+    return messages
 
 
 def _check_messages(messages, count: int, width: int) -> None:
@@ -467,17 +475,34 @@ class GaussianBPConv(MessagePassing):
         prior, belief, edge_index, edge_attr, messages, factors = (
             self.prepare(prior, belief, edge_index, edge_attr, anchor,
                          messages, factors, validate))
+        new = self.step_messages(belief, edge_index, edge_attr, anchor,
+                                 factors, messages, generator)
+        return self.beliefs(prior, belief, as_factor_messages(new), factors,
+                            anchor), new
+
+    def step_messages(self, belief: GaussianBelief, edge_index: Tensor,
+                      edge_attr: Tensor, anchor: Tensor, factors: Factors,
+                      messages=None,
+                      generator: Optional[torch.Generator] = None,
+                      fresh: Optional[Tensor] = None):
+        r"""The messages of one iteration from the current beliefs and
+        the previous :obj:`messages` (the first half of :meth:`forward`):
+        rank-one (:meth:`range_messages`) for a range model
+        (:attr:`rank_one`) unless given general ones, else
+        :meth:`messages` of the :meth:`linearize` d factors. The message
+        edges of the mask :obj:`fresh` :math:`(M)` have no previous message
+        (their entries of :obj:`messages` are zero): they are not damped,
+        as none is at the first iteration. Inputs as :meth:`prepare` gives
+        them."""
         if self.rank_one and not isinstance(messages, FactorMessages):
-            new = self._range_messages(belief, edge_index, edge_attr,
-                                       anchor, factors, messages)
-            return self.beliefs(prior, belief, new.factor_messages(),
-                                factors, anchor), new
+            return self._range_messages(belief, edge_index, edge_attr,
+                                        anchor, factors, messages)
         if isinstance(messages, RangeMessages):
             messages = messages.factor_messages()
         linearization = self.linearize(belief, edge_index, edge_attr,
                                        factors, generator)
-        new = self.messages(belief, anchor, factors, linearization, messages)
-        return self.beliefs(prior, belief, new, factors, anchor), new
+        return self.messages(belief, anchor, factors, linearization,
+                             messages, fresh)
 
     def prepare(self, prior: GaussianBelief, belief: GaussianBelief,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
@@ -647,12 +672,13 @@ class GaussianBPConv(MessagePassing):
 
     def messages(self, belief: GaussianBelief, anchor: Tensor,
                  factors: Factors, linearization: Linearization,
-                 messages: Optional[FactorMessages] = None
-                 ) -> FactorMessages:
+                 messages: Optional[FactorMessages] = None,
+                 fresh: Optional[Tensor] = None) -> FactorMessages:
         r"""The factor-to-variable messages of one iteration from the
         factors' :obj:`linearization` (:meth:`linearize`) and the sources'
         extrinsic beliefs (without the previous :obj:`messages`), damped
-        as configured."""
+        as configured (but for the message edges :obj:`fresh`, which have
+        no previous message)."""
         width = linearization.grad.size(-1) // 2
         marginal_info, marginal_eta = _marginal_information(
             belief.info, belief.mean, width, anchor)
@@ -662,9 +688,14 @@ class GaussianBPConv(MessagePassing):
             factor_info=linearization.info, factor_eta=linearization.eta,
             reverse=factors.reverse, messages=messages)
         if self.damping > 0 and messages is not None:
-            new = FactorMessages(*(
+            damped = FactorMessages(*(
                 torch.lerp(n, o, self.damping) for n, o in zip(new,
                                                                messages)))
+            if fresh is None:
+                return damped
+            new = FactorMessages(*(
+                torch.where(fresh.view((-1, ) + (1, ) * (n.dim() - 1)), n, d)
+                for n, d in zip(new, damped)))
         return new
 
     def beliefs(self, prior: GaussianBelief, belief: GaussianBelief,
@@ -679,10 +710,24 @@ class GaussianBPConv(MessagePassing):
         orders) keeps its prior for the step, with a warning that names
         it, and the step goes on; one whose prior alone is singular too is
         a :class:`ValueError` (nothing determines its state)."""
-        num_nodes, size = belief.mean.shape
-        width = messages.eta.size(-1)
-        sums = self.propagate(factors.index, info=messages.info,
+        return self.updated(prior, belief.mean, self.message_sums(
+            messages, factors, belief.mean.size(0)), anchor)
+
+    def message_sums(self, messages: FactorMessages, factors: Factors,
+                     num_nodes: int) -> Tensor:
+        r"""Every node's sum of its incoming :obj:`messages` (on the
+        message edges of :obj:`factors`), information and vector
+        flattened together :math:`(N, R^2 + R)`."""
+        return self.propagate(factors.index, info=messages.info,
                               eta=messages.eta, size=(num_nodes, num_nodes))
+
+    def updated(self, prior: GaussianBelief, known: Tensor, sums: Tensor,
+                anchor: Tensor) -> GaussianBelief:
+        r"""The beliefs of the nodes from their :obj:`prior` and the
+        :meth:`message_sums` :obj:`sums` (the second half of
+        :meth:`beliefs`); anchors keep the states :obj:`known`."""
+        size = prior.mean.size(-1)
+        width = len(self.measurement.scope(size))
         info = prior.info.clone()
         info[:, :width, :width] += sums[:, :width * width].view(
             -1, width, width)
@@ -701,7 +746,7 @@ class GaussianBPConv(MessagePassing):
         if bool(singular.any()):
             mean, info = _prior_where_singular(prior, mean, info,
                                                singular.bool(), anchor)
-        mean = torch.where(anchor.view(-1, 1), belief.mean, mean)
+        mean = torch.where(anchor.view(-1, 1), known, mean)
         return GaussianBelief(mean, info)
 
     def edge_update(self, info_j: Tensor, eta_j: Tensor, point_j: Tensor,

@@ -1,0 +1,238 @@
+r"""Fixed-lag Gaussian BP: a window of one step is Gaussian BP; on a network
+whose space-time graph is a tree it is exact (the Kalman filter and the
+Rauch-Tung-Striebel smoother, written in the test); each graph of a batch
+converges on its own; streaming and save/resume are in
+tests/filters/test_session.py (live_trackers)."""
+import numpy as np
+import pytest
+import torch
+
+from tg_nebp.filters import (AgentPrior, FixedLagGaussianBP, GaussianBP,
+                             Smoothed, TrackingSession)
+from tg_nebp.models import ConstantVelocity, StudentTRange
+
+from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
+                     linear_rts_smoother, linear_scenario, stream_realization,
+                     tiny_scenario)
+
+
+@pytest.mark.parametrize('options', [
+    dict(), dict(inflation=1.5), dict(ends='receiver'),
+    dict(damping=0.3, num_iterations=30, tolerance=1e-3),
+    dict(measurement=StudentTRange())])
+def test_a_one_step_window_is_gaussian_bp_bit_for_bit(options):
+    # the same arithmetic: the step's prior, the conv's messages and
+    # beliefs, the early stop, the inflation before the next prediction
+    data = tiny_scenario(steps=6).generate(gen(3))
+    expected = GaussianBP(**options)(data)
+    out = FixedLagGaussianBP(1, **options)(data)
+    assert torch.equal(out.mean, expected.mean)
+    assert torch.equal(out.cov, expected.cov)
+
+
+def tree_realization(steps=4):
+    # two agents each measured by its own anchor at every step, measuring
+    # each other at step 1 only: the space-time graph is a tree (the two
+    # time chains joined by one factor), where Gaussian BP is exact
+    scenario = linear_scenario(steps=steps, num_agents=2)
+    data = scenario.generate(gen(6))
+    own = {0: 2, 1: 3}
+    edges, attrs, times = [], [], []
+    for t in range(steps):
+        links = [(own[0], 0), (own[1], 1)] + ([(1, 0), (0, 1)] if t == 1
+                                              else [])
+        for j, i in sorted(links, key=lambda link: link[1]):
+            noise = 0.5 * torch.randn(2, dtype=torch.float64,
+                                      generator=gen(100 * t + 10 * j + i))
+            attrs.append(data.states[j, t, :2] - data.states[i, t, :2] +
+                         scenario.measurement_model.OFFSET + noise)
+            edges.append((j, i))
+            times.append(t)
+    out = data.clone()
+    out.edge_index = torch.tensor(edges).t()
+    out.edge_attr = torch.stack(attrs)
+    out.edge_time = torch.tensor(times)
+    return scenario, out
+
+
+def test_on_a_space_time_tree_it_is_the_kalman_filter_and_smoother():
+    # a window as long as the sequence never slides: every step's newest
+    # state is the Kalman filter's and the last window is the full
+    # smoother's, means and covariances, once the messages converge
+    scenario, data = tree_realization()
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    tracker = FixedLagGaussianBP(4, num_iterations=60, tolerance=1e-12,
+                                 **models)
+    steps = list(tracker.steps(data))
+    means, covs, agents = linear_kalman_filter(data, *models.values())
+    mean = torch.stack([s.mean for s in steps], 1)
+    cov = torch.stack([s.cov for s in steps], 1)
+    np.testing.assert_allclose(mean[agents].numpy(), means, atol=1e-8)
+    np.testing.assert_allclose(cov[agents].numpy(), covs, atol=1e-8)
+    means, covs, _ = linear_rts_smoother(data, *models.values())
+    np.testing.assert_allclose(steps[-1].window_mean[agents].numpy(), means,
+                               atol=1e-8)
+    np.testing.assert_allclose(steps[-1].window_cov[agents].numpy(), covs,
+                               atol=1e-8)
+    # a shorter window slides: its smoothed estimates beat its filtered
+    # ones, and its covariances stay symmetric positive definite
+    tracker = FixedLagGaussianBP(2, num_iterations=60, tolerance=1e-12,
+                                 **models)
+    smoothed = Smoothed(tracker)(data)
+    assert bool((smoothed.cov[agents].diagonal(dim1=-2, dim2=-1).sum(-1)[
+        :, :-1] < tracker(data).cov[agents].diagonal(
+            dim1=-2, dim2=-1).sum(-1)[:, :-1]).all())
+    torch.testing.assert_close(smoothed.cov, smoothed.cov.transpose(-1, -2),
+                               rtol=0, atol=0)
+    assert bool((torch.linalg.eigvalsh(smoothed.cov[agents]) > 0).all())
+
+
+def test_smoothing_ranges_beats_filtering():
+    # ranges on a loopy network: over a few realizations the smoothed
+    # estimates are closer to the truth than Gaussian BP's, and so is the
+    # filtered estimate of the relinearized window
+    errors = {'gbp': 0.0, 'filtered': 0.0, 'smoothed': 0.0}
+    for seed in range(3):
+        data = tiny_scenario(steps=10).generate(gen(20 + seed))
+        agents = ~data.anchor
+        for name, method in (
+                ('gbp', GaussianBP.recommended()),
+                ('filtered', FixedLagGaussianBP.recommended(lag=4)),
+                ('smoothed', Smoothed(FixedLagGaussianBP.recommended(
+                    lag=4)))):
+            out = method(data)
+            errors[name] += float((out.mean[agents, :, :2] - data.states[
+                agents, :, :2]).square().sum())
+    assert errors['smoothed'] < 0.8 * errors['gbp']
+    assert errors['filtered'] < errors['gbp']
+
+
+def test_each_graph_of_a_batch_converges_on_its_own():
+    assert_batch_equals_alone(FixedLagGaussianBP.recommended(lag=3), rtol=0,
+                              atol=0)
+    assert_batch_equals_alone(Smoothed(FixedLagGaussianBP.recommended(
+        lag=3)), rtol=0, atol=0)
+
+
+def test_the_window_of_every_step():
+    data = tiny_scenario(steps=5).generate(gen(3))
+    steps = list(FixedLagGaussianBP(3).steps(data))
+    assert [s.window_mean.size(1) for s in steps] == [1, 2, 3, 3, 3]
+    for s in steps:
+        assert torch.equal(s.window_mean[:, -1], s.mean)
+        assert torch.equal(s.window_cov[:, -1], s.cov)
+        # anchors: their known state, no uncertainty, in every window step
+        assert s.window_cov[data.anchor].abs().max() == 0
+    smoothed = list(Smoothed(FixedLagGaussianBP(3)).steps(data))
+    assert [s.t for s in smoothed] == list(range(5))
+    # a step's smoothed estimate is its window's oldest as it leaves
+    assert torch.equal(smoothed[1].mean, steps[3].window_mean[:, 0])
+    assert torch.equal(smoothed[4].mean, steps[4].window_mean[:, 2])
+
+
+def test_settings_and_errors():
+    tracker = FixedLagGaussianBP(3)
+    assert tracker.settings()['lag'] == 3
+    assert 'lag=3' in repr(tracker)
+    assert Smoothed(tracker).settings()['smoothed'] is True
+    with pytest.raises(ValueError, match="'lag' must be positive"):
+        FixedLagGaussianBP(0)
+
+
+def _without_links(data, node, steps):
+    # the realization without the links of 'node' at the time indices of
+    # 'steps'
+    drop = (data.edge_index == node).any(0) & torch.isin(
+        data.edge_time, torch.tensor(list(steps)))
+    out = data.clone()
+    out.edge_index = data.edge_index[:, ~drop]
+    out.edge_attr = data.edge_attr[~drop]
+    out.edge_time = data.edge_time[~drop]
+    return out
+
+
+# tiny_scenario: agents 0-2, anchors 3-5; the late agent is the last row
+STEPS, SPLIT, LATE, ORDER = 7, 4, 2, [0, 1, 3, 4, 5, 2]
+
+
+def test_an_agent_that_joins_equals_one_present_with_that_prior():
+    # the late agent has no links before SPLIT. In one session it is there
+    # from the start (its row last), in the other it joins at SPLIT with
+    # the belief the first holds for it then: from SPLIT on the newest
+    # estimates of every node agree, and the joined agent's window rows
+    # before its join hold its prior predicted into its first step. (With
+    # a linear motion model: the first session's window relinearizes the
+    # lonely agent's chain where its first link moves it, a drag model's
+    # prediction changes by 1e-4 m/s there)
+    data = _without_links(tiny_scenario(STEPS).generate(gen(3)), LATE,
+                          range(SPLIT))
+    tracker = FixedLagGaussianBP(3, tolerance=None,
+                                 motion=ConstantVelocity(0.05))
+    present = TrackingSession(tracker, dtype=torch.float64)
+    before = stream_realization(present, data, steps=SPLIT, order=ORDER)
+    mean, cov = before[-1].mean[-1], before[-1].cov[-1]
+    after = stream_realization(present, data, start=SPLIT)
+    late = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(late, data, steps=SPLIT, order=ORDER[:-1])
+    edge_index, edge_attr = data.edges_by_step()[SPLIT]
+    links = [(f'n{j}', f'n{i}') for j, i in edge_index.t().tolist()]
+    joined = [late.update(links, edge_attr[:, 0].tolist(), join={
+        f'n{LATE}': AgentPrior(mean.tolist(), cov.tolist())})]
+    joined += stream_realization(late, data, start=SPLIT + 1)
+    assert late.ids == present.ids
+    for ours, theirs in zip(joined, after):
+        torch.testing.assert_close(ours.mean, theirs.mean, rtol=0,
+                                   atol=1e-12)
+        torch.testing.assert_close(ours.cov, theirs.cov, rtol=0,
+                                   atol=1e-12)
+    assert float((after[-1].mean[-1, :2] - mean[:2]).norm()) > 0.1
+    window = joined[0].window_mean
+    assert window.size(1) == 3 and torch.equal(window[-1, 0], window[-1, 1])
+    assert torch.equal(joined[0].window_cov[-1, 0],
+                       joined[0].window_cov[-1, 1])
+
+
+def test_an_agent_that_leaves_no_longer_influences_anyone():
+    # the leaver has no links in the window when it leaves: the others'
+    # estimates are those of a session where it stays without links; one
+    # that leaves with links in the window takes them along (the others'
+    # window estimates lose them) and the session goes on
+    data = _without_links(tiny_scenario(STEPS).generate(gen(4)), LATE,
+                          range(SPLIT - 2, STEPS))
+    tracker = FixedLagGaussianBP(3, tolerance=None)
+    stay = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(stay, data, steps=SPLIT, order=ORDER)
+    stayed = stream_realization(stay, data, start=SPLIT)
+    gone = TrackingSession(tracker, dtype=torch.float64)
+    stream_realization(gone, data, steps=SPLIT, order=ORDER)
+    edge_index, edge_attr = data.edges_by_step()[SPLIT]
+    links = [(f'n{j}', f'n{i}') for j, i in edge_index.t().tolist()]
+    left = [gone.update(links, edge_attr[:, 0].tolist(),
+                        leave=[f'n{LATE}'])]
+    left += stream_realization(gone, data, start=SPLIT + 1)
+    assert gone.ids == stay.ids[:-1]
+    for ours, theirs in zip(left, stayed):
+        torch.testing.assert_close(ours.mean, theirs.mean[:-1], rtol=0,
+                                   atol=1e-9)
+        torch.testing.assert_close(ours.cov, theirs.cov[:-1], rtol=0,
+                                   atol=1e-9)
+    linked = TrackingSession(tracker, dtype=torch.float64)
+    full = tiny_scenario(STEPS).generate(gen(4))
+    stream_realization(linked, full, steps=SPLIT, order=ORDER)
+    assert linked.state.links.size(1) > 0
+    out = linked.update([], [], leave=[f'n{LATE}'])
+    assert bool(torch.isfinite(out.window_cov).all())
+
+
+def test_links_with_features_the_model_does_not_read():
+    # generated NLOS links carry their true NLOS flag after the range; a
+    # Gaussian model reads the range: the window holds the links as given
+    from tg_nebp.models import NLOSRange
+    data = tiny_scenario(steps=4).replace(
+        measurement=NLOSRange()).generate(gen(1))
+    assert data.edge_attr.size(1) == 2
+    assert torch.equal(FixedLagGaussianBP(1)(data).mean,
+                       GaussianBP()(data).mean)
+    steps = list(FixedLagGaussianBP(3).steps(data))
+    assert bool(torch.isfinite(steps[-1].window_mean).all())

@@ -1,0 +1,391 @@
+from collections import deque
+from typing import Iterator, List, NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_lag
+from tg_nebp.filters.centralized_iekf import CentralizedIEKF
+from tg_nebp.filters.tracker import StepOutput
+from tg_nebp.gaussian import (GraphLayout, WoodburyPrior, block_diagonal,
+                              check_dense_joint, check_predicted_prior,
+                              joint_cross, marginal_blocks, predict_joint,
+                              rts_backward, scope_index)
+from tg_nebp.models import MeasurementModel, MotionModel, inputs
+
+__all__ = ['CentralizedSmoother']
+
+
+class _Slot(NamedTuple):
+    # one step of a graph's window: its links (ranges, agent indices of
+    # sender and receiver, -1 for an anchor, whose state 'known' gives)
+    # and the agents' known inputs of the transition into it
+    z: Tensor
+    sender: Tensor
+    receiver: Tensor
+    known: Tensor
+    control: Optional[Tensor]
+
+
+class _Base(NamedTuple):
+    # what precedes a graph's window: the filtered Gaussian of the step
+    # before its first (or the prior) and the point the transition out of
+    # it is linearized at
+    mean: Tensor
+    cov: Tensor
+    point: Tensor
+
+
+class _Pass(NamedTuple):
+    # one forward-backward pass over a window linearized at its points:
+    # per step the prediction (mean, covariance, cross covariance of the
+    # transition into it), the filtered Gaussian and the smoothed one, the
+    # means as offsets from the points
+    predicted: List[Tuple[Tensor, Tensor, Tensor]]
+    filtered: List[Tuple[Tensor, Tensor]]
+    smoothed: List[Tuple[Tensor, Tensor]]
+
+
+class CentralizedSmoother(CentralizedIEKF):
+    r"""The centralized Gauss-Newton smoother over a window of steps, the
+    reference that fixed-lag Gaussian BP
+    (:class:`~tg_nebp.filters.FixedLagGaussianBP`) is measured against:
+    one joint Gaussian over all agents of a graph at each of the last
+    :obj:`lag` steps. Every step it finds the maximum a posteriori states
+    of the window,
+
+    .. math::
+        \min_{\mathbf{x}_{n-L+1:n}} \tfrac{1}{2} \|\mathbf{x}_{n-L+1} -
+        \boldsymbol{\mu}^-_{n-L+1}\|^2_{(\mathbf{P}^-_{n-L+1})^{-1}} +
+        \sum_k \tfrac{1}{2} \|\mathbf{x}_k -
+        f(\mathbf{x}_{k-1})\|^2_{\mathbf{Q}_k^{-1}} - \sum_k \sum_{j \to i}
+        \log p\big(z^{(k)}_{j \to i} \,\big|\, d_{ji}(\mathbf{x}_k)\big),
+
+    by Gauss-Newton: each iteration linearizes every motion and
+    measurement factor of the window at the current states and solves
+    the linearized problem exactly by a Kalman filter and a
+    Rauch-Tung-Striebel backward pass (the iterated Kalman smoother of
+    `"The Iterated Kalman Smoother as a Gauss-Newton Method"
+    <https://doi.org/10.1137/0804035>`_, Bell, SIAM J. Optim. 1994; the
+    covariance form takes the singular driving noise of the
+    constant-velocity models and of odometry), with the step halved until
+    the cost decreases. The cost is that of the window's first state and
+    every transition's driving noise (:math:`\mathbf{x}_k =
+    f(\mathbf{x}_{k-1}) + \mathbf{L}_k \mathbf{w}_k`, :math:`\mathbf{Q}_k =
+    \mathbf{L}_k \mathbf{L}_k^\top`, :math:`\mathbf{w}_k` white): a trial
+    is rolled out through the motion model, so every iterate lies on the
+    model's own trajectories, where a singular noise keeps it.
+    Each update is the centralized IEKF's
+    (:class:`~tg_nebp.filters.CentralizedIEKF`: the measurement model's own
+    likelihood, Woodbury on the entries the links inform). When the window
+    slides, its oldest step is marginalized out: its filtered Gaussian
+    at the solution, predicted into the next step (the Schur complement of
+    the linearized window), is the next window's prior.
+
+    Each step yields the newest state (the filtered estimate, its past
+    relinearized) and the whole window (:obj:`window_mean`,
+    :obj:`window_cov`: the smoothed estimates of the last :math:`L`
+    steps); :class:`~tg_nebp.filters.Smoothed` reads each step's at lag
+    :math:`L`. With :obj:`lag=1` it is the centralized IEKF (equal to
+    rounding once the iterations converge). With :obj:`lag=None` it is the
+    full batch smoother: the whole sequence is one window, started from
+    the filtered estimates of :obj:`lag=1`, and every step's smoothed
+    estimate is yielded at the end.
+
+    Float64 inside, dense :math:`(AS)^2` joints per step of the window;
+    time grows as :math:`L A^3` per iteration. Offline only (no live
+    session): it is the reference. No random draws.
+
+    Args:
+        lag (int, optional): Steps in the window :math:`L` (the newest
+            counted), or :obj:`None` for all. (default: :obj:`5`)
+        num_iterations (int, optional): Gauss-Newton iterations per time
+            step (per sequence with :obj:`lag=None`). (default: :obj:`5`)
+        motion (MotionModel, optional): Motion model with an
+            additive-Gaussian-noise form.
+            (default: :obj:`ConstantVelocityDrag()`)
+        measurement (MeasurementModel, optional): Measurement model whose
+            likelihood the smoother maximizes.
+            (default: :obj:`GaussianRange()`)
+        max_halvings (int, optional): Halvings of a Gauss-Newton step before
+            the iterations stop at the current point. (default: :obj:`10`)
+        tolerance (float, optional): The iterations stop after a step
+            whose largest entry is at most this. (default: :obj:`1e-6`)
+
+    Shapes:
+        - **input:** a :class:`~tg_nebp.data.Realization`
+        - **output:** :class:`~tg_nebp.filters.TrackOutput` with mean
+          :math:`(N, T, S)` and covariance :math:`(N, T, S, S)` (the
+          filtered estimates; the full smoother's smoothed ones)
+    """
+    def __init__(self, lag: Optional[int] = 5, num_iterations: int = 5,
+                 motion: Optional[MotionModel] = None,
+                 measurement: Optional[MeasurementModel] = None,
+                 max_halvings: int = 10, tolerance: float = 1e-6):
+        super().__init__(num_iterations, motion, measurement,
+                         max_halvings=max_halvings, tolerance=tolerance)
+        self.lag = check_lag(lag)
+
+    def initial_state(self, data, generator=None):
+        raise NotImplementedError(
+            'CentralizedSmoother does not run live: it is the offline '
+            'reference (FixedLagGaussianBP runs live)')
+
+    def steps(self, data: Realization,
+              generator=None) -> Iterator[StepOutput]:
+        r"""Runs the time loop lazily, yielding a
+        :class:`~tg_nebp.filters.StepOutput` per time step with the
+        window's smoothed estimates (every step's at the end with
+        :obj:`lag=None`).
+
+        Args:
+            data (Realization): A single or batched realization.
+            generator: Unused (the smoother draws nothing).
+                (default: :obj:`None`)
+        """
+        self.check(data)
+        check_predicted_prior(data, self.motion, 'the centralized smoother',
+                              self.use_control)
+        layout = GraphLayout.of(data)
+        size = data.prior_mean.size(1)
+        check_dense_joint(max(a.numel() for a in layout.agents), size,
+                          'the centralized smoother', data.prior_mean.device)
+        if self.lag is None:
+            yield from self._batch(data, layout)
+            return
+        for t, means, covs in self._windows(data, layout, self.lag):
+            yield self._output(t, data, layout, means, covs)
+
+    def _windows(self, data: Realization, layout: GraphLayout, lag: int):
+        # the time loop with windows of 'lag' steps: per step its index
+        # and, per graph, the window's solution (W, A, S) (angles lifted)
+        # and smoothed marginal covariances (W, A, S, S)
+        known = data.prior_mean.double()
+        prior_cov = data.prior_cov.double()
+        size = known.size(1)
+        bases = [_Base(known[nodes], block_diagonal(prior_cov[nodes]),
+                       known[nodes]) for nodes in layout.agents]
+        windows = [deque() for _ in layout.agents]
+        points = [deque() for _ in layout.agents]
+        for t, slots in enumerate(self._slots(data, layout)):
+            means, covs = [], []
+            for g in range(len(layout.agents)):
+                windows[g].append(slots[g])
+                # a new step starts at its prediction from the last one
+                if points[g]:
+                    points[g].append(self.motion.mean(
+                        points[g][-1], **inputs(slots[g].control)))
+                else:
+                    points[g].append(self._predicted(
+                        bases[g], slots[g].control)[0])
+                solved, final = self._solve(bases[g], list(windows[g]),
+                                            list(points[g]))
+                points[g] = deque(solved)
+                means.append(torch.stack(solved))
+                covs.append(torch.stack([marginal_blocks(cov, size)
+                                         for _, cov in final.smoothed]))
+                if len(windows[g]) == lag:  # the oldest step leaves
+                    offset, cov = final.filtered[0]
+                    bases[g] = _Base(solved[0] + offset, cov, solved[0])
+                    windows[g].popleft()
+                    points[g].popleft()
+            yield t, means, covs
+
+    def _batch(self, data: Realization, layout: GraphLayout
+               ) -> Iterator[StepOutput]:
+        # the full smoother: Gauss-Newton over every step at once, from the
+        # filter's estimates
+        filtered = [means for _, means, _ in self._windows(data, layout, 1)]
+        known = data.prior_mean.double()
+        prior_cov = data.prior_cov.double()
+        size = known.size(1)
+        slots = list(self._slots(data, layout))
+        means, covs = [], []
+        for g, nodes in enumerate(layout.agents):
+            base = _Base(known[nodes], block_diagonal(prior_cov[nodes]),
+                         known[nodes])
+            solved, final = self._solve(base, [step[g] for step in slots],
+                                        [step[g][0] for step in filtered])
+            means.append(torch.stack(solved))
+            covs.append(torch.stack([marginal_blocks(cov, size)
+                                     for _, cov in final.smoothed]))
+        output = self._output(len(slots) - 1, data, layout, means, covs)
+        for t in range(len(slots)):
+            yield StepOutput(t, output.window_mean[:, t],
+                             output.window_cov[:, t])
+
+    def _slots(self, data: Realization, layout: GraphLayout):
+        # every step's links per graph, as the IEKF's update reads them
+        known = data.prior_mean.double()
+        for (edge_index, edge_attr), control in zip(
+                data.edges_by_step(), self.controls_of(data)):
+            src, dst = edge_index
+            edge_graph = layout.graph_of[dst]
+            slots = []
+            for g, nodes in enumerate(layout.agents):
+                mine = edge_graph == g
+                slots.append(_Slot(
+                    edge_attr[mine].double(), layout.agent_index[src[mine]],
+                    layout.agent_index[dst[mine]], known[src[mine]],
+                    None if control is None else control[nodes].double()))
+            yield slots
+
+    def _output(self, t: int, data: Realization, layout: GraphLayout,
+                means: List[Tensor], covs: List[Tensor]) -> StepOutput:
+        # every node's window (anchors: their known state, zero covariance)
+        # and the newest step, angles wrapped
+        known = data.prior_mean.double()
+        width, size = means[0].size(0), known.size(1)
+        window_mean = known.unsqueeze(1).repeat(1, width, 1)
+        window_cov = known.new_zeros(known.size(0), width, size, size)
+        for g, nodes in enumerate(layout.agents):
+            window_mean[nodes] = means[g].transpose(0, 1)
+            window_cov[nodes] = covs[g].transpose(0, 1)
+        window_mean = self.motion.layout(size).wrap(window_mean)
+        return StepOutput(t, window_mean[:, -1], window_cov[:, -1],
+                          window_mean=window_mean, window_cov=window_cov)
+
+    def _predicted(self, base: _Base, control: Optional[Tensor]):
+        # the prediction out of a Gaussian linearized at its point: the
+        # mean, covariance, Jacobian and cross covariance
+        given = inputs(control)
+        jacobian = self.motion.jacobian(base.point, **given)
+        # the mean's offset from the point carried through the Jacobian (a
+        # zero offset adds zeros: the IEKF's prediction exactly)
+        mean = self.motion.mean(base.point, **given) + (
+            jacobian @ (base.mean - base.point).unsqueeze(-1)).squeeze(-1)
+        cov = predict_joint(base.cov, jacobian,
+                            self.motion.noise_covariance(base.point, **given))
+        return mean, cov, joint_cross(base.cov, jacobian)
+
+    def _forward_backward(self, base: _Base, slots: List[_Slot],
+                          points: List[Tensor]) -> _Pass:
+        # the window linearized at 'points': a Kalman filter whose updates
+        # are the IEKF's Gauss-Newton systems at the points, then the
+        # backward pass; the means as offsets from the points, so that a
+        # window of one step takes the IEKF's step exactly
+        count, size = points[0].shape
+        scope = scope_index(count, size, self.measurement.scope(size),
+                            points[0].device)
+        predicted, filtered = [], []
+        for slot, here in zip(slots, points):
+            mean, prior_cov, cross = self._predicted(base, slot.control)
+            update, grad = self._linearized(
+                here, WoodburyPrior.of(prior_cov, scope),
+                torch.linalg.cholesky(prior_cov), mean, slot.z, slot.sender,
+                slot.receiver, slot.known)
+            offset = update.solve(grad.view(-1))
+            cov = update.covariance()
+            predicted.append(((mean - here).view(-1), prior_cov, cross))
+            filtered.append((offset, cov))
+            base = _Base(here + offset.view_as(here), cov, here)
+        smoothed = [filtered[-1]]
+        for k in range(len(slots) - 2, -1, -1):
+            _, predicted_cov, cross = predicted[k + 1]
+            offset, cov = rts_backward(
+                filtered[k][1], cross, predicted_cov, smoothed[0][1],
+                filtered[k][0], predicted[k + 1][0], smoothed[0][0])
+            smoothed.insert(0, (offset, cov))
+        shape = points[0].shape
+        return _Pass(predicted,
+                     [(o.view(shape), c) for o, c in filtered],
+                     [(o.view(shape), c) for o, c in smoothed])
+
+    def _noise_factors(self, slots: List[_Slot], points: List[Tensor]):
+        # per transition into window step k > 0, linearized at the agents'
+        # step k - 1: the Jacobian F, a square root L of the driving noise
+        # (Q = L L^T; zero columns where Q is singular) and its
+        # pseudo-inverse, which maps a move off f(x_{k-1}) to the noise
+        # that makes it
+        out = []
+        for k in range(1, len(slots)):
+            given = inputs(slots[k].control)
+            values, vectors = torch.linalg.eigh(self.motion.noise_covariance(
+                points[k - 1], **given))
+            keep = values > values.amax(-1, keepdim=True) * 1e-12
+            root = values.clamp_min(0).sqrt()
+            inverse = torch.where(keep, 1 / torch.where(keep, root, 1.0),
+                                  0.0)
+            out.append((self.motion.jacobian(points[k - 1], **given),
+                        vectors * root.unsqueeze(-2),
+                        inverse.unsqueeze(-1) * vectors.transpose(-1, -2)))
+        return out
+
+    def _rolled_out(self, slots: List[_Slot], first: Tensor,
+                    noises: List[Tensor], factors) -> List[Tensor]:
+        # the window's states from its first step's and every transition's
+        # driving noise: on the motion model's own trajectory, so that a
+        # singular noise (a constant-velocity model's, odometry's) is kept
+        # exactly
+        states = [first]
+        for k, (noise, (_, root, _)) in enumerate(zip(noises, factors), 1):
+            states.append(self.motion.mean(states[-1],
+                                           **inputs(slots[k].control)) +
+                          (root @ noise.unsqueeze(-1)).squeeze(-1))
+        return states
+
+    def _window_cost(self, slots: List[_Slot], states: List[Tensor],
+                     noises: List[Tensor], factor: Tensor,
+                     prior: Tensor) -> Tensor:
+        # the negative log-posterior of the window (up to a constant): the
+        # first step's prior and links (the IEKF's cost of a step), every
+        # transition's driving noise (white, unit variance) and links
+        first = slots[0]
+        cost = self._cost(states[0], prior, factor, first.z, first.sender,
+                          first.receiver, first.known)
+        for k in range(1, len(slots)):
+            slot = slots[k]
+            cost = cost + 0.5 * noises[k - 1].square().sum()
+            cost = cost - self._log_likelihood(states[k], slot.z,
+                                               slot.sender, slot.receiver,
+                                               slot.known)
+        return cost
+
+    def _solve(self, base: _Base, slots: List[_Slot],
+               points: List[Tensor]) -> Tuple[List[Tensor], _Pass]:
+        # Gauss-Newton over the window from 'points' with step halving:
+        # the solution and the forward-backward pass at it. The window is
+        # parametrized by its first state and the driving noise of every
+        # transition; each step is the iterated Kalman smoother's, mapped
+        # to them, and a trial is rolled out through the motion model
+        prior, prior_cov, _ = self._predicted(base, slots[0].control)
+        factor = torch.linalg.cholesky(prior_cov)
+        for _ in range(self.num_iterations):
+            factors = self._noise_factors(slots, points)
+            noises = [(inverse @ (points[k] - self.motion.mean(
+                points[k - 1], **inputs(slots[k].control))).unsqueeze(-1)
+                      ).squeeze(-1)
+                      for k, (_, _, inverse) in enumerate(factors, 1)]
+            points = self._rolled_out(slots, points[0], noises, factors)
+            cost = self._window_cost(slots, points, noises, factor, prior)
+            step = [offset for offset, _ in
+                    self._forward_backward(base, slots, points).smoothed]
+            moves = [(inverse @ (step[k] - (jacobian @ step[k - 1].unsqueeze(
+                -1)).squeeze(-1)).unsqueeze(-1)).squeeze(-1)
+                for k, (jacobian, _, inverse) in enumerate(factors, 1)]
+            scale = 1.0
+            for _ in range(self.max_halvings + 1):
+                trial_noises = [n + scale * m for n, m in zip(noises, moves)]
+                trial = self._rolled_out(slots, points[0] + scale * step[0],
+                                         trial_noises, factors)
+                if bool(self._window_cost(slots, trial, trial_noises, factor,
+                                          prior) <= cost):
+                    break
+                scale = 0.5 * scale
+            else:  # no decrease along the Gauss-Newton direction: converged
+                break
+            moved = max(float((t - p).abs().amax())
+                        for t, p in zip(trial, points))
+            points = trial
+            if moved <= self.tolerance:
+                break
+        return points, self._forward_backward(base, slots, points)
+
+    def settings(self) -> dict:
+        return dict(super().settings(), lag=self.lag)
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(lag={self.lag}, num_iterations='
+                f'{self.num_iterations}, motion={self.motion}, '
+                f'measurement={self.measurement})')
