@@ -256,6 +256,8 @@ def _evaluate(args) -> int:
               f"outage {entry['outage']}, P(accept) {entry['accept']}, "
               f"{entry['seconds']:.1f} s -> "
               f"{Path(args.out) / 'metrics.json'}")
+    if 'tracks' in result:
+        print(f"tracks, filtered and smoothed -> {result['tracks']}")
     return 0
 
 

@@ -42,19 +42,21 @@ def plot_tracks(states: torch.Tensor, means: Dict[str, torch.Tensor],
     if states.size(-1) == 6:
         ax.set_title('projected on the horizontal plane (x, y)', fontsize=9)
     agents = (~anchor).nonzero().view(-1).tolist()
+    # one colour per method, its own where it has one
+    colors = {name: COLORS.get(name, f'C{k}') for k, name in enumerate(means)}
     for i in agents:
         ax.plot(states[i, :, 0], states[i, :, 1], color='black', lw=1)
         ax.plot(*states[i, -1, :2], 'o', color='black', ms=3)
         for name, mean in means.items():
-            ax.plot(mean[i, :, 0], mean[i, :, 1], color=COLORS.get(name),
+            ax.plot(mean[i, :, 0], mean[i, :, 1], color=colors[name],
                     lw=0.8, ls='--')
-            ax.plot(*mean[i, -1, :2], 'o', color=COLORS.get(name), ms=2)
+            ax.plot(*mean[i, -1, :2], 'o', color=colors[name], ms=2)
     anchors = states[anchor, 0, :2]
     ax.plot(anchors[:, 0], anchors[:, 1], '^', color='tab:green', ms=8,
             label='anchors')
     ax.plot([], [], color='black', label='truth')
     for name in means:
-        ax.plot([], [], color=COLORS.get(name), ls='--', label=name.upper())
+        ax.plot([], [], color=colors[name], ls='--', label=name.upper())
     ax.set_xlabel('x [m]')
     ax.set_ylabel('y [m]')
     ax.set_aspect('equal')

@@ -273,6 +273,9 @@ def test_cli_evaluates_a_smoother_filtered_and_smoothed(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert 'gbp-lag3: RMSE' in printed and 'gbp-lag3-smoothed: RMSE' in \
         printed
+    # the first realization's tracks, filtered and smoothed
+    assert (out / 'tracks-gbp-lag3.png').stat().st_size > 0
+    assert 'tracks, filtered and smoothed ->' in printed
     assert main(args + ['--method', 'pcrb', '--lag', '3']) == 0
     written = json.loads((out / 'metrics.json').read_text())
     assert written['gbp-lag3']['lag'] == 3

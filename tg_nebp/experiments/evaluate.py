@@ -336,7 +336,10 @@ def evaluate_scenario(method: str,
     its filtered estimates (the newest step of each window) under its key
     and its smoothed ones (each step's as it leaves the window,
     :class:`~tg_nebp.filters.Smoothed`) under the key with
-    :obj:`"-smoothed"`; each is tracked on its own.
+    :obj:`"-smoothed"`; each is tracked on its own. The tracks of the first
+    realization, true, filtered and smoothed, are drawn to
+    :obj:`out/tracks-KEY.png` (:func:`~tg_nebp.plot.plot_tracks`; its path
+    under :obj:`"tracks"`).
 
     Returns:
         The result of :func:`~tg_nebp.evaluation.evaluate_method`, its
@@ -359,13 +362,19 @@ def evaluate_scenario(method: str,
     bar = (progress_factory(share * dataset.scenario.num_steps * len(runs),
                             key + (f' K={particles}' if particles else ''))
            if progress_factory is not None else contextlib.nullcontext())
-    entries = []
+    entries, tracks = [], {}
     with bar:
         for name, method in runs:
             result = evaluate_method(name, method.to(device).eval(), dataset,
                                      batch_size, device, seed, Path(out),
                                      progress=getattr(bar, 'update', None))
             entries.append((name, result['entry']))
+            tracks[name] = result.get('first_mean')
     first = result if len(runs) == 1 else dict(result, entry=entries[0][1])
     first.update(key=key, entries=entries)
+    if len(runs) > 1 and process_group()[1] == 0:
+        from tg_nebp.plot import plot_tracks
+        first['tracks'] = Path(out) / f'tracks-{key}.png'
+        plot_tracks(result['first_states'], tracks, result['first_anchor'],
+                    first['tracks'])
     return first
