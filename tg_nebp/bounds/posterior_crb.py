@@ -137,43 +137,42 @@ class PosteriorCRB(torch.nn.Module):
             for t, out, _ in self._filtering(data, generator):
                 yield BoundStep(t, out)
             return
-        # every graph's joints of the window: (filtered, predicted, cross)
-        # of each step, the last two of the transition into it
+        # every graph's joints of the window: (agents, filtered, predicted,
+        # cross) of each step, the last two of the transition into it
         window = deque(maxlen=self.lag)
-        last = -1
-        for last, _, joints in self._filtering(data, generator):
+        last, out = -1, None
+        for last, out, joints in self._filtering(data, generator):
             window.append(joints)
             if len(window) == self.lag:
                 yield BoundStep(last - self.lag + 1,
-                                self._smoothed(window, 0)[0])
+                                self._smoothed(window, 0, out)[0])
         # the window's later steps, from every measurement there is
         done = 1 if len(window) == self.lag else 0
-        for k, out in enumerate(self._smoothed(window, done), done):
-            yield BoundStep(last - len(window) + 1 + k, out)
+        for k, bound in enumerate(self._smoothed(window, done, out), done):
+            yield BoundStep(last - len(window) + 1 + k, bound)
 
-    def _smoothed(self, window: deque, first: int) -> List[Tensor]:
-        # the marginal bounds of every node at the window's steps from
-        # 'first' on, given every step of the window: one backward pass
-        # from its last step
-        newest = window[-1]
-        outs = [newest[0][0].new_zeros(self._layout.agent_index.numel(),
-                                       self._size, self._size)
-                for _ in range(first, len(window))]
-        for g, nodes in enumerate(self._layout.agents):
-            cov = newest[g][0]
-            outs[-1][nodes] = marginal_blocks(cov, self._size)
+    @staticmethod
+    def _smoothed(window: deque, first: int, like: Tensor) -> List[Tensor]:
+        # the marginal bounds of every node (:obj:`like`'s shape) at the
+        # window's steps from 'first' on, given every step of the window:
+        # one backward pass from its last step
+        size = like.size(-1)
+        outs = [torch.zeros_like(like) for _ in range(first, len(window))]
+        for g, (nodes, cov, _, _) in enumerate(window[-1]):
+            outs[-1][nodes] = marginal_blocks(cov, size)
             for step in range(len(window) - 2, first - 1, -1):
-                filtered = window[step][g][0]
-                _, predicted, cross = window[step + 1][g]
+                filtered = window[step][g][1]
+                _, _, predicted, cross = window[step + 1][g]
                 _, cov = rts_backward(filtered, cross, predicted, cov)
-                outs[step - first][nodes] = marginal_blocks(cov, self._size)
+                outs[step - first][nodes] = marginal_blocks(cov, size)
         return outs
 
     def _filtering(self, data: Realization,
                    generator: Optional[torch.Generator]):
         # the filtering recursion: per step its index, every node's
-        # marginal bound and, per graph, (filtered joint, predicted joint,
-        # cross covariance of the transition into the step)
+        # marginal bound and, per graph, (its agents, filtered joint,
+        # predicted joint, cross covariance of the transition into the
+        # step)
         check_realization(data, self.measurement.features)
         states = getattr(data, 'states', None)
         if states is None:
@@ -185,8 +184,7 @@ class PosteriorCRB(torch.nn.Module):
             check_control(data, self.motion)
         check_predicted_prior(data, self.motion, 'the posterior CRB',
                               self.use_control)
-        layout = self._layout = GraphLayout.of(data)
-        self._size = size
+        layout = GraphLayout.of(data)
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the posterior CRB', states.device)
         states = states.double()
@@ -226,7 +224,7 @@ class PosteriorCRB(torch.nn.Module):
                     count, size, scope, cov.device)).updated(
                         info).covariance()
                 out[nodes] = marginal_blocks(covs[g], size)
-                joints.append((covs[g], cov, cross))
+                joints.append((nodes, covs[g], cov, cross))
             previous = truth
             yield t, out, joints
 
