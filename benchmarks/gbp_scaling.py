@@ -1,5 +1,6 @@
 r"""Seconds per time step and peak memory of Gaussian BP, fixed-lag Gaussian
-BP (gbp-lag5: a window of 5 steps), its learned correction and particle BP
+BP (gbp-lag5: a window of 5 steps; gbp-lag5-residual: with residual
+scheduling), its learned correction and particle BP
 on the paper's test network grown to many agents
 (Scenario.grown, the same density), each measurement in a fresh process:
 the figures of the docs' pages on Gaussian BP and Gaussian NEBP.
@@ -36,6 +37,8 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
         'gbp-plain': lambda: GaussianBP.recommended(inflation=1.0,
                                                     **models),
         'gbp-lag5': lambda: FixedLagGaussianBP.recommended(lag=5, **models),
+        'gbp-lag5-residual': lambda: FixedLagGaussianBP.recommended(
+            lag=5, schedule='residual', **models),
         'bp': lambda: ParticleBP(1000, **models),
         'bp-recommended': lambda: ParticleBP.recommended(**models),
         'gnebp': lambda: gaussian_nebp_from_checkpoint(

@@ -115,6 +115,56 @@ def test_each_graph_of_a_batch_converges_on_its_own():
         lag=3)), rtol=0, atol=0)
 
 
+def _windows(tracker, data, graph_of, num_graphs):
+    # every step's window means, the step loop run with the graphs given
+    state = tracker.initial_state(data)
+    out = []
+    for t, ((edge_index, edge_attr), control) in enumerate(zip(
+            data.edges_by_step(), tracker.controls_of(data))):
+        step, state = tracker.step(state, edge_index, edge_attr, data.anchor,
+                                   t, graph_of=graph_of,
+                                   num_graphs=num_graphs, control=control)
+        out.append(step.window_mean)
+    return out
+
+
+def test_residual_scheduling_iterates_only_the_agents_that_move():
+    # every agent measured by anchors only: each is its own component, so
+    # the residual schedule on one graph stops each agent where it stops
+    # as a graph of its own under full sweeps (its moves under the
+    # tolerance), while full sweeps on one graph iterate every agent
+    # until the slowest has converged
+    data = tiny_scenario(steps=6).replace(num_agents=5).generate(gen(4))
+    keep = data.anchor[data.edge_index[0]]
+    data.edge_index = data.edge_index[:, keep]
+    data.edge_attr = data.edge_attr[keep]
+    data.edge_time = data.edge_time[keep]
+    num = data.num_nodes
+    one = torch.zeros(num, dtype=torch.long)
+    each = torch.arange(num)
+    options = dict(lag=3, tolerance=0.05, num_iterations=30)
+    residual = _windows(FixedLagGaussianBP(schedule='residual', **options),
+                        data, one, 1)
+    alone = _windows(FixedLagGaussianBP(**options), data, each, num)
+    swept = _windows(FixedLagGaussianBP(**options), data, one, 1)
+    for ours, theirs in zip(residual, alone):
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-12)
+    assert max(float((s - a).abs().max()) for s, a in zip(swept, alone)) > 1e-6
+
+
+def test_residual_scheduling_with_a_tiny_tolerance_is_the_sweep():
+    # nothing stops moving before it has converged: the same estimates on
+    # a loopy network
+    data = tiny_scenario(steps=6).replace(num_agents=5).generate(gen(5))
+    options = dict(lag=3, tolerance=1e-11, num_iterations=200)
+    residual = FixedLagGaussianBP(schedule='residual', **options)(data)
+    swept = FixedLagGaussianBP(**options)(data)
+    torch.testing.assert_close(residual.mean, swept.mean, rtol=0, atol=1e-8)
+    torch.testing.assert_close(residual.cov, swept.cov, rtol=0, atol=1e-8)
+    assert_batch_equals_alone(FixedLagGaussianBP.recommended(
+        lag=3, schedule='residual'), rtol=0, atol=0)
+
+
 def test_the_window_of_every_step():
     data = tiny_scenario(steps=5).generate(gen(3))
     steps = list(FixedLagGaussianBP(3).steps(data))
@@ -138,6 +188,11 @@ def test_settings_and_errors():
     assert Smoothed(tracker).settings()['smoothed'] is True
     with pytest.raises(ValueError, match="'lag' must be positive"):
         FixedLagGaussianBP(0)
+    assert "schedule='sweep'" in repr(tracker)
+    with pytest.raises(ValueError, match="'schedule' must be one of"):
+        FixedLagGaussianBP(3, schedule='random')
+    with pytest.raises(ValueError, match="needs a 'tolerance'"):
+        FixedLagGaussianBP(3, schedule='residual', tolerance=None)
 
 
 def _without_links(data, node, steps):

@@ -13,7 +13,12 @@ from tg_nebp.nn.conv.gaussian_bp_conv import (FactorMessages,
                                               GaussianBelief, RangeMessages,
                                               as_factor_messages)
 
-__all__ = ['FixedLagGaussianBP', 'WindowState']
+__all__ = ['FixedLagGaussianBP', 'WindowState', 'SCHEDULES']
+
+#: The orders of a step's iterations over the window (the :obj:`schedule`
+#: of :class:`FixedLagGaussianBP`): every factor and agent each iteration,
+#: or only those around the agents that moved.
+SCHEDULES = ('sweep', 'residual')
 
 
 class WindowState(NamedTuple):
@@ -177,6 +182,18 @@ class FixedLagGaussianBP(GaussianBP):
             (default: :obj:`GaussianRange()`)
         ends, damping, tolerance, inflation, compile: As
             :class:`~tg_nebp.filters.GaussianBP`.
+        schedule (str, optional): :obj:`"sweep"` sends every factor's
+            messages and solves every agent's chain at every iteration;
+            :obj:`"residual"` only those that can have changed: the
+            factors of the window with an end at an agent whose window
+            means moved by more than :obj:`tolerance` in the last
+            iteration (every agent at the first), and the chains of those
+            agents and of every agent such a factor informs. The others
+            keep their beliefs and messages, which a sweep would change by
+            what moves of at most the tolerance make of them: the cost of
+            an iteration follows the agents still moving, not the network
+            (with :obj:`lag=1`, Gaussian BP with residual scheduling).
+            Needs a :obj:`tolerance`. (default: :obj:`"sweep"`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -191,10 +208,17 @@ class FixedLagGaussianBP(GaussianBP):
                  measurement: Optional[MeasurementModel] = None,
                  ends: str = 'both', damping: float = 0.0,
                  tolerance: Optional[float] = 0.01, inflation: float = 1.0,
-                 compile: bool = False):
+                 compile: bool = False, schedule: str = 'sweep'):
         super().__init__(num_iterations, motion, measurement, ends, damping,
                          tolerance, inflation, compile)
         self.lag = check_positive_int(lag, 'lag')
+        if schedule not in SCHEDULES:
+            raise ValueError(f"'schedule' must be one of {list(SCHEDULES)}, "
+                             f"got {schedule!r}")
+        if schedule == 'residual' and tolerance is None:
+            raise ValueError("'schedule' 'residual' needs a 'tolerance' (the "
+                             "move that keeps an agent iterating)")
+        self.schedule = schedule
 
     def initial_state(self, data, generator=None) -> WindowState:
         r"""The state before the first step of the nodes of :obj:`data`:
@@ -241,7 +265,8 @@ class FixedLagGaussianBP(GaussianBP):
             covs = window.prior_cov.unsqueeze(1)
         else:
             points = self._points(state, window, anchor)
-            solved = self._solve(window, points, messages, anchor)
+            solved = self._solve(window, points, messages,
+                                 (~anchor).nonzero().view(-1))
             belief, covs = solved.belief, solved.cov
         belief, messages, covs = self._iterate_window(
             window, belief, messages, fresh, covs, anchor, graph_of,
@@ -382,17 +407,23 @@ class FixedLagGaussianBP(GaussianBP):
         return torch.cat([state.window, moved.unsqueeze(1)], 1)
 
     def _solve(self, window: _Window, points: Tensor, messages,
-               anchor: Tensor) -> _Solved:
-        # every agent's window given its first step's prior, its motion
-        # factors linearized at 'points' (N, W, S) and the summed messages
-        # of each step: a Kalman filter (each update Gaussian BP's belief
-        # of the step) and the backward pass, on the agents' rows (anchors
-        # keep their known states)
+               rows: Tensor, into: Optional[_Solved] = None) -> _Solved:
+        # the windows of the agents 'rows' given their first step's prior,
+        # their motion factors linearized at 'points' (N, W, S) and the
+        # summed messages of each step: a Kalman filter (each update
+        # Gaussian BP's belief of the step) and the backward pass. The
+        # other nodes keep theirs in 'into' (by default their points and
+        # no information: anchors, known states)
         num, width, size = points.shape
-        sums = self.conv.message_sums(as_factor_messages(messages),
-                                      window.factors, num * width).view(
-                                          width, num, -1)
-        rows = (~anchor).nonzero().view(-1)
+        factors = window.factors
+        if 2 * rows.numel() < num:  # the sums of the rows' steps only
+            solved = torch.zeros(num, dtype=torch.bool, device=rows.device)
+            solved[rows] = True
+            into_rows = solved.repeat(width)[factors.index[1]]
+            messages = type(messages)(*(m[into_rows] for m in messages))
+            factors = factors._replace(index=factors.index[:, into_rows])
+        sums = self.conv.message_sums(as_factor_messages(messages), factors,
+                                      num * width).view(width, num, -1)
 
         def agents(tensor: Tensor) -> Tensor:
             return tensor.index_select(0, rows)
@@ -438,13 +469,18 @@ class FixedLagGaussianBP(GaussianBP):
             means.insert(0, mean)
             infos.insert(0, info)
             covs.insert(0, cov)
-        # every node of every window step (anchors: known, no uncertainty)
-        mean = points.transpose(0, 1).clone(
-            memory_format=torch.contiguous_format)
+        # every node of every window step
+        if into is None:
+            mean = points.transpose(0, 1).clone(
+                memory_format=torch.contiguous_format)
+            info = points.new_zeros(width, num, size, size)
+            cov = points.new_zeros(num, width, size, size)
+        else:
+            mean = into.belief.mean.view(width, num, size).clone()
+            info = into.belief.info.view(width, num, size, size).clone()
+            cov = into.cov.clone()
         mean[:, rows] = torch.stack(means)
-        info = points.new_zeros(width, num, size, size)
         info[:, rows] = torch.stack(infos)
-        cov = points.new_zeros(num, width, size, size)
         cov[rows] = torch.stack(covs, 1)
         return _Solved(GaussianBelief(mean.view(-1, size),
                                       info.view(-1, size, size)), cov)
@@ -496,41 +532,93 @@ class FixedLagGaussianBP(GaussianBP):
                         anchor: Tensor, graph_of: Tensor, num_graphs: int,
                         generator):
         # the iterations of one step over the window: the range messages
-        # of every step from the current beliefs, then every agent's chain
-        # solved; a graph whose window means all moved by at most the
-        # tolerance in an iteration keeps that iteration's beliefs and
-        # stops (each graph of a batch as alone)
-        num = anchor.numel()
+        # of every step from the current beliefs, then the agents' chains
+        # solved (all, or as the schedule picks); a graph whose window
+        # means all moved by at most the tolerance in an iteration keeps
+        # that iteration's beliefs and stops (each graph of a batch as
+        # alone)
+        num, size = anchor.numel(), belief.mean.size(-1)
         width = belief.mean.size(0) // num
         done = torch.zeros(num_graphs, dtype=torch.bool,
                            device=anchor.device)
+        moving = ~anchor  # every agent at the first iteration
         for _ in range(self.num_iterations):
-            new_messages = self.conv.step_messages(
-                belief, window.links, window.link_attr, window.anchor,
-                window.factors, messages, generator, fresh)
+            still = ~done[graph_of]  # the nodes whose graphs iterate
+            points = belief.mean.view(width, num, size).transpose(0, 1)
+            if self.schedule == 'residual':
+                # nothing of a converged graph moves: it keeps its own
+                messages, solve = self._residual_messages(
+                    window, belief, messages, fresh, moving & still,
+                    generator)
+                solved = self._solve(window, points, messages,
+                                     (solve & ~anchor).nonzero().view(-1),
+                                     _Solved(belief, covs))
+            else:
+                new_messages = self.conv.step_messages(
+                    belief, window.links, window.link_attr, window.anchor,
+                    window.factors, messages, generator, fresh)
+                solved = self._solve(window, points, new_messages,
+                                     (~anchor).nonzero().view(-1))
+                rows = still.repeat(width)
+                edges = rows[window.factors.index[1]]
+                solved = _Solved(GaussianBelief(*(
+                    torch.where(rows.view((-1, ) + (1, ) * (n.dim() - 1)),
+                                n, o) for n, o in zip(solved.belief,
+                                                      belief))),
+                    torch.where(still.view(-1, 1, 1, 1), solved.cov, covs))
+                messages = type(messages)(*(
+                    torch.where(edges.view((-1, ) + (1, ) * (n.dim() - 1)),
+                                n, o)
+                    for n, o in zip(new_messages, messages)))
             fresh = torch.zeros_like(fresh)
-            points = belief.mean.view(width, num, -1).transpose(0, 1)
-            solved = self._solve(window, points, new_messages, anchor)
             move = (solved.belief.mean - belief.mean).abs().amax(-1).view(
                 width, num).amax(0)
-            still = ~done[graph_of]  # the nodes whose graphs iterate
-            rows = still.repeat(width)
-            edges = rows[window.factors.index[1]]
-            belief = GaussianBelief(*(
-                torch.where(rows.view((-1, ) + (1, ) * (n.dim() - 1)), n, o)
-                for n, o in zip(solved.belief, belief)))
-            covs = torch.where(still.view(-1, 1, 1, 1), solved.cov, covs)
-            messages = type(messages)(*(
-                torch.where(edges.view((-1, ) + (1, ) * (n.dim() - 1)), n, o)
-                for n, o in zip(new_messages, messages)))
+            belief, covs = solved
             if self.tolerance is None:
                 continue
+            # NaN compares false: a diverged agent keeps moving, and its
+            # graph is not converged
+            moving = ~(move <= self.tolerance) & ~anchor
             largest = self.largest_moves(move, graph_of, num_graphs)
-            # NaN compares false: a diverged graph is not converged
             done = done | (largest <= self.tolerance)
             if bool(done.all()):
                 break
         return belief, messages, covs
+
+    def _residual_messages(self, window: _Window, belief: GaussianBelief,
+                           messages, fresh: Tensor, moving: Tensor,
+                           generator):
+        # the residual schedule's messages: those of the factors with an
+        # end at an agent of 'moving' (N) recomputed, the others kept; and
+        # the agents whose chains to solve (those agents and every agent
+        # such a factor informs)
+        num = moving.numel()
+        size = belief.mean.size(-1)
+        chosen = moving.repeat(belief.mean.size(0) // num)[
+            window.factors.ends].any(1)
+        solve = moving.clone()
+        if 2 * int(chosen.sum()) > chosen.numel():
+            # most factors: all computed (each message as alone), the
+            # others' kept
+            kept = chosen[window.factors.link]
+            computed = self.conv.step_messages(
+                belief, window.links, window.link_attr, window.anchor,
+                window.factors, messages, generator, fresh)
+            solve[window.factors.index[1, kept] % num] = True
+            return type(messages)(*(
+                torch.where(kept.view((-1, ) + (1, ) * (n.dim() - 1)), n, o)
+                for n, o in zip(computed, messages))), solve
+        factors, links, kept = self.conv.factor_subset(window.factors,
+                                                       chosen, size)
+        computed = self.conv.step_messages(
+            belief, window.links[:, links], window.link_attr[links],
+            window.anchor, factors, type(messages)(*(m[kept]
+                                                     for m in messages)),
+            generator, fresh[kept])
+        solve[factors.index[1] % num] = True
+        position = kept.nonzero().view(-1)
+        return type(messages)(*(m.index_copy(0, position, c) for m, c in
+                                zip(messages, computed))), solve
 
     def _slide(self, state: WindowState, window: _Window, messages,
                anchor: Tensor) -> WindowState:
@@ -618,7 +706,9 @@ class FixedLagGaussianBP(GaussianBP):
                                                           width)]))
 
     def settings(self) -> dict:
-        return dict(super().settings(), lag=self.lag)
+        return dict(super().settings(), lag=self.lag,
+                    schedule=self.schedule)
 
     def __repr__(self) -> str:
-        return super().__repr__()[:-1] + f', lag={self.lag})'
+        return (super().__repr__()[:-1] +
+                f', lag={self.lag}, schedule={self.schedule!r})')

@@ -402,24 +402,37 @@ class GaussianBPConv(MessagePassing):
         again (the time loop's graphs that still iterate). Every link of a
         kept node must have both ends kept (whole graphs of a batch)."""
         number = torch.cumsum(keep, 0) - 1
-        kept_factor = keep[factors.ends[:, 1]]
-        factor_number = torch.cumsum(kept_factor, 0) - 1
-        kept_link = kept_factor[factors.factor]
-        kept_message = keep[factors.index[1]]
+        subset, _, _ = self.factor_subset(factors, keep[factors.ends[:, 1]],
+                                          state_dim)
+        return subset._replace(ends=number[subset.ends],
+                               index=number[subset.index])
+
+    def factor_subset(self, factors: Factors, chosen: Tensor,
+                      state_dim: int) -> Tuple[Factors, Tensor, Tensor]:
+        r"""The factors :obj:`chosen` :math:`(P)` (a bool mask) of
+        :obj:`factors`, with their links and message edges in their order
+        and the nodes' numbers unchanged: what :meth:`factors` gives for
+        the kept links, without sorting them again (the factors whose
+        messages a residual schedule recomputes). Returns the
+        :class:`~tg_nebp.nn.conv.Factors` and the masks of the links
+        :math:`(E)` and message edges :math:`(M)` kept."""
+        factor_number = torch.cumsum(chosen, 0) - 1
+        kept_link = chosen[factors.factor]
+        kept_message = chosen[factors.link]
         message_number = torch.cumsum(kept_message, 0) - 1
         reverse = factors.reverse[kept_message]
         reverse = torch.where(reverse >= 0,
                               message_number[reverse.clamp_min(0)], reverse)
-        restricted = Factors(
-            number[factors.ends[kept_factor]], None, None,
-            number[factors.index[:, kept_message]], None, None, reverse,
+        subset = Factors(
+            factors.ends[chosen], None, None,
+            factors.index[:, kept_message], None, None, reverse,
             factor_number[factors.factor[kept_link]],
             factors.swapped[kept_link],
             factor_number[factors.link[kept_message]],
             factors.end[kept_message])
-        if factors.curvature_slots is None:
-            return restricted
-        return _placed(restricted, len(self.measurement.scope(state_dim)))
+        if factors.curvature_slots is not None:
+            subset = _placed(subset, len(self.measurement.scope(state_dim)))
+        return subset, kept_link, kept_message
 
     @property
     def rank_one(self) -> bool:
