@@ -608,3 +608,78 @@ def test_the_shipped_robots_correction_runs_live():
                          control={'a': [0.1, 0.0]})
     assert out.mean[0, :2].tolist() == pytest.approx(
         [0.1 * math.cos(0.1), 0.1 * math.sin(0.1)])
+
+
+def _damaged(value, kind, how):
+    # one field's tensor damaged 'how': a non-finite entry (infinity where
+    # NaN means 'none'), a wrong size, a wrong dtype or a wrong value
+    if how == 'nonfinite':
+        if not value.is_floating_point() or value.numel() == 0:
+            return None
+        out = value.clone()
+        out[(0, ) * out.dim()] = math.inf if kind in ('nan', 'log_weights') \
+            else math.nan
+        return out
+    if how == 'shape':
+        return torch.cat([value, value.narrow(-1, 0, 1)], -1) \
+            if value.dim() and value.size(-1) else value.new_zeros(1)
+    if how == 'dtype':
+        return value.float() if value.dtype == torch.float64 else \
+            value.double() if value.is_floating_point() else \
+            value.to(torch.int32 if kind == 'index' else torch.uint8)
+    if kind == 'cov' and value.numel():
+        return -value - torch.eye(value.size(-1), dtype=value.dtype)
+    if kind == 'log_weights':
+        return value + 1.0
+    if kind == 'index' and value.numel():
+        return value - value.max() - 1
+    return None
+
+
+@pytest.mark.parametrize('name', list(live_trackers()))
+def test_a_saved_state_with_any_field_damaged_is_refused(data, name):
+    # every field of the tracker's state, and the session's own, damaged
+    # one at a time: refused by the field's name, and the session that
+    # loads it is unchanged
+    make = live_trackers()[name]
+    session = TrackingSession(make())
+    stream_realization(session, data, steps=3)
+    saved = session.state_dict()
+    fresh = TrackingSession(make(), seed=5)
+    before = fresh.generator.get_state()
+    fields = session.tracker.state_type.FIELDS
+    refused = 0
+    for field, spec in fields.items():
+        value = saved['state'][field]
+        if value is None:
+            continue
+        elements = list(enumerate(value)) if spec.tuple else [(None, value)]
+        for k, tensor in elements:
+            for how in ('nonfinite', 'shape', 'dtype', 'value'):
+                bad = _damaged(tensor, spec.kind, how)
+                if bad is None:
+                    continue
+                if k is None:
+                    damaged = bad
+                else:
+                    damaged = list(value)
+                    damaged[k] = bad
+                state = dict(saved['state'], **{field: damaged})
+                with pytest.raises(ValueError, match=f"'{field}'|particles"):
+                    fresh.load_state_dict(dict(saved, state=state))
+                assert fresh.ids == [] and fresh.state is None
+                assert torch.equal(fresh.generator.get_state(), before)
+                refused += 1
+    for damage, match in (
+            (dict(anchor=saved['anchor'].double() * 0.5), "'anchor'"),
+            (dict(time=math.nan), "'time'"), (dict(num_steps=-1),
+                                              "'num_steps'"),
+            (dict(num_steps=2.5), "'num_steps'"),
+            (dict(state_size=saved['state_size'] + 2), 'shape|entries')):
+        with pytest.raises(ValueError, match=match):
+            fresh.load_state_dict({**saved, **damage})
+        assert fresh.ids == [] and fresh.state is None
+    assert refused >= 3 * len([f for f in fields
+                               if saved['state'][f] is not None])
+    fresh.load_state_dict(saved)
+    assert fresh.ids == session.ids

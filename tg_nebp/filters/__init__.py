@@ -2,6 +2,7 @@ from .resampling import (RESAMPLERS, effective_sample_size,
                          multinomial_resample,
                          residual_resample, silverman_bandwidth,
                          stratified_resample, systematic_resample)
+from .state import FIELD_KINDS, StateField, check_state
 from .tracker import Smoothed, StepOutput, Tracker, TrackOutput
 from .particle_bp import ParticleBP, ParticleState
 from .nebp import NEBP
@@ -40,6 +41,9 @@ __all__ = [
     'GBP_RECOMMENDED',
     'StepOutput',
     'TrackOutput',
+    'StateField',
+    'FIELD_KINDS',
+    'check_state',
     'check_state_dim',
     'weighted_moments',
     'multinomial_resample',

@@ -5,6 +5,7 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
+from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
@@ -22,6 +23,9 @@ class JointState(NamedTuple):
     :math:`(A S, A S)` of its agents in node order."""
     mean: Tensor
     joints: Tuple[Tensor, ...]
+
+    FIELDS = dict(mean=StateField(('N', 'S')),
+                  joints=StateField(('*', '*'), 'cov', tuple=True))
 
 
 class CentralizedIEKF(Tracker):
@@ -190,6 +194,21 @@ class CentralizedIEKF(Tracker):
                           joint)
         mean = self.motion.layout(size).wrap(mean)
         return StepOutput(t, mean, cov), JointState(mean, tuple(joints))
+
+    def check_state(self, state: JointState, anchor: Tensor,
+                    state_size: int, dtype: torch.dtype):
+        r""":meth:`Tracker.check_state
+        <tg_nebp.filters.Tracker.check_state>`, and the joints cover the
+        agents' states: one (a session holds one graph), of
+        :math:`A S` rows."""
+        sizes = super().check_state(state, anchor, state_size, dtype)
+        rows = int((~anchor).sum()) * state_size
+        if len(state.joints) != 1 or state.joints[0].size(0) != rows:
+            raise ValueError(f"the state's 'joints' cover "
+                             f"{[j.size(0) for j in state.joints]} rows, "
+                             f"expected one joint of {rows} (the agents' "
+                             f"states)")
+        return sizes
 
     def select_state(self, state: JointState, keep: Tensor,
                      anchor: Tensor) -> JointState:

@@ -5,7 +5,8 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_positive_int
-from tg_nebp.filters.gaussian_bp import GaussianBP, _inverse
+from tg_nebp.filters.gaussian_bp import GaussianBP, GaussianState, _inverse
+from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.gaussian import bounded_inflation, rts_backward
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
@@ -57,6 +58,18 @@ class WindowState(NamedTuple):
     messages: Optional[Tuple[Tensor, ...]]
     message_index: Optional[Tensor]
     start: Tensor
+
+    FIELDS = dict(GaussianState.FIELDS,
+                  window=StateField(('N', 'W', 'S')),
+                  links=StateField(('2', 'E'), 'index'),
+                  link_attr=StateField(('E', 'F')),
+                  time_step=StateField(('W', ), 'nan'),
+                  control=StateField(('N', 'W', 'C'), 'nan', optional=True),
+                  messages=StateField(('M', '...'), optional=True,
+                                      tuple=True),
+                  message_index=StateField(('2', 'M'), 'index',
+                                           optional=True),
+                  start=StateField(('N', ), 'index'))
 
 
 def _renumbered(index: Tensor, num: int, num_new: int,
@@ -652,6 +665,48 @@ class FixedLagGaussianBP(GaussianBP):
             tuple(m[carried] for m in messages) if index.size(1) else None,
             index if index.size(1) else None,
             (state.start - 1).clamp_min(0))
+
+    def check_state(self, state: WindowState, anchor: Tensor,
+                    state_size: int, dtype: torch.dtype):
+        r""":meth:`Tracker.check_state
+        <tg_nebp.filters.Tracker.check_state>`, and the window ties
+        together: fewer than :obj:`lag` steps, links and message edges
+        between its nodes, messages on every message edge and every
+        node's first step within the window."""
+        sizes = super().check_state(state, anchor, state_size, dtype)
+        width, count = sizes['W'], anchor.numel() * sizes['W']
+        features = len(self.measurement.features)
+        if sizes['F'] != features:
+            raise ValueError(f"the state's 'link_attr' has {sizes['F']} "
+                             f"features per link, expected {features}")
+        if state.messages is not None:
+            # the conv's kind of message (the template holds none)
+            reach = len(self.measurement.scope(state_size))
+            shapes = ([(), (), (reach, )] if self.conv.rank_one else
+                      [(reach, reach), (reach, )])
+            found = [tuple(m.shape[1:]) for m in state.messages]
+            if found != shapes:
+                raise ValueError(f"the state's 'messages' have shapes "
+                                 f"{found} after their count, expected "
+                                 f"{shapes}")
+        if width >= self.lag:
+            raise ValueError(f"the state's 'window' holds {width} steps; a "
+                             f"window of lag {self.lag} carries at most "
+                             f"{self.lag - 1}")
+        for name in ('links', 'message_index'):
+            index = getattr(state, name)
+            if index is not None and index.numel() and \
+                    int(index.max()) >= count:
+                raise ValueError(f"the state's '{name}' names node "
+                                 f"{int(index.max())} of a window of "
+                                 f"{count}")
+        if (state.messages is None) != (state.message_index is None):
+            raise ValueError("the state's 'messages' and 'message_index' "
+                             "come together")
+        if state.start.numel() and int(state.start.max()) > width:
+            raise ValueError(f"the state's 'start' names a step after the "
+                             f"window of {width}")
+        return sizes
 
     def select_state(self, state: WindowState, keep: Tensor,
                      anchor: Tensor) -> WindowState:

@@ -5,6 +5,7 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
+from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
                               graph_index)
@@ -42,6 +43,12 @@ class GaussianState(NamedTuple):
     fresh: Tensor
     memory: Optional[Tensor]
     predicted: Tensor
+
+    FIELDS = dict(mean=StateField(('N', 'S')),
+                  cov=StateField(('N', 'S', 'S'), 'cov'),
+                  fresh=StateField(('N', ), 'bool'),
+                  memory=StateField(('N', '...'), optional=True),
+                  predicted=StateField(('N', 'S', 'S'), 'cov'))
 
 
 class _Active(NamedTuple):

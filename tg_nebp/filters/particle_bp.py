@@ -14,6 +14,7 @@ from tg_nebp.data.validation import (check_layer_inputs, check_number,
                                      check_positive_int, magnitude_limit)
 from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
                                         silverman_bandwidth)
+from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import bounded_inflation
 from tg_nebp.models import (LinkPairRange, MeasurementModel, MotionModel,
@@ -134,6 +135,12 @@ class ParticleState(NamedTuple):
     cov: Tensor
     fresh: Tensor
     predicted: Tensor
+
+    FIELDS = dict(particles=StateField(('N', 'K', 'S')),
+                  log_weights=StateField(('N', 'K'), 'log_weights'),
+                  cov=StateField(('N', 'S', 'S'), 'cov'),
+                  fresh=StateField(('N', ), 'bool'),
+                  predicted=StateField(('N', 'S', 'S'), 'cov'))
 
 
 class ParticleBP(Tracker):
@@ -487,6 +494,18 @@ class ParticleBP(Tracker):
                                       describe=_realization_ranges(data, t),
                                       control=control)
             yield output
+
+    def check_state(self, state: ParticleState, anchor: Tensor,
+                    state_size: int, dtype: torch.dtype):
+        r""":meth:`Tracker.check_state
+        <tg_nebp.filters.Tracker.check_state>`, and every node holds
+        :obj:`num_particles` particles."""
+        sizes = super().check_state(state, anchor, state_size, dtype)
+        if sizes['K'] != self.num_particles:
+            raise ValueError(f"the state's 'particles' hold {sizes['K']} "
+                             f"particles per node, expected "
+                             f"{self.num_particles}")
+        return sizes
 
     def initial_state(self, data: Realization,
                       generator: Generators = None,

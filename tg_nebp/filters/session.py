@@ -625,18 +625,13 @@ class TrackingSession:
             state = self._saved_state(saved.get('state'), state_type)
             ids = [_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
             anchor = saved['anchor']
-            time, steps = float(saved['time']), int(saved['num_steps'])
+            time, steps = saved['time'], saved['num_steps']
             size, random = saved['state_size'], saved['generator']
             dtype = _DTYPES[saved['dtype']]
+            self._check_saved(state, ids, anchor, time, steps, size, dtype)
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ValueError(f"a damaged saved session: {first_line(e)}"
                              ) from None
-        held = 0 if state is None else state[0].size(0)
-        if len({len(ids), anchor.numel(), held}) != 1 or \
-                len(set(ids)) != len(ids):
-            raise ValueError(f"a damaged saved session: {len(ids)} "
-                             f"identifiers, {anchor.numel()} anchor flags "
-                             f"and {held} state rows")
         if random.numel() != self.generator.get_state().numel():
             raise ValueError(f"the session's generator was saved on another "
                              f"kind of device than this session's "
@@ -644,8 +639,39 @@ class TrackingSession:
         # all read and checked: nothing is half-loaded
         self.generator.set_state(random)
         self._commit(ids, {i: r for r, i in enumerate(ids)},
-                     anchor.to(self.device, torch.bool), state, size)
-        self.time, self.num_steps, self.dtype = time, steps, dtype
+                     anchor.to(self.device), state, size)
+        self.time, self.num_steps, self.dtype = float(time), steps, dtype
+
+    def _check_saved(self, state, ids, anchor, time, steps, size,
+                     dtype) -> None:
+        # everything a saved session holds against what this session's
+        # tracker could have written: the clock, the counts, the anchor
+        # flags and the tracker's state field by field
+        if not isinstance(time, (int, float)) or isinstance(time, bool) or \
+                not math.isfinite(time):
+            raise ValueError(f"'time' must be a finite number, got {time!r}")
+        for name, value, least in (('num_steps', steps, 0),
+                                   ('state_size', size, 1)):
+            if size is None and name == 'state_size':
+                continue
+            if not isinstance(value, int) or isinstance(value, bool) or \
+                    value < least:
+                raise ValueError(f"'{name}' must be an integer of at least "
+                                 f"{least}, got {value!r}")
+        if not isinstance(anchor, Tensor) or anchor.dtype != torch.bool or \
+                anchor.dim() != 1:
+            raise ValueError(f"'anchor' must be a vector of booleans, got "
+                             f"{getattr(anchor, 'dtype', type(anchor))}")
+        held = 0 if state is None else state[0].size(0)
+        if len({len(ids), anchor.numel(), held}) != 1 or \
+                len(set(ids)) != len(ids):
+            raise ValueError(f"{len(ids)} identifiers, {anchor.numel()} "
+                             f"anchor flags and {held} state rows")
+        if state is not None:
+            if size is None:
+                raise ValueError("'state_size' is missing")
+            self.tracker.check_state(state, anchor.to(self.device), size,
+                                     dtype)
 
     def _saved_state(self, state: Optional[dict], state_type: type):
         # the tracker's state of a state_dict, on this session's device

@@ -16,6 +16,7 @@ from tg_nebp.data.realization import (Realization, controls_of,
                                       position_dim_of)
 from tg_nebp.data.validation import (check_control, check_realization,
                                      check_state_dim)
+from tg_nebp.filters.state import check_state
 from tg_nebp.models import MeasurementModel, MotionModel, resolve_models
 
 __all__ = ['Tracker', 'StepOutput', 'TrackOutput', 'Smoothed',
@@ -132,8 +133,36 @@ class Tracker(torch.nn.Module):
                                   f'live: it defines no step()')
 
     #: The class of the state that :meth:`initial_state` and :meth:`step`
-    #: return (a :class:`~typing.NamedTuple` of tensors).
+    #: return (a :class:`~typing.NamedTuple` of tensors; its
+    #: :obj:`FIELDS`, a :class:`~tg_nebp.filters.StateField` per field,
+    #: say what each may hold).
     state_type = None
+
+    def check_state(self, state, anchor: Tensor, state_size: int,
+                    dtype: torch.dtype) -> Dict[str, int]:
+        r"""Raises a :class:`ValueError` naming the field of
+        :obj:`state` (a saved one) that :meth:`step` could not have
+        produced for the nodes of :obj:`anchor` :math:`(N)` with states of
+        :obj:`state_size` entries in a session of :obj:`dtype`: every
+        field against the :obj:`FIELDS` of :attr:`state_type` (shapes,
+        finiteness, covariances symmetric positive semi-definite, weights
+        normalized, booleans as booleans; float dtypes and the sizes
+        that do not depend on the nodes as :meth:`initial_state` makes
+        them). Returns the sizes that the
+        fields' dimension names bound (:func:`~tg_nebp.filters.check_state`);
+        a tracker adds what ties its fields together. A state type without
+        :obj:`FIELDS` is not checked."""
+        fields = getattr(self.state_type, 'FIELDS', None)
+        if fields is None:
+            return {}
+        # the dtypes and trailing sizes: those of one node's state afresh
+        stand_in = Realization(
+            prior_mean=torch.zeros(1, state_size, dtype=dtype),
+            prior_cov=torch.eye(state_size, dtype=dtype).unsqueeze(0),
+            anchor=torch.zeros(1, dtype=torch.bool), num_nodes=1)
+        template = self.initial_state(stand_in, torch.Generator())
+        return check_state(state, fields, anchor.numel(), state_size,
+                           template)
 
     def select_state(self, state, keep: Tensor, anchor: Tensor):
         r"""The state of the nodes :obj:`keep` :math:`(N)` (a mask; the
