@@ -160,6 +160,21 @@ def test_checkpoint_round_trip(tmp_path):
     assert not torch.equal(a.mean, other.mean)  # the weights matter
 
 
+def test_a_checkpoint_with_non_finite_weights_is_refused_by_name(tmp_path):
+    # a network whose training diverged would track nothing but NaN
+    for make, load in ((make_model, nebp_from_checkpoint),
+                       (make_gaussian, gaussian_nebp_from_checkpoint)):
+        model = make()
+        name, parameter = next(iter(model.named_parameters()))
+        with torch.no_grad():
+            parameter.view(-1)[0] = math.nan
+        path = tmp_path / 'diverged.pt'
+        save_checkpoint(path, model)
+        with pytest.raises(ValueError, match=f"parameter '{name}' holds "
+                           f"non-finite values"):
+            load(path)
+
+
 def test_checkpoint_with_other_k_is_refused(tmp_path):
     path = tmp_path / 'model.pt'
     save_checkpoint(path, make_model(num_particles=16))

@@ -10,6 +10,7 @@ import re
 import socket
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional, Union
@@ -112,13 +113,30 @@ def write_json(path: Union[str, Path], obj: Any, sort_keys: bool = True):
     write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + '\n')
 
 
+def _verify_archive(path: Union[str, Path]) -> None:
+    # the CRC-32 of every member of the zip archive that torch.save writes
+    # (a file that is no zip archive is left to torch.load, which refuses
+    # it): zipfile reads each member and compares
+    if not zipfile.is_zipfile(path):
+        return
+    with zipfile.ZipFile(path) as archive:
+        bad = archive.testzip()
+    if bad is not None:
+        raise zipfile.BadZipFile(f"the checksum of {bad!r} does not match: "
+                                 f"the file was changed after it was "
+                                 f"written")
+
+
 def read_tensors(path: Union[str, Path], what: str) -> Any:
     r"""The object that :func:`torch.save` wrote to :obj:`path`, read with
     :obj:`weights_only=True`: tensors and plain values only, so no code
     from the file runs. A missing, foreign or unsafe file is a
     :class:`ValueError` that calls it :obj:`what` (a checkpoint, a saved
-    session)."""
+    session), and so is a damaged one: every member's checksum in the
+    archive is verified first (:func:`torch.load` does not), so a flipped
+    bit is refused whole, never loaded as a changed value."""
     try:
+        _verify_archive(path)
         return torch.load(path, map_location='cpu', weights_only=True)
     except FileNotFoundError:
         raise ValueError(f"{what} '{path}' does not exist") from None

@@ -27,6 +27,7 @@ first (:func:`estimate_line`).
 :func:`realization_lines` writes a recorded realization in that format
 (measurements only; :func:`truth_lines` the true states apart), so that
 it can be replayed through the live path and scored (:func:`score`)."""
+import hashlib
 import json
 from typing import (Callable, Dict, Iterable, Iterator, List, NamedTuple,
                     Optional, TextIO, Tuple)
@@ -209,11 +210,31 @@ def truth_lines(data: Data, dt: float = 1.0) -> Iterator[str]:
             for i in agents]))
 
 
+class _ReadLines:
+    # a running SHA-256 of the lines read (line endings aside), and its
+    # value after every power of two of lines and after the last: what a
+    # saved session keeps to know its input again, in O(log n) space
+    def __init__(self):
+        self.digest = hashlib.sha256()
+        self.marks: Dict[str, str] = {}
+
+    def read(self, number: int, text: str) -> str:
+        self.digest.update(text.rstrip('\r\n').encode('utf-8') + b'\n')
+        value = self.digest.hexdigest()
+        if number & (number - 1) == 0:
+            self.marks[str(number)] = value
+        return value
+
+    def saved(self, number: int) -> Dict[str, str]:
+        return dict(self.marks, **{str(number): self.digest.hexdigest()})
+
+
 def track_lines(session: TrackingSession, lines: Iterable[str],
                 write: Callable[[str], None], on_error: str = 'stop',
                 report: Callable[[str], None] = print,
                 save_state: Optional[str] = None, done: int = 0,
-                written: int = 0) -> dict:
+                written: int = 0,
+                digests: Optional[Dict[str, str]] = None) -> dict:
     r"""Tracks a stream of measurement lines: every line is read
     (:func:`parse_step`), stepped (:meth:`TrackingSession.update
     <tg_nebp.filters.TrackingSession.update>`) and its estimate line
@@ -222,16 +243,30 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
     :obj:`on_error="stop"`, or is reported (:obj:`report`) and skipped
     under :obj:`"skip"`; either way the session is as before it. With
     :obj:`save_state` the session is saved after every line (atomically),
-    with the lines read and estimate lines written, which a resumed run
-    (:obj:`done`, :obj:`written`: the saved counts) skips and continues.
-    Blank lines are ignored. Returns the counts: :obj:`lines`,
-    :obj:`written`, :obj:`skipped`."""
+    with the lines read and estimate lines written and the running
+    SHA-256 of the lines read (after every power of two of lines and
+    after the last), which a resumed run (:obj:`done`, :obj:`written`,
+    :obj:`digests`: the saved ones) skips and continues: an input that
+    does not start with the lines the session read is a
+    :class:`ValueError` naming the lines where it first differs (between
+    two saved digests). Blank lines are ignored. Returns the counts:
+    :obj:`lines`, :obj:`written`, :obj:`skipped`."""
     if on_error not in ON_ERROR:
         raise ValueError(f"'on_error' must be one of {list(ON_ERROR)}, got "
                          f"{on_error!r}")
-    skipped, number = 0, 0
+    skipped, number, matched = 0, 0, 0
+    read = _ReadLines()
     for number, text in enumerate(lines, 1):
+        value = read.read(number, text)
         if number <= done:
+            expected = (digests or {}).get(str(number))
+            if expected is not None and expected != value:
+                raise ValueError(
+                    f"the input is not the one the saved session read: it "
+                    f"differs from it in lines {matched + 1}-{number} (the "
+                    f"session read {done} lines)")
+            if expected is not None:
+                matched = number
             continue
         if text.strip():
             try:
@@ -249,8 +284,11 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
                 write(estimate_line(session, output))
                 written += 1
         if save_state is not None:
-            session.save(save_state, progress=dict(lines=number,
-                                                   written=written))
+            session.save(save_state, progress=dict(
+                lines=number, written=written, digests=read.saved(number)))
+    if number < done:
+        raise ValueError(f"the input ended after {number} lines; the saved "
+                         f"session read {done} of it")
     return dict(lines=max(number, done), written=written, skipped=skipped)
 
 

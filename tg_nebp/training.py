@@ -137,6 +137,12 @@ def load_checkpoint(path: Union[str, Path]) -> dict:
     for key in ('config', 'model'):
         if not isinstance(state.get(key), dict):
             raise ValueError(f"checkpoint '{path}' lacks its '{key}'")
+    for name, value in state['model'].items():
+        # a network whose weights diverged tracks nothing but NaN
+        if isinstance(value, torch.Tensor) and value.is_floating_point() \
+                and not bool(value.isfinite().all()):
+            raise ValueError(f"checkpoint '{path}': parameter {name!r} "
+                             f"holds non-finite values")
     return state
 
 

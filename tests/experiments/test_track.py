@@ -191,6 +191,38 @@ def test_killed_and_resumed_track_writes_the_uninterrupted_lines(
     assert output.read_text().split('\n')[:-1] == recorded['estimates']
 
 
+def test_a_resume_with_another_input_is_refused_naming_where(
+        recorded, tmp_path, capsys):
+    # five lines read and saved; resumed with an input whose line 3, or
+    # line 5, differs, or that ends early: refused, naming the lines
+    # between the saved digests where it first differs; the same input
+    # resumes
+    state = tmp_path / 'state.pt'
+    lines = recorded['lines']
+    first = tmp_path / 'first.jsonl'
+    first.write_text(''.join(line + '\n' for line in lines[:5]))
+    args = ['track', '--method', 'gbp', '--scenario',
+            str(recorded['scenario']), '--save-state', str(state),
+            '--output', str(tmp_path / 'e.jsonl')]
+    assert main(args + ['--input', str(first)]) == 0
+    for changed, match in ((2, 'lines 3-4'), (4, 'lines 5-5'),
+                           (None, 'ended after 4 lines')):
+        other = list(lines)
+        if changed is None:
+            other = lines[:4]
+        else:
+            other[changed] = lines[changed + 1]
+        path = tmp_path / 'other.jsonl'
+        path.write_text(''.join(line + '\n' for line in other))
+        capsys.readouterr()
+        assert main(args + ['--input', str(path), '--resume',
+                            str(state)]) == 2
+        assert match in capsys.readouterr().err
+    full = tmp_path / 'full.jsonl'
+    full.write_text(''.join(line + '\r\n' for line in lines))
+    assert main(args + ['--input', str(full), '--resume', str(state)]) == 0
+
+
 def test_robots_replay_with_odometry_scores_as_evaluate(tmp_path, capsys):
     # simulated robots: their odometry and bearings travel in the lines
     # ("control", a link's second feature), and the replay scores as the

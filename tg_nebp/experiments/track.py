@@ -79,10 +79,12 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     tracker, _ = method_tracker(method, scenario_of(scenario), **options)
     tracker = tracker.to(device).eval()
     done = written = 0
+    digests = None
     if resume is not None:
         session = TrackingSession.load(resume, tracker, device=device)
         progress = session.progress or {}
         done, written = progress.get('lines', 0), progress.get('written', 0)
+        digests = progress.get('digests')
         _kept_lines(output, written)
     else:
         session = TrackingSession(tracker, seed=seed, device=device)
@@ -105,7 +107,7 @@ def track_stream(method: str, input: str = '-', output: str = '-',
             with torch.no_grad():
                 return track_lines(session, read_lines(source), write,
                                    on_error, report, save_state, done,
-                                   written)
+                                   written, digests)
         finally:
             gc.unfreeze()
 
