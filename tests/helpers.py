@@ -513,3 +513,17 @@ MRCLAM_MEASUREMENTS = {
     # robot 3 sees landmark 7 before the start (outside) and in step 2
     3: [(MRCLAM_T0 + 0.5, 17, 4.0, 0.0), (MRCLAM_T0 + 2.4, 17, 4.1, -0.3)],
 }
+
+
+def _non_negative_range():
+    from tg_nebp.models import GaussianRange
+
+    class NonNegativeRange(GaussianRange, name='test-non-negative-range'):
+        r"""The Gaussian likelihood, declared to need ranges of at least
+        zero: what the checks refuse negative ranges for."""
+        negative_ranges = False
+
+    return NonNegativeRange
+
+
+NonNegativeRange = _non_negative_range()

@@ -57,7 +57,6 @@ def test_a_recorded_realization_replays_as_the_offline_loop(data):
     ('{"links": [[0, 1, 3.0]', 'not JSON'),
     ('[1, 2]', 'a line is a JSON object, got list'),
     ('{"link": []}', "unknown field 'link'"),
-    ('{"links": [[0, 1]]}', r"'links\[0\]' must be \[from, to, range\]"),
     ('{"join": [{"id": 7}]}', r"'join\[0\]' must hold 'mean' and 'cov'"),
     ('{"join": [{"id": 7, "anchor": [1, 2]}, {"id": 7, "anchor": [3, 4]}]}',
      "identifier 7 is repeated"),
@@ -69,34 +68,84 @@ def test_a_malformed_line_names_its_field(line, match):
 
 
 def test_bad_lines_are_numbered_and_skipped_or_stop_the_run(data):
+    # lines that cannot be read: skipped and reported with their numbers,
+    # the clock named as possibly off; the estimates are the clean
+    # stream's
     lines = list(realization_lines(data))
-    bad = ['not json', '{"links": [[0, 99, 3.0]]}',
-           '{"links": [[0, 1, -2.0]]}', '{"links": [[0, 1, NaN]]}',
-           '{"links": [[1, 1, 2.0]]}']
+    bad = ['not json', '{"leave": 3}', '{"links": 5}']
     stream = lines[:1] + bad + [''] + lines[1:]
     written, reports = [], []
     tracker = ParticleBP(num_particles=20)
     counts = track_lines(TrackingSession(tracker, generator=gen(1)), stream,
                          written.append, 'skip', reports.append)
-    assert counts == dict(lines=len(stream), written=4, skipped=5)
+    assert counts == dict(lines=len(stream), written=4, skipped=3)
     assert [r.split(':')[0] for r in reports] == [
-        'skipped line 2', 'skipped line 3', 'skipped line 4',
-        'skipped line 5', 'skipped line 6']
-    assert 'unknown identifier 99' in reports[1]
-    assert 'is negative' in reports[2] and 'not finite' in reports[3]
-    assert 'a link to itself' in reports[4]
-    # skipped lines changed nothing: the estimates are the clean stream's
+        'skipped line 2', 'skipped line 3', 'skipped line 4']
+    assert all(r.endswith('(its time could not be read: the clock may be '
+                          'off)') for r in reports)
+    assert "'leave' must be a list" in reports[1]
     clean = []
     track_lines(TrackingSession(tracker, generator=gen(1)), lines,
                 clean.append)
     assert written == clean
-    with pytest.raises(ValueError, match=r'^line 2: .*unknown identifier '
-                       r'99'):
+    with pytest.raises(ValueError, match=r"^line 2: 'leave' must be a list"):
         track_lines(TrackingSession(tracker, generator=gen(1)),
                     lines[:1] + bad[1:], written.append)
     with pytest.raises(ValueError, match="'on_error' must be one of"):
         track_lines(TrackingSession(tracker), lines, written.append,
                     'ignore')
+
+
+def test_a_bad_link_costs_that_link_only(data):
+    # one line's good links with bad ones added (an unknown node, a link
+    # to itself, a range that is not finite, one without a range, extra
+    # features): each bad one is reported by line and position and left
+    # out, and the estimate is the clean line's, under either on_error
+    lines = list(realization_lines(data))
+    line = json.loads(lines[1])
+    count = len(line['links'])
+    line['links'] += [[0, 99, 3.0], [1, 1, 2.0], [0, 1, float('nan')],
+                      [0, 1], [0, 2, 3.0, 123, -7]]
+    dirty = lines[:1] + [json.dumps(line)] + lines[2:]
+    for on_error in ('stop', 'skip'):
+        written, reports = [], []
+        counts = track_lines(TrackingSession(GaussianBP()), dirty,
+                             written.append, on_error, reports.append)
+        assert counts['written'] == len(lines) and counts['skipped'] == 0
+        assert [r.split(' left out ')[0] for r in reports] == [
+            'line 2:'] * 5
+        assert [r.split(' left out ')[1].split(']')[0] for r in reports] \
+            == [f"'links[{count}", f"'links[{count + 1}",
+                f"'ranges[{count + 2}", f"'ranges[{count + 3}",
+                f"'ranges[{count + 4}"]
+        assert 'unknown identifier 99' in reports[0]
+        assert 'a link to itself' in reports[1]
+        assert 'not finite' in reports[2] and 'is missing' in reports[3]
+        assert 'has 3 features; the measurement model reads 1' in reports[4]
+        clean = []
+        track_lines(TrackingSession(GaussianBP()), lines, clean.append)
+        assert written == clean
+
+
+def test_a_skipped_line_still_moves_the_clock(data):
+    # a line refused after it was read (an unknown leaver) takes its dt
+    # along: the next step predicts over both and is labelled with its own
+    # time, as one step over the two time steps
+    lines = [json.loads(line) for line in realization_lines(data)]
+    for line in lines:
+        line.pop('time', None)
+        line['dt'] = 0.5
+    stream = [json.dumps(lines[0]), json.dumps(dict(dt=0.5, leave=[77])),
+              json.dumps(lines[1])]
+    written, reports = [], []
+    track_lines(TrackingSession(GaussianBP()), stream, written.append,
+                'skip', reports.append)
+    assert len(reports) == 1 and 'clock' not in reports[0]
+    longer = [json.dumps(lines[0]), json.dumps(dict(lines[1], dt=1.0))]
+    expected = []
+    track_lines(TrackingSession(GaussianBP()), longer, expected.append)
+    assert [json.loads(w)['time'] for w in written] == [0.5, 1.5]
+    assert written == expected
 
 
 def test_a_lost_line_is_a_longer_time_step_and_scores_by_time(data):

@@ -108,13 +108,13 @@ def parse_step(text: str) -> StreamStep:
                              f"repeated")
         join[node] = prior
     raw = _list(line.get('links', []), "'links'")
-    if not all(type(link) is list and len(link) >= 3 for link in raw):
-        k, link = next((k, link) for k, link in enumerate(raw)
-                       if not (isinstance(link, list) and len(link) >= 3))
-        raise ValueError(f"'links[{k}]' must be [from, to, range], got "
-                         f"{link!r}")
-    links = [link[:2] for link in raw]
-    ranges = [link[2:] if len(link) > 3 else link[2] for link in raw]
+    # a malformed link is handed on as it is, without a range: the
+    # session refuses that link alone, naming it
+    links = [link[:2] if type(link) is list and len(link) >= 3 else link
+             for link in raw]
+    ranges = [(link[2:] if len(link) > 3 else link[2])
+              if type(link) is list and len(link) >= 3 else None
+              for link in raw]
     control = line.get('control', {})
     if not isinstance(control, dict):
         raise ValueError(f"'control' must be an object of inputs by "
@@ -229,6 +229,17 @@ class _ReadLines:
         return dict(self.marks, **{str(number): self.digest.hexdigest()})
 
 
+def _clock_kept(session: TrackingSession, text: str) -> str:
+    # a skipped line's time passes all the same where it can be read (the
+    # next step predicts over it); else the report says so
+    try:
+        step = parse_step(text)
+        session.skip_step(step.dt, step.time)
+    except ValueError:
+        return " (its time could not be read: the clock may be off)"
+    return ""
+
+
 def track_lines(session: TrackingSession, lines: Iterable[str],
                 write: Callable[[str], None], on_error: str = 'stop',
                 report: Callable[[str], None] = print,
@@ -241,7 +252,12 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
     written by :obj:`write` before the next line is read. A bad line is a
     :class:`ValueError` starting with its line number under
     :obj:`on_error="stop"`, or is reported (:obj:`report`) and skipped
-    under :obj:`"skip"`; either way the session is as before it. With
+    under :obj:`"skip"` (its time passes all the same where it can be
+    read, :meth:`~tg_nebp.filters.TrackingSession.skip_step`; where it
+    cannot, the report says that the clock may be off); either way the
+    session is as before it. A link that fails its checks costs that
+    link only: it is left out and reported (its line and position), and
+    the step goes on with the others. With
     :obj:`save_state` the session is saved after every line (atomically),
     with the lines read and estimate lines written and the running
     SHA-256 of the lines read (after every power of two of lines and
@@ -273,14 +289,16 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
                 step = parse_step(text)
                 output = session.update(step.links, step.ranges, step.dt,
                                         step.time, step.join, step.leave,
-                                        step.control)
+                                        step.control, bad_links='drop')
             except (ValueError, torch.linalg.LinAlgError) as e:
                 message = f"line {number}: {e}"
                 if on_error == 'stop':
                     raise ValueError(message) from None
-                report(f"skipped {message}")
+                report(f"skipped {message}{_clock_kept(session, text)}")
                 skipped += 1
             else:
+                for _, why in session.refused_links:
+                    report(f"line {number}: left out {why}")
                 write(estimate_line(session, output))
                 written += 1
         if save_state is not None:

@@ -21,6 +21,8 @@ from tg_nebp.datasets import Scenario
 from tg_nebp.filters import ParticleBP
 from tg_nebp.nn.conv import ParticleBPConv
 
+from helpers import NonNegativeRange
+
 # --------------------------------------------------------------------------
 # the convolution
 # --------------------------------------------------------------------------
@@ -44,10 +46,11 @@ def conv_inputs():
 
 
 def run_conv(inputs, validate=True):
-    return ParticleBPConv()(inputs['particles'], inputs['log_weights'],
-                            inputs['edge_index'], inputs['edge_attr'],
-                            inputs['sender_log_weights'], inputs['anchor'],
-                            validate=validate)
+    # a likelihood that needs non-negative ranges: they are refused
+    return ParticleBPConv(NonNegativeRange())(
+        inputs['particles'], inputs['log_weights'], inputs['edge_index'],
+        inputs['edge_attr'], inputs['sender_log_weights'], inputs['anchor'],
+        validate=validate)
 
 
 def test_valid_conv_inputs_pass():
@@ -234,8 +237,12 @@ def check_both(data, message):
     r"""Both entry points reject :obj:`data` with :obj:`message`."""
     with pytest.raises(ValueError, match=message):
         check_realization(data)
+    # a likelihood defined for negative ranges takes them
+    if 'negative range' in message:
+        check_realization(data, negative_ranges=True)
     with pytest.raises(ValueError, match=message):
-        ParticleBP(num_particles=8)(data, torch.Generator().manual_seed(0))
+        ParticleBP(num_particles=8, measurement=NonNegativeRange())(
+            data, torch.Generator().manual_seed(0))
 
 
 def test_valid_realizations_pass(realization):

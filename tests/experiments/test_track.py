@@ -94,15 +94,15 @@ def test_track_answers_every_line_before_the_next_and_skips_bad_ones(
         recorded, tmp_path):
     # a feeder writes a line, pauses, and waits for its estimate line
     # before the next: every estimate comes flushed; the bad lines of each
-    # kind are reported with their line numbers and skipped, and the saved
-    # state after a bad line is the state before it
+    # kind (lines that cannot be read: a bad link costs that link only) are
+    # reported with their line numbers and skipped, and the saved state
+    # after a bad line is the state before it
     state = tmp_path / 'state.pt'
     process = _process('--method', 'bp', '--particles', '50', '--scenario',
                        recorded['scenario'], '--on-error', 'skip',
                        '--save-state', state)
-    bad = ['not json', '{"links": [[0, 99, 3.0]]}',
-           '{"links": [[0, 1, -2.0]]}', '{"links": [[0, 1, NaN]]}',
-           '{"links": [[1, 1, 2.0]]}']
+    bad = ['not json', '{"leave": 3}', '{"links": 5}', '{"dt": -1}',
+           '{"control": 5}']
     lines = recorded['lines']
     feed = [lines[0], *bad, *lines[1:]]
     outputs, saved = [], []

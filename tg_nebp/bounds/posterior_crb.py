@@ -173,7 +173,8 @@ class PosteriorCRB(torch.nn.Module):
         # marginal bound and, per graph, (its agents, filtered joint,
         # predicted joint, cross covariance of the transition into the
         # step)
-        check_realization(data, self.measurement.features)
+        check_realization(data, self.measurement.features,
+                          self.measurement.negative_ranges)
         states = getattr(data, 'states', None)
         if states is None:
             raise ValueError("the posterior CRB needs the true 'states' of "

@@ -154,11 +154,14 @@ def _check_edge_index_claims(edge_index: EdgeIndex, num_nodes: int,
 
 def check_link_features(edge_attr: Tensor, num_edges: int,
                         features: Sequence[str] = ('range', ),
-                        name: str = 'edge_attr') -> None:
+                        name: str = 'edge_attr',
+                        negative_ranges: bool = False) -> None:
     r"""Checks the link features :obj:`[E, F]`: at least the
     :obj:`features` that a measurement model reads (the leading columns,
-    the range first), floating point and finite; the range non-negative
-    and small enough for squared distances."""
+    the range first), floating point and finite; the range small enough
+    for squared distances, and non-negative unless the model's likelihood
+    takes :obj:`negative_ranges` (the measurement role's
+    :attr:`~tg_nebp.models.MeasurementModel.negative_ranges`)."""
     if not isinstance(edge_attr, Tensor) or edge_attr.dim() != 2 \
             or edge_attr.size(0) != num_edges \
             or edge_attr.size(1) < len(features):
@@ -178,11 +181,11 @@ def check_link_features(edge_attr: Tensor, num_edges: int,
                          f"not finite")
     ranges = edge_attr[:, 0]
     neg = ranges < 0
-    if bool(neg.any()):
+    if not negative_ranges and bool(neg.any()):
         e = _first(neg)
         raise ValueError(f"'{name}[{e}]' = {float(ranges[e])} is a "
                          f"negative range")
-    big = _too_large(ranges)
+    big = _too_large(ranges.abs())
     if bool(big.any()):
         e = _first(big)
         raise ValueError(f"'{name}[{e}]' = {float(ranges[e]):.3g} is too "
@@ -385,10 +388,11 @@ def check_position_dim(position_dim: int, state_size: Optional[int] = None,
     return position_dim
 
 
-def check_realization(data, features: Sequence[str] = ('range', )
-                      ) -> None:
+def check_realization(data, features: Sequence[str] = ('range', ),
+                      negative_ranges: bool = False) -> None:
     r"""Checks a (possibly batched) :class:`~tg_nebp.data.Realization`
-    whose :obj:`edge_attr` holds (at least) the link :obj:`features`."""
+    whose :obj:`edge_attr` holds (at least) the link :obj:`features`
+    (negative ranges where :obj:`negative_ranges`)."""
     for key in ('edge_index', 'edge_attr', 'edge_time', 'anchor',
                 'prior_mean', 'prior_cov', 'num_steps'):
         if getattr(data, key, None) is None:
@@ -402,7 +406,8 @@ def check_realization(data, features: Sequence[str] = ('range', )
     if bool(anchor.all()):
         raise ValueError("'anchor': the graph has no agent to localize")
     check_graph(data.edge_index, n)
-    check_link_features(data.edge_attr, data.edge_index.size(1), features)
+    check_link_features(data.edge_attr, data.edge_index.size(1), features,
+                        negative_ranges=negative_ranges)
     into_anchor = anchor[data.edge_index[1]]
     if bool(into_anchor.any()):
         e = _first(into_anchor)
@@ -466,14 +471,16 @@ def check_realization(data, features: Sequence[str] = ('range', )
 
 def check_links(edge_index: Tensor, edge_attr: Tensor,
                 features: Sequence[str], num_nodes: int,
-                anchor: Optional[Tensor] = None) -> None:
+                anchor: Optional[Tensor] = None,
+                negative_ranges: bool = False) -> None:
     r"""The checks of one message passing step's links, shared by every
     convolution: the graph (:func:`check_graph`: indices in range, no
     self-loop), the link :obj:`features` that the measurement model reads
-    (:func:`check_link_features`: finite, non-negative ranges) and the
-    anchor mask (:func:`check_anchor`)."""
+    (:func:`check_link_features`: finite ranges, non-negative unless
+    :obj:`negative_ranges`) and the anchor mask (:func:`check_anchor`)."""
     check_graph(edge_index, num_nodes)
-    check_link_features(edge_attr, edge_index.size(1), features)
+    check_link_features(edge_attr, edge_index.size(1), features,
+                        negative_ranges=negative_ranges)
     if anchor is not None:
         check_anchor(anchor, num_nodes)
 
@@ -483,16 +490,19 @@ def check_layer_inputs(particles: Tensor, log_weights: Tensor,
                        features: Sequence[str],
                        anchor: Optional[Tensor] = None,
                        sender_log_weights: Optional[Tensor] = None,
-                       state_dim: Optional[int] = None) -> None:
+                       state_dim: Optional[int] = None,
+                       negative_ranges: bool = False) -> None:
     r"""The checks of one particle message passing step's inputs, shared by
     the particle convolutions and the trackers' :meth:`update`: particles
-    and (sender) log-weights, and the links (:func:`check_links`)."""
+    and (sender) log-weights, and the links (:func:`check_links`;
+    :obj:`negative_ranges` as there)."""
     num_nodes = particles.size(0) if isinstance(particles, Tensor) else None
     check_particles(particles, log_weights, state_dim=state_dim)
     if sender_log_weights is not None:
         check_particles(particles, sender_log_weights,
                         weights_name='sender_log_weights')
-    check_links(edge_index, edge_attr, features, num_nodes, anchor)
+    check_links(edge_index, edge_attr, features, num_nodes, anchor,
+                negative_ranges)
 
 
 def check_gaussian_belief(mean: Tensor, info: Tensor, name: str,

@@ -375,7 +375,9 @@ class ParticleBP(Tracker):
         global generator if :obj:`None`)."""
         if validate:
             check_layer_inputs(particles, log_weights, edge_index, edge_attr,
-                               self.measurement.features, anchor)
+                               self.measurement.features, anchor,
+                               negative_ranges=self.measurement
+                               .negative_ranges)
         if self.ends == 'both':
             return self._update_both(particles, log_weights, edge_index,
                                      edge_attr, anchor, sample_offsets)

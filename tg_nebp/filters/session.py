@@ -21,18 +21,25 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_position_dim, check_prior,
-                                     check_state_dim)
+                                     check_state_dim, magnitude_limit)
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.io import atomic_write, first_line, read_tensors
 
 __all__ = ['TrackingSession', 'AgentPrior', 'AnchorAt', 'SESSION_FORMAT',
-           'SESSION_VERSION']
+           'SESSION_VERSION', 'BAD_LINKS']
 
 #: The :obj:`format` entry of a saved session.
 SESSION_FORMAT = 'tg_nebp-session'
 #: The version of the saved session's layout that this library writes and
 #: reads.
 SESSION_VERSION = 1
+#: What :meth:`TrackingSession.update` does with a link that fails its
+#: checks: refuse the step (:obj:`"raise"`) or leave the link out
+#: (:obj:`"drop"`).
+BAD_LINKS = ('raise', 'drop')
+# the longest time step or time accepted, in seconds (a thousand years):
+# beyond it the motion model's noise overflows
+_LONGEST = 3e10
 
 Identifier = Union[str, int]
 #: The types a session hands its tracker, by the name a saved one stores.
@@ -173,6 +180,12 @@ class TrackingSession:
         #: What the caller saved with the session (:meth:`save`), once
         #: loaded (:meth:`load`).
         self.progress = None
+        #: The time of the steps skipped since the last (:meth:`skip_step`),
+        #: which the next :meth:`update` predicts over.
+        self.skipped_time = 0.0
+        #: The links that the last :meth:`update` left out under
+        #: :obj:`bad_links="drop"`: their positions and why.
+        self.refused_links: List[Tuple[int, str]] = []
         self._ids: List[Identifier] = []
         self._row: Dict[Identifier, int] = {}
         self.anchor = torch.zeros(0, dtype=torch.bool, device=self.device)
@@ -210,8 +223,8 @@ class TrackingSession:
                time: Optional[float] = None,
                join: Optional[Mapping[Hashable, Any]] = None,
                leave: Sequence[Identifier] = (),
-               control: Optional[Mapping[Hashable, Any]] = None
-               ) -> StepOutput:
+               control: Optional[Mapping[Hashable, Any]] = None,
+               bad_links: str = 'raise') -> StepOutput:
         r"""One time step: first the nodes of :obj:`leave` leave and those
         of :obj:`join` join (:class:`AgentPrior`, :class:`AnchorAt`, in
         that order, appended to the rows), then the tracker predicts over
@@ -237,11 +250,24 @@ class TrackingSession:
                 agent without one gets the model's input-free prediction.
                 A key that is the decimal string of an integer identifier
                 names it (JSON object keys are strings).
+            bad_links (str, optional): What a link that fails its checks
+                (an unknown or malformed end, a link to itself or into an
+                anchor, a range that is not finite, too large, negative
+                where the likelihood needs it non-negative, of another
+                number of features than the model reads, a repeated link)
+                does: :obj:`"raise"` refuses the step (a
+                :class:`ValueError` naming the first); :obj:`"drop"`
+                leaves those links out, lists them in
+                :attr:`refused_links` (position and why), and the step
+                goes on with the others. (default: :obj:`"raise"`)
 
         Returns:
             The step's :class:`~tg_nebp.filters.StepOutput`, rows in the
             order of :attr:`ids`.
         """
+        if bad_links not in BAD_LINKS:
+            raise ValueError(f"'bad_links' must be one of {list(BAD_LINKS)}"
+                             f", got {bad_links!r}")
         dt, motion = self._time_step(dt, time)
         # everything is checked and computed before anything changes; the
         # generator (the joining particles' draws, the step's) is put back
@@ -254,7 +280,8 @@ class TrackingSession:
             if not ids or bool(anchor.all()):
                 raise ValueError("the session holds no agent to track: join "
                                  "one (an AgentPrior) first")
-            edge_index, edge_attr = self._links(links, ranges, row, anchor)
+            edge_index, edge_attr, refused = self._links(
+                links, ranges, row, anchor, bad_links)
             inputs = self._control(control, row, anchor)
             output, state = self.tracker.step(
                 nodes[3], edge_index, edge_attr, anchor, self.num_steps,
@@ -266,9 +293,11 @@ class TrackingSession:
             self.generator.set_state(random)
             raise
         self._commit(ids, row, anchor, state, nodes[4])
+        self.refused_links = refused
         self.num_steps += 1
         # a given time is kept as given (no drift of summed time steps)
         self.time = float(time) if time is not None else self.time + dt
+        self.skipped_time = 0.0
         return output
 
     def _time_step(self, dt: Optional[float], time: Optional[float]):
@@ -276,25 +305,45 @@ class TrackingSession:
         # without dt or time (its clock advances by its own dt, or by one
         # where it has none), else the model over that time step (a model
         # that cannot says so)
+        # the time of skipped steps (skip_step) since the last is part of
+        # this step's: a time given counts from the last step, a dt or the
+        # model's own is added to it
         motion = self.tracker.motion
         if dt is not None and time is not None:
             raise ValueError("give 'dt' or 'time', not both")
         if dt is None and time is None:
-            return float(motion.params().get('dt', 1.0)), motion
-        if time is not None:
+            dt = float(motion.params().get('dt', 1.0))
+            if not self.skipped_time:
+                return dt, motion
+            dt += self.skipped_time
+        elif time is not None:
             if isinstance(time, bool) or not isinstance(time, numbers.Real) \
-                    or not math.isfinite(time):
-                raise ValueError(f"'time' must be a finite number, got "
-                                 f"{time!r}")
-            if not time > self.time:
+                    or not math.isfinite(time) or abs(time) > _LONGEST:
+                raise ValueError(f"'time' must be a finite number (at most "
+                                 f"{_LONGEST:.0e} s), got {time!r}")
+            now = self.time + self.skipped_time
+            if not time > now:
                 raise ValueError(f"'time' = {time} does not come after the "
-                                 f"last step's time {self.time}")
+                                 f"last step's time {now}")
             dt = float(time) - self.time
         elif isinstance(dt, bool) or not isinstance(dt, numbers.Real) or \
-                not (math.isfinite(dt) and dt > 0):
-            raise ValueError(f"'dt' must be a finite number above 0, got "
-                             f"{dt!r}")
+                not (math.isfinite(dt) and 0 < dt <= _LONGEST):
+            raise ValueError(f"'dt' must be a finite number above 0 (at "
+                             f"most {_LONGEST:.0e} s), got {dt!r}")
+        else:
+            dt = float(dt) + self.skipped_time
         return float(dt), motion.with_time_step(float(dt))
+
+    def skip_step(self, dt: Optional[float] = None,
+                  time: Optional[float] = None) -> None:
+        r"""A step whose measurements were refused (a bad line of a
+        stream): nothing is tracked, but its time passes, so the next
+        :meth:`update` predicts over it too and is labelled with its own
+        time. :obj:`dt` and :obj:`time` as in :meth:`update` (neither:
+        the motion model's own time step). A bad :obj:`dt` or
+        :obj:`time` is a :class:`ValueError` and changes nothing."""
+        step, _ = self._time_step(dt, time)
+        self.skipped_time = step
 
     def _control(self, control: Optional[Mapping], row: Dict[Identifier, int],
                  anchor: Tensor) -> Optional[Tensor]:
@@ -329,16 +378,20 @@ class TrackingSession:
         return rows.to(self.device, self.dtype)
 
     def _links(self, links, ranges, row: Dict[Identifier, int],
-               anchor: Tensor) -> Tuple[Tensor, Tensor]:
+               anchor: Tensor, bad_links: str
+               ) -> Tuple[Tensor, Tensor, List[Tuple[int, str]]]:
         # the step's links as rows, sorted by receiver (as a realization's
-        # edges_by_step gives them), and their features: checked in bulk
-        # (a dict lookup per end, then tensor comparisons), the first
-        # problem named by its position and its identifiers
+        # edges_by_step gives them), their features, and the links refused
+        # (index, why): checked in bulk (a dict lookup per end, then
+        # tensor comparisons), each problem named by the link's position
+        # and identifiers. Under bad_links 'raise' the first problem is a
+        # ValueError; under 'drop' the links with one are left out
         links, ranges = list(links), list(ranges)
         if len(links) != len(ranges):
             raise ValueError(f"{len(links)} links but {len(ranges)} ranges: "
                              f"one range per link")
         features = self.tracker.measurement.features
+        problems: Dict[int, str] = {}
         try:
             # a bool or a float equal to an integer identifier would find
             # it in the dict: only strings and integers pass
@@ -351,82 +404,109 @@ class TrackingSession:
             # one flat list: torch reads it far faster than pairs
             ends = torch.tensor([row[end] for link in links for end in link],
                                 dtype=torch.long).view(-1, 2)
-            if not {type(value) for value in ranges} <= {float, int}:
+            if not {type(value) for value in ranges} <= {float, int} or \
+                    len(features) != 1:
                 raise TypeError  # feature rows: checked one by one
-            values = torch.tensor(ranges, dtype=torch.float64).view(
-                -1, 1 if links else len(features))
-        except (KeyError, TypeError, ValueError):
-            ends, values = self._checked_links(links, ranges, row)
-        if values.size(1) < len(features):
-            raise ValueError(f"every link needs {len(features)} features "
-                             f"({', '.join(features)}), got "
-                             f"{values.size(1)}")
-
-        def first(bad: Tensor) -> int:
-            return int(bad.nonzero()[0, 0])
+            values = torch.tensor(ranges, dtype=torch.float64).view(-1, 1)
+        except (KeyError, TypeError, ValueError, OverflowError):
+            ends, values = self._checked_links(links, ranges, row,
+                                               len(features), problems)
 
         def where(k: int) -> str:
             return f"'links[{k}]' {list(links[k])}"
 
         sender, receiver = ends[:, 0], ends[:, 1]
-        if bool((sender == receiver).any()):
-            raise ValueError(f"{where(first(sender == receiver))}: a link "
-                             f"to itself")
         into_anchor = anchor.cpu()[receiver]
-        if bool(into_anchor.any()):
-            k = first(into_anchor)
-            raise ValueError(f"{where(k)}: {links[k][1]!r} is an anchor, "
-                             f"and anchors never measure")
         finite = torch.isfinite(values).all(1)
-        if not bool(finite.all()):
-            k = first(~finite)
-            raise ValueError(f"'ranges[{k}]' of {where(k)} is not finite: "
-                             f"{ranges[k]!r}")
-        if bool((values[:, 0] < 0).any()):
-            k = first(values[:, 0] < 0)
-            raise ValueError(f"'ranges[{k}]' of {where(k)} is negative: "
-                             f"{values[k, 0].item()!r}")
+        too_large = values[:, 0].abs() > magnitude_limit(self.dtype)
+        negative = (values[:, 0] < 0) & ~torch.tensor(
+            self.tracker.measurement.negative_ranges)
+        for k in (sender == receiver).nonzero().view(-1).tolist():
+            problems.setdefault(k, f"{where(k)}: a link to itself")
+        for k in into_anchor.nonzero().view(-1).tolist():
+            problems.setdefault(k, f"{where(k)}: {links[k][1]!r} is an "
+                                f"anchor, and anchors never measure")
+        for k in (~finite).nonzero().view(-1).tolist():
+            problems.setdefault(k, f"'ranges[{k}]' of {where(k)} is not "
+                                f"finite: {ranges[k]!r}")
+        for k in too_large.nonzero().view(-1).tolist():
+            problems.setdefault(k, f"'ranges[{k}]' of {where(k)} is too "
+                                f"large: {ranges[k]!r} (at most "
+                                f"{magnitude_limit(self.dtype):.3g})")
+        for k in negative.nonzero().view(-1).tolist():
+            problems.setdefault(
+                k, f"'ranges[{k}]' of {where(k)} is negative: "
+                f"{values[k, 0].item()!r} (the likelihood of "
+                f"{self.tracker.measurement} needs ranges of at least 0)")
         key = sender * max(len(row), 1) + receiver
         if torch.unique(key).numel() < key.numel():
             seen = {}
             for k, pair in enumerate(key.tolist()):
+                if k in problems:
+                    continue
                 if pair in seen:
-                    raise ValueError(f"{where(k)}: the same link as "
-                                     f"'links[{seen[pair]}]'")
-                seen[pair] = k
-        order = torch.argsort(receiver, stable=True)
+                    problems[k] = (f"{where(k)}: the same link as "
+                                   f"'links[{seen[pair]}]'")
+                else:
+                    seen[pair] = k
+        refused = sorted(problems.items())
+        if refused and bad_links == 'raise':
+            raise ValueError(refused[0][1])
+        keep = torch.ones(len(links), dtype=torch.bool)
+        keep[[k for k, _ in refused]] = False
+        ends, values = ends[keep], values[keep]
+        order = torch.argsort(ends[:, 1], stable=True)
         return (ends[order].t().contiguous().to(self.device),
-                values[order].to(self.device, self.dtype))
+                values[order].to(self.device, self.dtype), refused)
 
-    def _checked_links(self, links, ranges, row) -> Tuple[Tensor, Tensor]:
-        # the links one by one: the first malformed link, unknown
-        # identifier or range that is not a number (row) is named
+    def _checked_links(self, links, ranges, row, width: int,
+                       problems: Dict[int, str]) -> Tuple[Tensor, Tensor]:
+        # the links one by one: a malformed link, an unknown identifier, a
+        # range that is not a number or a row of the model's feature count
+        # is recorded in 'problems' (its row a placeholder)
         pairs, values = [], []
         for k, (link, value) in enumerate(zip(links, ranges)):
+            pairs.append([0, 0])
+            values.append([0.0] * width)
             shown = list(link) if isinstance(link, (list, tuple)) else link
             where = f"'links[{k}]' {shown!r}"
             if not isinstance(link, (list, tuple)) or len(link) != 2:
-                raise ValueError(f"{where}: a link is a pair [from, to]")
-            for end in link:
-                if _identifier(end, where) not in row:
-                    raise ValueError(f"{where}: unknown identifier {end!r} "
-                                     f"(join it first)")
-            pairs.append([row[link[0]], row[link[1]]])
+                problems[k] = f"{where}: a link is a pair [from, to]"
+                continue
+            try:
+                unknown = [end for end in link
+                           if _identifier(end, where) not in row]
+            except ValueError as e:
+                problems[k] = str(e)
+                continue
+            if unknown:
+                problems[k] = (f"{where}: unknown identifier {unknown[0]!r} "
+                               f"(join it first)")
+                continue
+            if value is None:
+                problems[k] = f"'ranges[{k}]' of {where} is missing"
+                continue
             value = value if isinstance(value, (list, tuple)) else [value]
             if not value or not all(isinstance(v, numbers.Real) and
                                     not isinstance(v, bool) for v in value):
-                raise ValueError(f"'ranges[{k}]' of {where} must be a "
-                                 f"number or a row of numbers, got "
-                                 f"{value!r}")
-            values.append([float(v) for v in value])
-            if len(values[-1]) != len(values[0]):
-                raise ValueError(f"'ranges[{k}]' of {where} has "
-                                 f"{len(values[-1])} features, 'ranges[0]' "
-                                 f"{len(values[0])}: every link has the "
-                                 f"same")
+                problems[k] = (f"'ranges[{k}]' of {where} must be a number "
+                               f"or a row of numbers, got {value!r}")
+                continue
+            if len(value) != width:
+                problems[k] = (
+                    f"'ranges[{k}]' of {where} has {len(value)} features; "
+                    f"the measurement model reads {width} "
+                    f"({', '.join(self.tracker.measurement.features)})")
+                continue
+            try:
+                values[-1] = [float(v) for v in value]
+            except OverflowError:
+                problems[k] = (f"'ranges[{k}]' of {where} is too large: "
+                               f"{value!r}")
+                continue
+            pairs[-1] = [row[link[0]], row[link[1]]]
         return (torch.tensor(pairs, dtype=torch.long).view(-1, 2),
-                torch.tensor(values, dtype=torch.float64).view(
-                    len(values), -1 if values else 1))
+                torch.tensor(values, dtype=torch.float64).view(-1, width))
 
     # ---- joining and leaving
 
@@ -587,6 +667,7 @@ class TrackingSession:
         return dict(format=SESSION_FORMAT, version=SESSION_VERSION,
                     identity=self.identity(), ids=json.dumps(self._ids),
                     anchor=self.anchor.cpu(), time=self.time,
+                    skipped_time=self.skipped_time,
                     num_steps=self.num_steps, state_size=self.state_size,
                     dtype=str(self.dtype).replace('torch.', ''),
                     state=state,
@@ -626,9 +707,14 @@ class TrackingSession:
             ids = [_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
             anchor = saved['anchor']
             time, steps = saved['time'], saved['num_steps']
+            skipped = saved.get('skipped_time', 0.0)
             size, random = saved['state_size'], saved['generator']
             dtype = _DTYPES[saved['dtype']]
             self._check_saved(state, ids, anchor, time, steps, size, dtype)
+            if not isinstance(skipped, float) or not \
+                    0 <= skipped <= _LONGEST:
+                raise ValueError(f"'skipped_time' must be a number of "
+                                 f"seconds of at least 0, got {skipped!r}")
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ValueError(f"a damaged saved session: {first_line(e)}"
                              ) from None
@@ -641,6 +727,7 @@ class TrackingSession:
         self._commit(ids, {i: r for r, i in enumerate(ids)},
                      anchor.to(self.device), state, size)
         self.time, self.num_steps, self.dtype = float(time), steps, dtype
+        self.skipped_time = skipped
 
     def _check_saved(self, state, ids, anchor, time, steps, size,
                      dtype) -> None:

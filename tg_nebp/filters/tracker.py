@@ -94,7 +94,8 @@ class Tracker(torch.nn.Module):
         (:func:`~tg_nebp.data.check_state_dim`) and that its known inputs,
         if any, are the motion model's
         (:func:`~tg_nebp.data.check_control`)."""
-        check_realization(data, self.measurement.features)
+        check_realization(data, self.measurement.features,
+                          self.measurement.negative_ranges)
         check_state_dim(data.prior_mean.size(1), self.motion,
                         position_dim_of(data))
         if self.use_control:

@@ -401,6 +401,12 @@ class MeasurementModel(Model):
     #: The link features that generation writes, a superset of
     #: :attr:`~MeasurementModel.features`.
     generated_features: ClassVar[Tuple[str, ...]] = ('range', )
+    #: Whether the likelihood is defined for a measured range below zero
+    #: (a calibrated range between two close nodes is now and then): the
+    #: range is then accepted as measured. A model whose likelihood needs
+    #: non-negative ranges sets :obj:`False`, and a negative one is
+    #: refused by name.
+    negative_ranges: ClassVar[bool] = True
     #: The state entries that the likelihood reads; :obj:`None` for all
     #: (see :meth:`scope`).
     state_entries: ClassVar[Optional[Tuple[int, ...]]] = None
@@ -772,6 +778,7 @@ class LinkPairRange(RangeModel):
         super().__init__(model.max_range)
         self.model = model
         self.layout = model.layout
+        self.negative_ranges = model.negative_ranges
         # at least the features the model reads, twice, and the flag; a
         # realization's further columns (generated data's true NLOS flag)
         # ride along

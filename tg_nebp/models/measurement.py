@@ -56,8 +56,10 @@ class GaussianRange(RangeModel, name='gaussian'):
     A range sensor never reports a negative distance, so sampling redraws
     the noise of the rare measurements that would fall below zero (pairs
     closer than a few :math:`\sigma_r`); the likelihood keeps the paper's
-    Gaussian form. It provides the fast pieces of the convolution: an
-    in-place variant, the closed-form gradient and the fused-kernel formula.
+    Gaussian form, defined for any measured range: a negative one (a
+    calibrated sensor's, of two close nodes) is accepted. It provides the
+    fast pieces of the convolution: an in-place variant, the closed-form
+    gradient and the fused-kernel formula.
 
     Args:
         sigma (float, optional): Noise standard deviation :math:`\sigma_r` in
@@ -147,7 +149,8 @@ class StudentTRange(RangeModel, name='student-t'):
 
     :math:`\nu \to \infty` gives :class:`GaussianRange`; small :math:`\nu`
     lets a range far from the distance cost little, so one bad link does not
-    pull an agent away. Sampling redraws negative ranges.
+    pull an agent away. Sampling redraws negative ranges; the likelihood is
+    defined for them, and a measured negative range is accepted.
 
     Args:
         sigma (float, optional): Scale :math:`\sigma` in metres.
@@ -232,6 +235,7 @@ class NLOSRange(RangeModel, name='nlos'):
         \operatorname{erfc}\Big(\frac{\lambda \sigma^2 - x}{\sqrt{2}
         \sigma}\Big).
 
+    Defined for any measured range: a negative one is accepted.
     Generation draws, at the start of a realization, which node pairs are
     NLOS (the same for both directions), and writes the true flag as a
     second link feature :obj:`"nlos"`, which this likelihood does not read.

@@ -253,7 +253,8 @@ class GaussianRangeBearing(RangeBearingModel, name='range-bearing'):
 
     with :math:`r_d` the range's residual and :math:`r_\beta` the
     bearing's, wrapped (see :class:`RangeBearingModel`; a range below zero
-    is redrawn in generation).
+    is redrawn in generation; a measured one is accepted, the likelihood
+    being defined for it).
 
     Args:
         sigma (float, optional): :math:`\sigma_d`, metres.
@@ -301,6 +302,8 @@ class StudentTRangeBearing(RangeBearingModel,
         \log \frac{\Gamma(\frac{\nu + 1}{2})}{\Gamma(\frac{\nu}{2})
         \sqrt{\nu \pi} \sigma} - \frac{\nu + 1}{2} \log\Big(1 +
         \frac{r^2}{\nu \sigma^2}\Big).
+
+    Defined for any measured range: a negative one is accepted.
 
     Args:
         sigma (float, optional): Range scale, metres.

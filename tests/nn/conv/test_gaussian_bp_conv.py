@@ -11,8 +11,9 @@ from tg_nebp.models import (ConstantVelocity, GaussianRange, NLOSRange,
 from tg_nebp.nn.conv import (FactorMessages, GaussianBelief, GaussianBPConv,
                              RangeMessages)
 
-from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
-                     linear_offset_model, linear_scenario, tiny_scenario)
+from helpers import (NonNegativeRange, assert_batch_equals_alone, gen,
+                     linear_kalman_filter, linear_offset_model,
+                     linear_scenario, tiny_scenario)
 
 
 def one_step(pairs, anchors, seed=0, sigma=0.5, count=None):
@@ -301,11 +302,15 @@ def test_both_convs_refuse_the_same_bad_links(name):
         snapshot())
     edge_index, edge_attr, anchor = corrupt(name, edge_index, edge_attr,
                                             anchor)
+    # a likelihood that needs ranges of at least zero (the library's take
+    # negative ones)
     with pytest.raises(ValueError, match=BAD_LINKS[name]):
-        ParticleBPConv()(particles, log_weights, edge_index, edge_attr,
-                         anchor=anchor)
+        ParticleBPConv(NonNegativeRange())(particles, log_weights,
+                                           edge_index, edge_attr,
+                                           anchor=anchor)
     with pytest.raises(ValueError, match=BAD_LINKS[name]):
-        GaussianBPConv()(belief, belief, edge_index, edge_attr, anchor)
+        GaussianBPConv(NonNegativeRange())(belief, belief, edge_index,
+                                           edge_attr, anchor)
 
 
 def test_bad_beliefs_and_messages_are_named():

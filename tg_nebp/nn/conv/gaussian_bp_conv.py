@@ -533,7 +533,8 @@ class GaussianBPConv(MessagePassing):
                                  f"and 'prior.mean' "
                                  f"{list(prior.mean.shape)} differ in shape")
             check_links(edge_index, edge_attr, self.measurement.features,
-                        prior.mean.size(0), anchor)
+                        prior.mean.size(0), anchor,
+                        self.measurement.negative_ranges)
         dtype = compute_dtype(*prior, *belief, edge_attr)
         prior = GaussianBelief(*(t.to(dtype) for t in prior))
         belief = GaussianBelief(*(t.to(dtype) for t in belief))

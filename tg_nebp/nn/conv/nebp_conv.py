@@ -266,7 +266,9 @@ class NEBPConv(MessagePassing):
             check_layer_inputs(particles, log_weights, edge_index, edge_attr,
                                self.bp.measurement.features, anchor,
                                sender_log_weights,
-                               state_dim=2 * self.position_dim)
+                               state_dim=2 * self.position_dim,
+                               negative_ranges=self.bp.measurement
+                               .negative_ranges)
             if anchor is None:
                 raise ValueError("'anchor' is required by NEBPConv")
             if embedding is not None:

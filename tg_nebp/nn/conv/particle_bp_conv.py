@@ -199,7 +199,8 @@ class ParticleBPConv(MessagePassing):
         model = self.measurement
         if validate:
             check_layer_inputs(particles, log_weights, edge_index, edge_attr,
-                               model.features, anchor, sender_log_weights)
+                               model.features, anchor, sender_log_weights,
+                               negative_ranges=model.negative_ranges)
         # one dtype for every operand lets the no-grad path work in place;
         # contiguous coordinate planes (the state entries that the model
         # reads) make every gather a dense [E, K] copy
