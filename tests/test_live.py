@@ -68,21 +68,27 @@ def test_a_malformed_line_names_its_field(line, match):
 
 
 def test_bad_lines_are_numbered_and_skipped_or_stop_the_run(data):
-    # lines that cannot be read: skipped and reported with their numbers,
-    # the clock named as possibly off; the estimates are the clean
-    # stream's
+    # bad lines, skipped and reported with their numbers (those whose time
+    # cannot be read with the clock named as possibly off); the estimates
+    # are the clean stream's
     lines = list(realization_lines(data))
-    bad = ['not json', '{"leave": 3}', '{"links": 5}']
+    bad = ['not json', '{"leave": 3}', '{"links": 5}',
+           '{"dt": 1' + '0' * 400 + '}', '{"join": [{"id": 9, "anchor": '
+           '[1' + '0' * 400 + ', 0]}]}']
     stream = lines[:1] + bad + [''] + lines[1:]
     written, reports = [], []
     tracker = ParticleBP(num_particles=20)
     counts = track_lines(TrackingSession(tracker, generator=gen(1)), stream,
                          written.append, 'skip', reports.append)
-    assert counts == dict(lines=len(stream), written=4, skipped=3)
+    assert counts == dict(lines=len(stream), written=4, skipped=5)
     assert [r.split(':')[0] for r in reports] == [
-        'skipped line 2', 'skipped line 3', 'skipped line 4']
-    assert all(r.endswith('(its time could not be read: the clock may be '
-                          'off)') for r in reports)
+        'skipped line 2', 'skipped line 3', 'skipped line 4',
+        'skipped line 5', 'skipped line 6']
+    assert "'dt' must be a finite number" in reports[3]
+    assert 'too large for a float' in reports[4]
+    # the last can be read: its time passes (the next line's time counts)
+    assert [r.endswith('(its time could not be read: the clock may be '
+                       'off)') for r in reports] == [True] * 4 + [False]
     assert "'leave' must be a list" in reports[1]
     clean = []
     track_lines(TrackingSession(tracker, generator=gen(1)), lines,

@@ -363,6 +363,13 @@ def _assert_same_state(a, b):
     (dict(links=[('n0', 1.0)], ranges=[3.0]),
      'an identifier is a string or an integer, got 1.0'),
     (dict(dt=0.0), "'dt' must be a finite number above 0"),
+    (dict(dt=10**400), "'dt' must be a finite number above 0"),
+    (dict(dt=1e300), r"'dt' must be a finite number above 0 \(at most"),
+    (dict(time=10**400), "'time' must be a finite number"),
+    (dict(join={'x': AgentPrior([10**400, 0.0, 0.0, 0.0],
+                                torch.eye(4).tolist())}),
+     r"'join\[0\]' \('x'\) mean holds a number too large"),
+    (dict(join={'x': AnchorAt([10**400, 0.0])}), 'too large for a float'),
     (dict(join={'x': AnchorAt([1.0, 2.0])}, links=[('x', 'n9')],
           ranges=[1.0]), "unknown identifier 'n9'"),
 ])

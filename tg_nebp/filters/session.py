@@ -78,6 +78,9 @@ def _numbers(value, shape: Tuple[Optional[int], ...],
     # size), in float64
     try:
         tensor = torch.as_tensor(value, dtype=torch.float64).cpu()
+    except OverflowError:  # an integer beyond any float
+        raise ValueError(f"{where} holds a number too large for a float: "
+                         f"{value!r}"[:200]) from None
     except (TypeError, ValueError, RuntimeError):
         raise ValueError(f"{where} must be a list of numbers of shape "
                          f"{list(shape)}, got {value!r}") from None
@@ -86,6 +89,20 @@ def _numbers(value, shape: Tuple[Optional[int], ...],
         raise ValueError(f"{where} must have shape {list(shape)}, got "
                          f"{list(tensor.shape)}")
     return tensor
+
+
+def _seconds(value) -> Optional[float]:
+    # a time or time step as a float: None for anything but a finite real
+    # number within the longest accepted (an integer beyond any float
+    # included)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:
+        return None
+    return value if math.isfinite(value) and abs(value) <= _LONGEST \
+        else None
 
 
 def _identified(message: str, ids: List[Identifier]) -> str:
@@ -172,9 +189,10 @@ class TrackingSession:
         self.dtype = dtype
         self.generator = (torch.Generator(self.device).manual_seed(seed)
                           if generator is None else generator)
+        if _seconds(time) is None:
+            raise ValueError(f"'time' must be a finite number (at most "
+                             f"{_LONGEST:.0e} s), got {time!r}"[:200])
         self.time = float(time)
-        if not math.isfinite(self.time):
-            raise ValueError(f"'time' must be finite, got {time}")
         #: The time index of the next step (the steps done).
         self.num_steps = 0
         #: What the caller saved with the session (:meth:`save`), once
@@ -306,8 +324,8 @@ class TrackingSession:
         # where it has none), else the model over that time step (a model
         # that cannot says so)
         # the time of skipped steps (skip_step) since the last is part of
-        # this step's: a time given counts from the last step, a dt or the
-        # model's own is added to it
+        # this step's: a time given counts from the last step tracked, a dt
+        # or the model's own is added to it
         motion = self.tracker.motion
         if dt is not None and time is not None:
             raise ValueError("give 'dt' or 'time', not both")
@@ -317,21 +335,22 @@ class TrackingSession:
                 return dt, motion
             dt += self.skipped_time
         elif time is not None:
-            if isinstance(time, bool) or not isinstance(time, numbers.Real) \
-                    or not math.isfinite(time) or abs(time) > _LONGEST:
+            given = _seconds(time)
+            if given is None:
                 raise ValueError(f"'time' must be a finite number (at most "
-                                 f"{_LONGEST:.0e} s), got {time!r}")
-            now = self.time + self.skipped_time
-            if not time > now:
-                raise ValueError(f"'time' = {time} does not come after the "
-                                 f"last step's time {now}")
-            dt = float(time) - self.time
-        elif isinstance(dt, bool) or not isinstance(dt, numbers.Real) or \
-                not (math.isfinite(dt) and 0 < dt <= _LONGEST):
-            raise ValueError(f"'dt' must be a finite number above 0 (at "
-                             f"most {_LONGEST:.0e} s), got {dt!r}")
+                                 f"{_LONGEST:.0e} s), got {time!r}"[:200])
+            # a given time counts from the last step tracked (what skipped
+            # steps passed is in it)
+            if not given > self.time:
+                raise ValueError(f"'time' = {given} does not come after the "
+                                 f"last step's time {self.time}")
+            dt = given - self.time
         else:
-            dt = float(dt) + self.skipped_time
+            given = _seconds(dt)
+            if given is None or not given > 0:
+                raise ValueError(f"'dt' must be a finite number above 0 (at "
+                                 f"most {_LONGEST:.0e} s), got {dt!r}"[:200])
+            dt = given + self.skipped_time
         return float(dt), motion.with_time_step(float(dt))
 
     def skip_step(self, dt: Optional[float] = None,
