@@ -185,10 +185,51 @@ def test_a_lost_line_is_a_longer_time_step_and_scores_by_time(data):
      'no true state of 99'),
     (['{"time": 1.0, "estimates": []}'] * 2, 'estimated twice'),
     (['nope'], 'estimates line 1: not JSON'),
+    (['{"time": 1.0, "estimates": [[0, 1]]}'],
+     r"'estimates\[0\]' must be an object with an 'id'"),
+    (['{"time": 1.0, "estimates": 5}'], "'estimates' must be a list"),
+    (['{"time": [1.0], "estimates": []}'],
+     "estimates line 1: 'time' must be a finite number"),
+    (['{"time": 1.0, "estimates": [{"id": 0, "mean": [NaN, 0, 0, 0], '
+      '"cov": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}'],
+     'an estimate that is not finite'),
+    (['{"time": 1.0, "estimates": [{"id": 0, "mean": [0, 0], '
+      '"cov": [[1, 0], [0, 1]]}]}'], "of the truth's size"),
 ])
 def test_score_names_the_line_it_cannot_read(data, estimates, match):
     with pytest.raises(ValueError, match=match):
         score(estimates, truth_lines(data))
+
+
+@pytest.mark.parametrize('change, match', [
+    (lambda line: dict(line, states=[7]),
+     r"truth line 2: 'states\[0\]' must be an object with an 'id'"),
+    (lambda line: dict(line, time=line['time'] - 1.0),
+     r'truth line 2: time 1.0 is given twice'),
+    (lambda line: dict(line, states=[dict(id=0, state=['a'])]),
+     r"truth line 2: 'states\[0\]' must hold a 'state' of finite"),
+])
+def test_score_names_the_truth_line_it_cannot_read(data, change, match):
+    truth = list(truth_lines(data))
+    truth[1] = json.dumps(change(json.loads(truth[1])))
+    with pytest.raises(ValueError, match=match):
+        score([], truth)
+
+
+def test_score_counts_the_truth_that_no_estimate_covers(data):
+    # estimates of 2 of the 4 steps, one of them without its first agent:
+    # the truth left out is counted, not passed over
+    written = []
+    track_lines(TrackingSession(GaussianBP()), realization_lines(data),
+                written.append)
+    partial = [json.loads(line) for line in written[:2]]
+    partial[1]['estimates'] = partial[1]['estimates'][1:]
+    entry = score([json.dumps(line) for line in partial], truth_lines(data))
+    agents = int((~data.anchor).sum())
+    assert entry['steps'] == 2 and entry['estimates'] == 2 * agents - 1
+    assert entry['unscored_steps'] == data.num_time_steps - 2
+    assert entry['unscored_states'] == \
+        data.num_time_steps * agents - 2 * agents + 1
 
 
 def test_a_smoothers_line_holds_its_revised_window():

@@ -322,7 +322,9 @@ def _score(args) -> int:
     entry = score_files(args.estimates, args.truth)
     print(f"RMSE {entry['rmse']:.3f} m, outage {entry['outage']}, "
           f"P(accept) {entry['accept']}, {entry['steps']} steps, "
-          f"{entry['estimates']} estimates")
+          f"{entry['estimates']} estimates; not estimated: "
+          f"{entry['unscored_steps']} truth steps, "
+          f"{entry['unscored_states']} true states")
     return 0
 
 

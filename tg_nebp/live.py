@@ -29,6 +29,7 @@ first (:func:`estimate_line`).
 it can be replayed through the live path and scored (:func:`score`)."""
 import hashlib
 import json
+import math
 from typing import (Callable, Dict, Iterable, Iterator, List, NamedTuple,
                     Optional, TextIO, Tuple)
 
@@ -329,35 +330,78 @@ def _objects(lines: Iterable[str], what: str, fields: tuple
         yield number, line
 
 
+def _time_of(line: dict, where: str) -> float:
+    # a line's time: a finite number
+    time = line['time']
+    if isinstance(time, bool) or not isinstance(time, (int, float)) or \
+            not math.isfinite(time):
+        raise ValueError(f"{where}: 'time' must be a finite number, got "
+                         f"{time!r}"[:200])
+    return float(time)
+
+
+def _entries(line: dict, field: str, where: str) -> list:
+    # a line's list of objects with an 'id'
+    entries = line[field]
+    if not isinstance(entries, list):
+        raise ValueError(f"{where}: '{field}' must be a list, got "
+                         f"{entries!r}"[:200])
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, dict) or 'id' not in entry:
+            raise ValueError(f"{where}: '{field}[{k}]' must be an object "
+                             f"with an 'id', got {entry!r}"[:200])
+    return entries
+
+
 def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
     r"""The accuracy of estimate lines against truth lines
     (:func:`truth_lines`), matched by time and identifier: the
     :obj:`metrics.json` entry of :func:`~tg_nebp.evaluation.summarize`
     (RMSE, outage, P(accept)), computed as an evaluation of a Gaussian
     tracker computes it (positions in float64, the truth in the stored
-    float32), with the number of steps and estimates scored. A step
-    estimated twice, or one without truth, is a :class:`ValueError`
-    naming its line."""
+    float32), with the number of steps and estimates scored and what the
+    truth holds that no estimate covers (:obj:`"unscored_steps"`: truth
+    times without an estimate line, :obj:`"unscored_states"`: true states
+    without an estimate, both counted over the times estimated and not).
+    A malformed line or entry (a time that is not a number, entries that
+    are not a list of objects with an :obj:`"id"`, a mean or covariance
+    that is not finite numbers of the truth's size), a time given twice
+    in either file, an estimate of a time or node without truth is a
+    :class:`ValueError` naming its line."""
     states, position_dims = {}, {}
-    for _, line in _objects(truth, 'truth', ('time', 'states')):
-        states[line['time']] = {json.dumps(s['id']): s['state']
-                                for s in line['states']}
-        position_dims[line['time']] = line.get('position_dim')
+    for number, line in _objects(truth, 'truth', ('time', 'states')):
+        where = f"truth line {number}"
+        time = _time_of(line, where)
+        if time in states:
+            raise ValueError(f"{where}: time {time} is given twice")
+        step = {}
+        for k, entry in enumerate(_entries(line, 'states', where)):
+            state = entry.get('state')
+            if not isinstance(state, list) or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool)
+                    and math.isfinite(v) for v in state):
+                raise ValueError(f"{where}: 'states[{k}]' must hold a "
+                                 f"'state' of finite numbers")
+            step[json.dumps(entry['id'])] = state
+        states[time] = step
+        position_dims[time] = line.get('position_dim')
     errors, nees, seen, dim = [], [], set(), 2
     for number, line in _objects(estimates, 'estimates',
                                  ('time', 'estimates')):
-        where = f"estimates line {number} (time {line['time']})"
-        step = states.get(line['time'])
+        where = f"estimates line {number}"
+        time = _time_of(line, where)
+        where = f"{where} (time {line['time']})"
+        step = states.get(time)
         if step is None:
             raise ValueError(f"{where}: no truth at that time")
-        if line['time'] in seen:
+        if time in seen:
             raise ValueError(f"{where}: that time is estimated twice")
-        seen.add(line['time'])
-        if not line['estimates']:  # no agent at that time
+        seen.add(time)
+        entries = _entries(line, 'estimates', where)
+        if not entries:  # no agent at that time
             continue
-        rows = [(e, step.get(json.dumps(e.get('id')))) for e in
-                line['estimates']]
-        missing = [e.get('id') for e, s in rows if s is None]
+        rows = [(e, step.get(json.dumps(e['id']))) for e in entries]
+        missing = [e['id'] for e, s in rows if s is None]
         if missing:
             raise ValueError(f"{where}: no true state of {missing[0]!r}")
         try:
@@ -367,11 +411,17 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
                                 dtype=torch.float64)
             cov = torch.tensor([e['cov'] for e, _ in rows],
                                dtype=torch.float64)
-        except (KeyError, TypeError, ValueError) as e:
+            if mean.shape != true.shape or \
+                    cov.shape != true.shape + true.shape[-1:]:
+                raise ValueError('sizes differ')
+        except (KeyError, TypeError, ValueError, OverflowError,
+                RuntimeError) as e:
             raise ValueError(f"{where}: an estimate without a 'mean' and "
                              f"'cov' of the truth's size ({first_line(e)})"
                              ) from None
-        dim = position_dims[line['time']] or true.size(-1) // 2
+        if not bool(mean.isfinite().all() & cov.isfinite().all()):
+            raise ValueError(f"{where}: an estimate that is not finite")
+        dim = position_dims[time] or true.size(-1) // 2
         errors.append(metrics.position_errors(mean[:, :dim],
                                               true[:, :dim]))
         nees.append(metrics.nees(mean[:, :dim], cov[:, :dim, :dim],
@@ -379,8 +429,10 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
     if not errors:
         raise ValueError("no estimate lines to score")
     entry = summarize(torch.cat(errors), torch.cat(nees), dof=dim)
-    entry.update(steps=len(errors),
-                 estimates=int(sum(e.numel() for e in errors)))
+    scored = int(sum(e.numel() for e in errors))
+    entry.update(steps=len(errors), estimates=scored,
+                 unscored_steps=len(set(states) - seen),
+                 unscored_states=sum(map(len, states.values())) - scored)
     return entry
 
 
