@@ -32,7 +32,8 @@ def main():
         num_steps=args.steps)
     start = time.perf_counter()
     data = scenario.generate(torch.Generator().manual_seed(0))
-    part, plan = partition(data, strips(data, dist.get_world_size()), rank)
+    ranks = dist.get_world_size()
+    part, plan = partition(data, strips(data, ranks), rank, ranks)
     del data
     setup = time.perf_counter() - start
     tracker = PartitionedGaussianBP.recommended(

@@ -786,6 +786,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             return args.run(args)
     except ValueError as e:  # bad input: a clear message, no traceback
         return _print_error(e)
+    except KeyboardInterrupt as e:  # Ctrl-C: where it stopped, one line
+        sys.stderr.write(f"interrupted: {one_line(str(e) or 'by the user')}"
+                         f"\n")
+        sys.stderr.flush()
+        return 130
     except BenchFailed as e:  # measurements that failed, each in the table
         _print_error(e)
         return 1

@@ -44,7 +44,8 @@ from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.io import first_line
 
 __all__ = ['StreamStep', 'parse_step', 'estimate_line', 'realization_lines',
-           'truth_lines', 'track_lines', 'score', 'read_lines', 'ON_ERROR']
+           'truth_lines', 'track_lines', 'score', 'read_lines', 'ON_ERROR',
+           'StreamInterrupted']
 
 #: What :func:`track_lines` does with a bad line: report it and go on
 #: (:obj:`"skip"`) or end the run (:obj:`"stop"`).
@@ -230,6 +231,13 @@ class _ReadLines:
         return dict(self.marks, **{str(number): self.digest.hexdigest()})
 
 
+class StreamInterrupted(KeyboardInterrupt):
+    r"""An interrupt (Ctrl-C) of :func:`track_lines`, saying where the
+    stream stopped: the lines tracked, the estimate lines written and the
+    lines a saved state holds (each saved line is whole: a resumed run
+    continues from it)."""
+
+
 def _clock_kept(session: TrackingSession, text: str) -> str:
     # a skipped line's time passes all the same where it can be read (the
     # next step predicts over it); else the report says so
@@ -266,12 +274,32 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
     :obj:`digests`: the saved ones) skips and continues: an input that
     does not start with the lines the session read is a
     :class:`ValueError` naming the lines where it first differs (between
-    two saved digests). Blank lines are ignored. Returns the counts:
+    two saved digests). Blank lines are ignored. An interrupt (Ctrl-C) is
+    a :class:`StreamInterrupted` saying where the stream stopped (what was
+    saved and written before it stays whole). Returns the counts:
     :obj:`lines`, :obj:`written`, :obj:`skipped`."""
     if on_error not in ON_ERROR:
         raise ValueError(f"'on_error' must be one of {list(ON_ERROR)}, got "
                          f"{on_error!r}")
-    skipped, number, matched = 0, 0, 0
+    progress = dict(lines=done, written=written, skipped=0)
+    try:
+        return _tracked(session, lines, write, on_error, report, save_state,
+                        done, digests, progress)
+    except KeyboardInterrupt:
+        saved = (f"; the saved state holds lines 1-{progress['lines']}"
+                 if save_state is not None else '')
+        raise StreamInterrupted(
+            f"stopped at line {progress['lines'] + 1}: lines 1-"
+            f"{progress['lines']} tracked ({progress['skipped']} skipped), "
+            f"{progress['written']} estimate lines written{saved}"
+        ) from None
+
+
+def _tracked(session, lines, write, on_error, report, save_state, done,
+             digests, progress) -> dict:
+    # the loop of track_lines, keeping 'progress' (the lines done, the
+    # estimate lines written, the lines skipped) as it goes
+    skipped, number, matched, written = 0, 0, 0, progress['written']
     read = _ReadLines()
     for number, text in enumerate(lines, 1):
         value = read.read(number, text)
@@ -305,6 +333,7 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
         if save_state is not None:
             session.save(save_state, progress=dict(
                 lines=number, written=written, digests=read.saved(number)))
+        progress.update(lines=number, written=written, skipped=skipped)
     if number < done:
         raise ValueError(f"the input ended after {number} lines; the saved "
                          f"session read {done} of it")

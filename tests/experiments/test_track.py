@@ -6,6 +6,7 @@ import json
 import os
 import random
 import selectors
+import signal
 import subprocess
 import sys
 import time
@@ -189,6 +190,30 @@ def test_killed_and_resumed_track_writes_the_uninterrupted_lines(
     out, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 0, err
     assert output.read_text().split('\n')[:-1] == recorded['estimates']
+
+
+def test_ctrl_c_ends_track_with_one_line_saying_where(recorded, tmp_path):
+    # SIGINT while track waits for its third line: one line on standard
+    # error, no traceback, exit status 130; the saved state and the
+    # output hold the two lines tracked
+    state = tmp_path / 'state.pt'
+    process = _process('--method', 'gbp', '--scenario', recorded['scenario'],
+                       '--save-state', state)
+    try:
+        for line in recorded['lines'][:2]:
+            process.stdin.write(line + '\n')
+            process.stdin.flush()
+            assert _read_line(process.stdout) is not None
+        _wait_saved(state, 2)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130
+    assert err == ('interrupted: stopped at line 3: lines 1-2 tracked (0 '
+                   'skipped), 2 estimate lines written; the saved state '
+                   'holds lines 1-2\n')
+    assert _progress(state)['lines'] == 2
 
 
 def test_a_resume_with_another_input_is_refused_naming_where(

@@ -30,7 +30,7 @@ OPTIONS = dict(num_iterations=40, tolerance=1e-4)
 def tracked(path: Path, rank: int) -> None:
     scenario, data = network()
     owner = strips(data, dist.get_world_size())
-    part, plan = partition(data, owner, rank)
+    part, plan = partition(data, owner, rank, dist.get_world_size())
     tracker = PartitionedGaussianBP.recommended(
         plan=plan, motion=scenario.motion_model,
         measurement=scenario.measurement_model, **OPTIONS)
@@ -64,6 +64,24 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
     # every node is owned once
     assert torch.equal(torch.cat(seen).sort().values,
                        torch.arange(data.num_nodes))
+
+
+def test_a_rank_without_an_agent_is_refused_up_front():
+    # 4 ranks on a network of 3 agents, or strips that leave a rank only
+    # anchors: every rank gets the same error, naming the idle ranks,
+    # before any collective
+    data = tiny_scenario(steps=2).generate(gen(1))  # 3 agents, 3 anchors
+    for ranks in (4, 6):
+        owner = strips(data, ranks)
+        for rank in range(ranks):
+            with pytest.raises(ValueError, match=rf"ranks \[.*\] of {ranks} "
+                               rf"own no agent \(the network has 6 nodes, "
+                               rf"3 of them agents\)"):
+                partition(data, owner, rank, ranks)
+    with pytest.raises(ValueError, match=r"must lie in 0-1 \(2 ranks\)"):
+        partition(data, strips(data, 3), 0, 2)
+    part, plan = partition(data, torch.tensor([0, 1, 2, 0, 1, 2]), 1, 3)
+    assert int(plan.owned.sum()) == 2
 
 
 def test_partition_keeps_the_order_and_plans_both_sides():

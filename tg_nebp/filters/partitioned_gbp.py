@@ -12,7 +12,7 @@ every iteration it receives the halo's beliefs from their owners
 have in the whole network, so every agent sums its messages in the same
 order, and each rank's agents get what one process gives them, bit for
 bit."""
-from typing import List, NamedTuple, Tuple
+from typing import List, NamedTuple, Optional, Tuple
 
 import torch
 import torch.distributed as dist
@@ -59,13 +59,34 @@ def _held(data: Realization, owner: Tensor, rank: int) -> Tensor:
     return held
 
 
-def partition(data: Realization, owner: Tensor, rank: int
+def partition(data: Realization, owner: Tensor, rank: int,
+              num_parts: Optional[int] = None
               ) -> Tuple[Realization, Partition]:
     r"""The realization that rank :obj:`rank` tracks (its nodes and every
     link that touches one of its own, numbered in the whole network's
     order) and its :class:`Partition`, for the parts :obj:`owner`
-    :math:`(N)` (:func:`strips`)."""
-    num_parts = int(owner.max()) + 1
+    :math:`(N)` (:func:`strips`) of :obj:`num_parts` ranks (the process
+    group's size; by default the parts that :obj:`owner` names). A rank
+    that would own no agent is refused up front, with the same
+    :class:`ValueError` on every rank (each holds the whole network), so
+    that no rank waits on a collective that another never joins."""
+    if num_parts is None:
+        num_parts = int(owner.max()) + 1
+    if not 0 <= rank < num_parts or bool((owner < 0).any()) or \
+            bool((owner >= num_parts).any()):
+        raise ValueError(f"rank {rank} and the parts of 'owner' "
+                         f"({int(owner.min())}-{int(owner.max())}) must lie "
+                         f"in 0-{num_parts - 1} ({num_parts} ranks)")
+    agents = ~data.anchor
+    owned = torch.zeros(num_parts, dtype=torch.long).index_add_(
+        0, owner[agents], torch.ones_like(owner[agents]))
+    idle = (owned == 0).nonzero().view(-1).tolist()
+    if idle:
+        raise ValueError(f"ranks {idle} of {num_parts} own no agent (the "
+                         f"network has {data.num_nodes} nodes, "
+                         f"{int(agents.sum())} of them agents): every rank "
+                         f"needs one; run at most {int(agents.sum())} ranks "
+                         f"or give those ranks agents")
     held = [_held(data, owner, q) for q in range(num_parts)]
     nodes = held[rank].nonzero().view(-1)
     number = torch.full_like(owner, -1)
@@ -113,6 +134,12 @@ class PartitionedGaussianBP(GaussianBP):
     """
     def __init__(self, plan: Partition, group=None, **options):
         super().__init__(**options)
+        if dist.is_initialized():
+            ranks = dist.get_world_size(group)
+            if len(plan.send) != ranks:
+                raise ValueError(f"the plan is for {len(plan.send)} ranks "
+                                 f"but the process group has {ranks}: "
+                                 f"partition() with num_parts={ranks}")
         self.plan = plan
         self.group = group
 
