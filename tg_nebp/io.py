@@ -167,7 +167,8 @@ def read_json(path: Union[str, Path]) -> Any:
     r"""Reads a JSON file; a file that is not valid JSON gets a clear
     error."""
     try:
-        with open(path) as f:
+        # past a byte-order mark, which common editors write
+        with open(path, encoding='utf-8-sig') as f:
             return json.load(f)
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"'{path}' is not a valid JSON file: {e}") from None

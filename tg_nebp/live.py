@@ -302,6 +302,8 @@ def _tracked(session, lines, write, on_error, report, save_state, done,
     skipped, number, matched, written = 0, 0, 0, progress['written']
     read = _ReadLines()
     for number, text in enumerate(lines, 1):
+        if number == 1:  # a byte-order mark, which common editors write
+            text = text.lstrip('\ufeff')
         value = read.read(number, text)
         if number <= done:
             expected = (digests or {}).get(str(number))

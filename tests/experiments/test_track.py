@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -190,6 +191,36 @@ def test_killed_and_resumed_track_writes_the_uninterrupted_lines(
     out, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 0, err
     assert output.read_text().split('\n')[:-1] == recorded['estimates']
+
+
+def test_files_with_a_byte_order_mark_are_read(recorded, tmp_path, capsys):
+    # saved by a common editor: a UTF-8 byte-order mark first; the input,
+    # the truth and a scenario file read as without it
+    measurements = tmp_path / 'm.jsonl'
+    measurements.write_text('\ufeff' + ''.join(
+        line + '\n' for line in recorded['lines']), encoding='utf-8')
+    scenario = tmp_path / 'scenario.json'
+    scenario.write_text('\ufeff' + Path(recorded['scenario']).read_text(),
+                        encoding='utf-8')
+    output = tmp_path / 'e.jsonl'
+    assert main(['track', '--method', 'bp', '--particles', '50',
+                 '--scenario', str(scenario), '--input', str(measurements),
+                 '--output', str(output)]) == 0
+    assert output.read_text().split('\n')[:-1] == recorded['estimates']
+    # standard input: the first line's mark
+    written = []
+    from tg_nebp.live import track_lines
+    from tg_nebp.filters import GaussianBP, TrackingSession
+    track_lines(TrackingSession(GaussianBP()), ['\ufeff' + recorded[
+        'lines'][0]], written.append)
+    assert len(written) == 1
+    truth = tmp_path / 't.jsonl'
+    truth.write_text('\ufeff' + (Path(recorded['scenario']).parent /
+                                 't.jsonl').read_text(), encoding='utf-8')
+    capsys.readouterr()
+    assert main(['score', '--estimates', str(output), '--truth',
+                 str(truth)]) == 0
+    assert capsys.readouterr().out.startswith('RMSE ')
 
 
 def test_ctrl_c_ends_track_with_one_line_saying_where(recorded, tmp_path):

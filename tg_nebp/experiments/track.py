@@ -140,6 +140,7 @@ def score_files(estimates: str, truth: str) -> dict:
     r"""The accuracy of an estimate file (:obj:`tg-nebp track`'s output)
     against a truth file (:obj:`tg-nebp record`'s):
     :func:`~tg_nebp.live.score`."""
-    with open(estimates, encoding='utf-8') as e, \
-            open(truth, encoding='utf-8') as t:
+    # past a byte-order mark, which common editors write
+    with open(estimates, encoding='utf-8-sig') as e, \
+            open(truth, encoding='utf-8-sig') as t:
         return score(e, t)
