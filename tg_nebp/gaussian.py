@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch
 
-from tg_nebp.utils import free_memory_bytes
+from tg_nebp.utils import free_memory_bytes, inputs
 
 __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'check_predicted_prior', 'predict_joint', 'range_blocks',
@@ -104,7 +104,6 @@ def check_predicted_prior(data, motion, what: str,
     mean = data.prior_mean[agents].double()
     # the first step's inputs where the method reads them (the prediction
     # it makes first)
-    from tg_nebp.models import inputs  # the models import this module
     control = getattr(data, 'control', None)
     given = inputs(None if control is None or not use_control else
                    control[agents, 0].double())

@@ -2,7 +2,7 @@ r"""Small tensor helpers shared by the layers and the trackers."""
 import contextlib
 import os
 import re
-from typing import Iterator, NamedTuple, Tuple
+from typing import Dict, Iterator, NamedTuple, Optional, Tuple
 
 import torch
 import torch.distributed as dist
@@ -10,6 +10,7 @@ from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
 __all__ = [
+    'inputs',
     'weighted_moments',
     'log_normalize',
     'logsumexp',
@@ -28,6 +29,13 @@ __all__ = [
     'LinkFactors',
     'link_factors',
 ]
+
+
+def inputs(control: Optional[Tensor]) -> Dict[str, Tensor]:
+    r"""The keyword arguments that hand a step's known input
+    :obj:`control` to a motion model's methods: none without one, so that
+    a model that takes no input keeps its signature."""
+    return {} if control is None else {'control': control}
 
 
 def compute_dtype(*tensors: Tensor) -> torch.dtype:

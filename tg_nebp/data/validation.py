@@ -6,7 +6,7 @@ field and the offending index instead of producing NaNs far downstream.
 """
 import math
 import numbers
-from typing import TYPE_CHECKING, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -14,9 +14,6 @@ from torch_geometric import EdgeIndex
 
 from tg_nebp.data.realization import num_steps_of, position_dim_of
 from tg_nebp.utils import compute_dtype
-
-if TYPE_CHECKING:  # the models import this module
-    from tg_nebp.models import MotionModel
 
 __all__ = [
     'check_lag',
@@ -316,14 +313,16 @@ def _check_symmetric_psd(matrices: Tensor, name: str, atol: float) -> None:
                          f"(smallest eigenvalue {float(min_eig[i]):.3g})")
 
 
-def check_state_dim(size: int, motion: 'MotionModel',
+def check_state_dim(size: int, motion,
                     position_dim: Optional[int] = None) -> None:
     r"""A :class:`ValueError` if states of size :obj:`size` are not what the
-    motion model is for (a model that states its
+    motion model :obj:`motion` is for (a model that states its
     :attr:`~tg_nebp.models.MotionModel.state_dim`), or, with
     :obj:`position_dim` (a realization's,
     :func:`~tg_nebp.data.position_dim_of`), if the model's
-    layout puts another number of position entries first."""
+    layout puts another number of position entries first. The model is
+    read by its role's attributes only: the models import this module,
+    which imports none of them."""
     if motion.state_dim is not None and size != motion.state_dim:
         raise ValueError(f"'prior_mean' holds states of size {size} but the "
                          f"motion model {motion} has state dimension "
@@ -336,8 +335,9 @@ def check_state_dim(size: int, motion: 'MotionModel',
                          f" of a state of size {size}")
 
 
-def check_control(data, motion: 'MotionModel') -> None:
-    r"""Checks a realization's known inputs against its motion model:
+def check_control(data, motion) -> None:
+    r"""Checks a realization's known inputs against its motion model
+    :obj:`motion` (its :attr:`~tg_nebp.models.MotionModel.control_dim`):
     none for a model that takes none; else :obj:`control` :math:`(N, T,
     C)`, floating point, :math:`C` the model's
     :attr:`~tg_nebp.models.MotionModel.control_dim`, finite or NaN (a NaN

@@ -1,11 +1,13 @@
 from .base import (MODELS, LinkPairRange, MeasurementModel, Model,
-                   MotionModel, RangeModel, StateLayout, inputs,
+                   MotionModel, RangeModel, StateLayout,
                    links_within_range, model_from_config, model_like,
-                   redraw_negative, resolve_models, wrap_angle)
+                   redraw_negative, wrap_angle)
 from .motion import ConstantVelocity, ConstantVelocityDrag, UnicycleOdometry
 from .measurement import GaussianRange, NLOSRange, StudentTRange
 from .range_bearing import (GaussianRangeBearing, RangeBearingModel,
                             StudentTRangeBearing)
+from .defaults import resolve_models
+from tg_nebp.utils import inputs
 
 __all__ = [
     'Model',

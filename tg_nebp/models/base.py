@@ -38,6 +38,7 @@ from torch import Tensor
 
 from tg_nebp.data.validation import check_number
 from tg_nebp.gaussian import range_blocks, unit_vectors
+from tg_nebp.utils import inputs
 
 __all__ = [
     'Model',
@@ -48,11 +49,9 @@ __all__ = [
     'MODELS',
     'model_from_config',
     'model_like',
-    'resolve_models',
     'redraw_negative',
     'StateLayout',
     'wrap_angle',
-    'inputs',
     'links_within_range',
 ]
 
@@ -97,13 +96,6 @@ class StateLayout(NamedTuple):
         index = list(self.angles)
         out[..., index] = wrap_angle(states[..., index])
         return out
-
-
-def inputs(control: Optional[Tensor]) -> Dict[str, Tensor]:
-    r"""The keyword arguments that hand a step's known input
-    :obj:`control` to a motion model's methods: none without one, so that
-    a model that takes no input keeps its signature."""
-    return {} if control is None else {'control': control}
 
 
 def _definer(cls: type, attribute: str) -> Optional[type]:
@@ -175,30 +167,6 @@ class Model:
     def __repr__(self) -> str:
         args = ', '.join(f'{k}={v!r}' for k, v in self.params().items())
         return f'{type(self).__name__}({args})'
-
-
-def resolve_models(motion: Optional['MotionModel'] = None,
-                   measurement: Optional['MeasurementModel'] = None):
-    r"""The motion and measurement models of a tracker or bound: the given
-    ones, checked to be of their roles, or the paper's
-    (:class:`~tg_nebp.models.ConstantVelocityDrag`,
-    :class:`~tg_nebp.models.GaussianRange`); the measurement model bound
-    to the motion model's state layout where that model declares one
-    (:meth:`MeasurementModel.bind`)."""
-    from tg_nebp.models import ConstantVelocityDrag, GaussianRange
-    models = (motion or ConstantVelocityDrag(),
-              measurement or GaussianRange())
-    for name, model, role in zip(('motion', 'measurement'), models,
-                                 (MotionModel, MeasurementModel)):
-        if not isinstance(model, role):
-            raise TypeError(f"'{name}' must be a {role.__name__}, got "
-                            f"{model!r}")
-    motion, measurement = models
-    # a motion model of its own layout tells the measurement model where
-    # the position (and heading) are
-    if motion.state_dim is not None:
-        measurement = measurement.bind(motion.layout(motion.state_dim))
-    return motion, measurement
 
 
 def model_like(name: str, role: str, like: Optional[Model] = None

@@ -1,5 +1,0 @@
-r"""Deprecated alias of :mod:`tg_nebp.experiments.equivariant_nebp`
-(removed in the next release)."""
-from tg_nebp._moved import alias
-
-alias(__name__, 'tg_nebp.experiments.equivariant_nebp')
