@@ -413,13 +413,8 @@ def _add_method_options(parser: argparse.ArgumentParser):
     _add_resampling(parser)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
-        prog='tg-nebp',
-        description='Particle BP and Neural Enhanced BP for cooperative '
-        'localization.')
-    sub = parser.add_subparsers(dest='command', required=True)
-
+def _evaluate_command(sub) -> None:
+    # the 'evaluate' command and its options
     ev = sub.add_parser(
         'evaluate', help='run a tracker (or the bound) on the test network '
         'and write DIR/metrics.json', description='Runs a method on the test '
@@ -446,6 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(ev)
     ev.set_defaults(run=_evaluate)
 
+
+def _train_command(sub) -> None:
+    # the 'train' command and its options
     tr = sub.add_parser(
         'train', help='train NEBP (default: on the paper\'s training '
         'network); writes DIR/nebp.pt', description='Trains NEBP on a '
@@ -515,6 +513,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_resampling(tr)
     tr.set_defaults(run=_train)
 
+
+def _reproduce_command(sub) -> None:
+    # the 'reproduce' command and its options
     rp = sub.add_parser('reproduce', help='the paper\'s experiment: data, '
                         'training, BP and NEBP evaluation, report, figures')
     rp.add_argument('--preset', choices=PRESET_NAMES, default='quick')
@@ -527,6 +528,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_samples(rp, 1)
     rp.set_defaults(run=_reproduce)
 
+
+def _frontier_command(sub) -> None:
+    # the 'frontier' command and its options
     fr = sub.add_parser(
         'frontier', help='BP\'s accuracy against its cost over a grid of '
         'K, M and resampling options; writes DIR/frontier.json, '
@@ -563,6 +567,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compile(fr)
     fr.set_defaults(run=_frontier)
 
+
+def _compare_command(sub) -> None:
+    # the 'compare' command and its options
     cp = sub.add_parser(
         'compare', help='one table of every method against the bound; '
         'writes DIR/compare.json, DIR/compare.md and DIR/compare.png',
@@ -611,6 +618,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(cp)
     cp.set_defaults(run=_compare)
 
+
+def _track_command(sub) -> None:
+    # the 'track' command and its options
     tk = sub.add_parser(
         'track', help='track live: JSON lines of measurements in, one line '
         'of estimates per step out', description='Runs a tracker live, one '
@@ -619,8 +629,10 @@ def build_parser() -> argparse.ArgumentParser:
         '[[from, to, range], ...]), and writes each step\'s line of '
         'estimates ({"t", "time", "estimates": [{"id", "mean", "cov"}]}) '
         'as soon as it is processed. The models are the scenario\'s. A bad '
-        'line is reported with its line number and skipped, or ends the '
-        'run (--on-error); the session is never half-updated by it.')
+        'link is reported (line and position) and left out, the step going '
+        'on with the others; a bad line is reported with its line number '
+        'and skipped, or ends the run (--on-error); the session is never '
+        'half-updated by it. Ctrl-C ends it with one line saying where.')
     tk.add_argument('--method', choices=list(LIVE_METHODS), default='gbp',
                     help=f"{', '.join(LIVE_METHODS)} (default: gbp)")
     tk.add_argument('--input', default='-', metavar='FILE|-',
@@ -634,7 +646,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help='save the session after every line (atomically)')
     tk.add_argument('--resume', default=None, metavar='FILE',
                     help='continue a saved session: the lines it had read '
-                    'are skipped (feed the same input), an --output file '
+                    'are skipped (feed the same input: another one is '
+                    'refused, naming where it differs), an --output file '
                     'keeps the lines of the saved steps')
     tk.add_argument('--scenario', default='paper_test',
                     help='scenario name or JSON file whose motion and '
@@ -647,6 +660,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(tk, root=False)
     tk.set_defaults(run=_track)
 
+
+def _record_command(sub) -> None:
+    # the 'record' command and its options
     rc = sub.add_parser(
         'record', help='write a test realization as measurement lines for '
         'track, its truth apart', description='Writes realization INDEX '
@@ -669,6 +685,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help='dataset root (default: datasets)')
     rc.set_defaults(run=_record, threads=None, device='cpu')
 
+
+def _fit_command(sub) -> None:
+    # the 'fit' command and its options
     ft = sub.add_parser(
         'fit', help='fit the noise models of a UTIAS MRCLAM sequence and '
         'write them as a scenario', description='Fits the range and bearing '
@@ -693,6 +712,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help='the scenario file written')
     ft.set_defaults(run=_fit, threads=None, device='cpu')
 
+
+def _score_command(sub) -> None:
+    # the 'score' command and its options
     sc = sub.add_parser(
         'score', help='the accuracy of track\'s estimates against record\'s '
         'truth', description='Prints the RMSE, outage and P(accept) of '
@@ -702,12 +724,32 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument('--truth', required=True, metavar='FILE')
     sc.set_defaults(run=_score, threads=None, device='cpu')
 
+
+def _bench_command(sub) -> None:
+    # the 'bench' command and its options
     bench = sub.add_parser('bench', help='benchmark ParticleBPConv and the '
                            'tracker on the test network')
     add_arguments(bench)
     _add_common(bench)
     _add_compile(bench)
     bench.set_defaults(run=run_bench)
+
+
+#: Every command, in the order of the help, each adding its own parser
+#: and options (a new command is one more function here).
+_COMMANDS = (_evaluate_command, _train_command, _reproduce_command,
+             _frontier_command, _compare_command, _track_command,
+             _record_command, _fit_command, _score_command, _bench_command)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog='tg-nebp',
+        description='Particle BP and Neural Enhanced BP for cooperative '
+        'localization.')
+    sub = parser.add_subparsers(dest='command', required=True)
+    for add in _COMMANDS:
+        add(sub)
     return parser
 
 
