@@ -175,6 +175,30 @@ def test_a_checkpoint_with_non_finite_weights_is_refused_by_name(tmp_path):
             load(path)
 
 
+def test_a_checkpoint_with_a_bit_flipped_is_refused_or_unchanged(tmp_path):
+    # 300 single bits flipped at seeded places: each file is refused
+    # whole, or its weights and configuration load exactly as saved
+    path = tmp_path / 'model.pt'
+    save_checkpoint(path, make_gaussian())
+    original = path.read_bytes()
+    expected = load_checkpoint(path)
+    places = torch.randint(0, 8 * len(original), (300, ),
+                           generator=gen(8)).tolist()
+    refused = 0
+    for place in places:
+        flipped = bytearray(original)
+        flipped[place // 8] ^= 1 << (place % 8)
+        path.write_bytes(bytes(flipped))
+        try:
+            state = load_checkpoint(path)
+        except ValueError:
+            refused += 1
+            continue
+        assert states_equal(state['model'], expected['model']), place
+        assert state['config'] == expected['config'], place
+    assert refused > 200
+
+
 def test_checkpoint_with_other_k_is_refused(tmp_path):
     path = tmp_path / 'model.pt'
     save_checkpoint(path, make_model(num_particles=16))
