@@ -527,3 +527,26 @@ def _non_negative_range():
 
 
 NonNegativeRange = _non_negative_range()
+
+
+def loads_after_bit_flips(path, load, count, seed):
+    r"""The file at :obj:`path` with one bit flipped at each of
+    :obj:`count` places drawn with :obj:`seed`, one at a time, read by
+    :obj:`load`: the number refused (a :class:`ValueError`) and the
+    :obj:`(place, loaded)` of the others. The file is restored after."""
+    original = path.read_bytes()
+    places = torch.randint(0, 8 * len(original), (count, ),
+                           generator=gen(seed)).tolist()
+    refused, loaded = 0, []
+    try:
+        for place in places:
+            flipped = bytearray(original)
+            flipped[place // 8] ^= 1 << (place % 8)
+            path.write_bytes(bytes(flipped))
+            try:
+                loaded.append((place, load(path)))
+            except ValueError:
+                refused += 1
+    finally:
+        path.write_bytes(original)
+    return refused, loaded

@@ -23,7 +23,8 @@ from tg_nebp.training import (CHECKPOINT_VERSION, PRETRAINED, adam,
                               tracker_from_checkpoint, train)
 from tg_nebp.utils import weighted_moments
 
-from helpers import embed_in_3d, gen, mixed_k_checkpoint, tiny_scenario
+from helpers import (embed_in_3d, gen, loads_after_bit_flips,
+                     mixed_k_checkpoint, tiny_scenario)
 
 SMALL = dict(message_dim=8, hidden_dim=16)
 
@@ -180,20 +181,9 @@ def test_a_checkpoint_with_a_bit_flipped_is_refused_or_unchanged(tmp_path):
     # whole, or its weights and configuration load exactly as saved
     path = tmp_path / 'model.pt'
     save_checkpoint(path, make_gaussian())
-    original = path.read_bytes()
     expected = load_checkpoint(path)
-    places = torch.randint(0, 8 * len(original), (300, ),
-                           generator=gen(8)).tolist()
-    refused = 0
-    for place in places:
-        flipped = bytearray(original)
-        flipped[place // 8] ^= 1 << (place % 8)
-        path.write_bytes(bytes(flipped))
-        try:
-            state = load_checkpoint(path)
-        except ValueError:
-            refused += 1
-            continue
+    refused, loaded = loads_after_bit_flips(path, load_checkpoint, 300, 8)
+    for place, state in loaded:
         assert states_equal(state['model'], expected['model']), place
         assert state['config'] == expected['config'], place
     assert refused > 200

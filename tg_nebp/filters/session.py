@@ -438,8 +438,10 @@ class TrackingSession:
         into_anchor = anchor.cpu()[receiver]
         finite = torch.isfinite(values).all(1)
         too_large = values[:, 0].abs() > magnitude_limit(self.dtype)
-        negative = (values[:, 0] < 0) & ~torch.tensor(
-            self.tracker.measurement.negative_ranges)
+        # a likelihood defined for negative ranges takes them as measured
+        negative = values[:, 0] < 0
+        if self.tracker.measurement.negative_ranges:
+            negative = torch.zeros_like(negative)
         for k in (sender == receiver).nonzero().view(-1).tolist():
             problems.setdefault(k, f"{where(k)}: a link to itself")
         for k in into_anchor.nonzero().view(-1).tolist():
