@@ -7,9 +7,10 @@ from torch import Tensor
 from torch_geometric import EdgeIndex, Index
 
 from tg_nebp.utils import (compute_dtype, floored_exp, log_normalize,
-                           logaddexp, logsumexp,
-                            plain_tensor,
-                           sort_by_receiver, weighted_moments)
+                           logaddexp, logsumexp, plain_tensor,
+                           rounding_tolerance, sort_by_receiver,
+                           symmetric_psd_defects, symmetrize,
+                           weighted_moments)
 
 
 def test_plain_tensor_strips_pyg_subclasses_without_copying():
@@ -191,6 +192,95 @@ def test_weighted_moments_normalize_unnormalized_log_weights():
     mean, cov = weighted_moments(particles, far.double().log_softmax(-1))
     assert torch.allclose(far_mean.double(), mean, atol=1e-5)
     assert torch.allclose(far_cov.double(), cov, atol=1e-5)
+
+
+@pytest.mark.parametrize('dtype', [torch.float32, torch.float64])
+def test_weighted_moments_match_a_float64_loop_and_are_symmetric(dtype):
+    # wide clouds of many particles in either precision: the covariance
+    # equals a plain float64 double loop to the dtype's rounding, and is
+    # exactly symmetric (the BLAS sums a product's triangles in orders of
+    # its own)
+    g = torch.Generator().manual_seed(2)
+    particles = (torch.randn(4, 500, 3, generator=g, dtype=torch.float64) *
+                 torch.tensor([30.0, 0.1, 5.0], dtype=torch.float64) + 10.0)
+    log_weights = torch.randn(4, 500, generator=g, dtype=torch.float64)
+    mean, cov = weighted_moments(particles.to(dtype), log_weights.to(dtype))
+    assert torch.equal(cov, cov.mT)
+    for n in range(4):
+        x = particles[n].to(dtype).double().tolist()
+        w = log_weights[n].to(dtype).double().exp().tolist()
+        total = sum(w)
+        mu = [sum(wk * xk[d] for wk, xk in zip(w, x)) / total
+              for d in range(3)]
+        for a in range(3):
+            for b in range(3):
+                c = sum(wk * (xk[a] - mu[a]) * (xk[b] - mu[b])
+                        for wk, xk in zip(w, x)) / total
+                scale = (cov[n, a, a] * cov[n, b, b]).double().sqrt()
+                assert abs(float(cov[n, a, b]) - c) <= \
+                    100 * torch.finfo(dtype).eps * float(scale)
+
+
+def _defects_by_loop(matrix, tolerance):
+    # asymmetric, indefinite and the smallest eigenvalue of one matrix,
+    # with plain loops and numpy's float64 eigenvalues
+    import numpy as np
+    rows = matrix.double().tolist()
+    size = len(rows)
+    scale = max(abs(v) for row in rows for v in row)
+    asymmetry = max(abs(rows[i][j] - rows[j][i]) for i in range(size)
+                    for j in range(size))
+    mean = [[0.5 * (rows[i][j] + rows[j][i]) for j in range(size)]
+            for i in range(size)]
+    lowest = float(np.linalg.eigvalsh(np.array(mean)).min())
+    return asymmetry > tolerance * scale, lowest < -tolerance * scale, lowest
+
+
+@pytest.mark.parametrize('dtype', [torch.float32, torch.float64])
+def test_symmetric_psd_defects_match_a_loop(dtype):
+    # random matrices near the edges of the tolerance, at scales 1e-8 to
+    # 1e8: the masks and eigenvalues of a plain loop
+    g = torch.Generator().manual_seed(3)
+    tolerance = rounding_tolerance(dtype)
+    matrices = []
+    for k in range(60):
+        root = torch.randn(3, 3, generator=g, dtype=torch.float64)
+        cov = root @ root.mT
+        scale = float(cov.abs().max())
+        off = tolerance * scale * (0.5 + torch.rand(1, generator=g).item())
+        kind = k % 3
+        if kind == 1:  # asymmetric by about the tolerance
+            cov[0, 2] += off
+        elif kind == 2:  # an eigenvalue about the tolerance below zero
+            values, vectors = torch.linalg.eigh(cov)
+            values[0] = -off
+            cov = symmetrize(vectors @ torch.diag(values) @ vectors.mT)
+        matrices.append(cov * 10.0 ** (16 * (k / 59) - 8))
+    batch = torch.stack(matrices).to(dtype)
+    asymmetric, indefinite, lowest = symmetric_psd_defects(batch)
+    assert asymmetric.shape == indefinite.shape == (60, )
+    for k, matrix in enumerate(batch):
+        a, i, low = _defects_by_loop(matrix, tolerance)
+        assert bool(asymmetric[k]) == a, k
+        assert bool(indefinite[k]) == i, k
+        assert float(lowest[k]) == pytest.approx(
+            low, rel=1e-9, abs=1e-12 * float(matrix.abs().max()))
+    # about half of each kind beyond the tolerance
+    assert 5 < int(asymmetric.sum()) < 20 and 5 < int(indefinite.sum()) < 20
+
+
+def test_rounding_tolerance_is_half_the_digits_of_the_dtype():
+    assert rounding_tolerance(torch.float32) == pytest.approx(3.45e-4,
+                                                              rel=1e-2)
+    assert rounding_tolerance(torch.float64) == pytest.approx(1.49e-8,
+                                                              rel=1e-2)
+    # symmetrize averages the triangles: exactly symmetric
+    g = torch.Generator().manual_seed(4)
+    a = torch.randn(5, 3, 3, generator=g)
+    s = symmetrize(a)
+    assert torch.equal(s, s.mT)
+    assert torch.equal(s.diagonal(dim1=-2, dim2=-1),
+                       a.diagonal(dim1=-2, dim2=-1))
 
 
 def test_compute_dtype_promotes_half_precision():

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch
 
-from tg_nebp.utils import free_memory_bytes, inputs
+from tg_nebp.utils import free_memory_bytes, inputs, symmetrize
 
 __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'check_predicted_prior', 'predict_joint', 'range_blocks',
@@ -165,13 +165,13 @@ def bounded_inflation(cov: Tensor, predicted: Tensor,
     whitened = torch.linalg.solve_triangular(safe, half.transpose(-1, -2),
                                              upper=False)
     eigvals, eigvecs = torch.linalg.eigh(
-        0.5 * (whitened + whitened.transpose(-1, -2)))
+        symmetrize(whitened))
     factor = torch.minimum(kappa, eigvals.clamp_min(1.0))
     root = safe @ eigvecs
     # what is added to cov: exactly zero where nothing is inflated (an
     # untrained learned inflation of 1 is plain Gaussian BP bit for bit)
     added = ((root * (factor - 1).unsqueeze(-2)) @ root.transpose(-1, -2))
-    added = 0.5 * (added + added.transpose(-1, -2))
+    added = symmetrize(added)
     return torch.where(ok.view(-1, 1, 1), cov + added,
                        kappa.view(-1, 1, 1) * cov)
 
@@ -258,7 +258,7 @@ def rts_backward(filtered_cov: Tensor, cross: Tensor, predicted_cov: Tensor,
                                 factor).transpose(-1, -2)
     cov = filtered_cov + gain @ (smoothed_cov - predicted_cov) @ \
         gain.transpose(-1, -2)
-    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    cov = symmetrize(cov)
     if filtered_mean is None:
         return None, cov
     mean = filtered_mean + (gain @ (smoothed_mean - predicted_mean)

@@ -18,6 +18,8 @@ from scipy.stats import chi2
 from torch import Tensor
 
 from tg_nebp.models.base import wrap_angle
+from tg_nebp.utils import (rounding_tolerance, symmetric_psd_defects,
+                           symmetrize)
 
 __all__ = [
     'position_errors',
@@ -251,11 +253,11 @@ def gaussian_outage(cov: Tensor, thresholds: Sequence[float]) -> Tensor:
     \infty` outage 0. A NaN entry makes that covariance's outages NaN; an
     infinite variance (:math:`+\infty` on the diagonal, the limit of an
     ever less informative estimate) makes them 1 at every finite
-    threshold. A non-symmetric covariance (beyond :math:`10^{-9}` of its
-    largest entry, or 16 rounding units of a float32 or coarser one), a
-    clearly indefinite one (an eigenvalue below :math:`-10^{-9}` of the
-    largest, likewise; a smaller negative one is rounding and counts as
-    zero) and any other infinite entry are a :class:`ValueError` that
+    threshold. A non-symmetric covariance, a clearly indefinite one (an
+    eigenvalue below zero), each beyond the rounding of its dtype relative
+    to its largest entry (:func:`~tg_nebp.utils.rounding_tolerance`: a
+    smaller negative eigenvalue is rounding and counts as zero) and any
+    other infinite entry are a :class:`ValueError` that
     names the first such covariance; within the tolerance, the outage is
     that of the mean of both triangles."""
     if not isinstance(cov, Tensor) or cov.is_complex() or \
@@ -268,8 +270,8 @@ def gaussian_outage(cov: Tensor, thresholds: Sequence[float]) -> Tensor:
                          f"2, 3, got shape {list(cov.shape)}")
     radii = _outage_thresholds(thresholds, cov.device)
     batch, dim = cov.shape[:-2], cov.size(-1)
-    tolerance = max(1e-9, 16 * torch.finfo(cov.dtype).eps) if \
-        cov.dtype.is_floating_point else 1e-9
+    tolerance = rounding_tolerance(
+        cov.dtype if cov.is_floating_point() else torch.float64)
     flat = cov.reshape(-1, dim, dim).double()
     unknown = torch.isnan(flat).flatten(1).any(1)
     diagonal = flat.diagonal(dim1=-2, dim2=-1)
@@ -280,16 +282,13 @@ def gaussian_outage(cov: Tensor, thresholds: Sequence[float]) -> Tensor:
         'finite variances')
     # their outage is known: a zero matrix stands in for them
     flat = flat.masked_fill((unknown | unbounded).view(-1, 1, 1), 0)
-    transposed = flat.transpose(-1, -2)
-    _refuse_first((flat - transposed).abs().amax((-1, -2)) >
-                  tolerance * flat.abs().amax((-1, -2)), batch,
-                  f'is not symmetric (beyond {tolerance:.0e} of its largest '
-                  f'entry)')
+    asymmetric, indefinite, _ = symmetric_psd_defects(flat, tolerance)
+    _refuse_first(asymmetric, batch, f'is not symmetric (beyond '
+                  f'{tolerance:.1e} of its largest entry)')
+    _refuse_first(indefinite, batch, f'is indefinite (an eigenvalue below '
+                  f'-{tolerance:.1e} of its largest entry)')
     # the mean of both triangles, not the one eigvalsh reads
-    eigvals = torch.linalg.eigvalsh(0.5 * (flat + transposed)).flip(-1)
-    _refuse_first(eigvals[:, -1] < -tolerance * eigvals[:, 0].abs(), batch,
-                  f'is indefinite (an eigenvalue below -{tolerance:.0e} of '
-                  f'the largest)')
+    eigvals = torch.linalg.eigvalsh(symmetrize(flat)).flip(-1)
     out = _centered_outage(eigvals, radii)
     out[unknown] = math.nan
     out[unbounded] = (radii < math.inf).double()

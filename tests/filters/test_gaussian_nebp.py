@@ -62,7 +62,10 @@ def test_beliefs_stay_symmetric_positive_definite(seed):
     # random (large) weights of the whole network, ranges corrupted by up
     # to 30 m, priors from 1e-4 to 1e4 m^2, 40 steps: every belief has
     # symmetric positive definite information, weights and inflations
-    # stay inside their ranges
+    # stay inside their ranges. Weights this large drive the inflation's
+    # output to hundreds, where it saturates at its bounds: that the
+    # bounds hold there is the point (that agents get factors of their
+    # own is test_the_inflation_is_each_agents_own's)
     g = gen(100 + seed)
     scenario = tiny_scenario(steps=40).replace(num_agents=6)
     data = scenario.generate(g)
@@ -99,7 +102,33 @@ def test_beliefs_stay_symmetric_positive_definite(seed):
     kappa = torch.cat(seen['inflations'])
     low, high = conv.inflation_range
     assert bool(((kappa >= low) & (kappa <= high)).all())
-    assert kappa.std() > 0  # per agent, not one global factor
+
+
+def test_the_inflation_is_each_agents_own():
+    # moderate weights, where the inflation is not saturated: every
+    # agent's factor is a function of its own memory and covariance only
+    # (each row alone gives its factor), strictly inside the range, and
+    # agents that see different things get different factors; anchors 1
+    g = gen(7)
+    conv = randomize(GaussianNEBP().double(), seed=3, scale=0.3).conv
+    num, double = 7, dict(generator=g, dtype=torch.float64)
+    memory = torch.cat([torch.randn(num, conv.hidden_dim, **double),
+                        torch.rand(num, 2, **double)], -1)
+    root = torch.randn(num, 4, 4, **double)
+    cov = root @ root.transpose(-1, -2) + 0.1 * torch.eye(
+        4, dtype=torch.float64)
+    anchor = torch.zeros(num, dtype=torch.bool)
+    anchor[2] = True
+    with torch.no_grad():
+        kappa = conv.inflation(cov, memory, anchor)
+        alone = torch.cat([conv.inflation(cov[[i]], memory[[i]],
+                                          anchor[[i]]) for i in range(num)])
+    torch.testing.assert_close(kappa, alone, rtol=1e-12, atol=0)
+    low, high = conv.inflation_range
+    agents = kappa[~anchor]
+    assert kappa[2] == 1.0
+    assert bool(((agents > low) & (agents < high)).all())
+    assert float(agents.max() - agents.min()) > 1e-3 * float(agents.mean())
 
 
 def rigid_motion(data, rotation, shift, order):

@@ -4,6 +4,8 @@ import os
 import subprocess
 import sys
 
+from typing import NamedTuple
+
 import pytest
 import torch
 from helpers import (PACKAGE_ROOT, NonNegativeRange, gen, live_trackers,
@@ -13,7 +15,7 @@ from helpers import (PACKAGE_ROOT, NonNegativeRange, gen, live_trackers,
 from tg_nebp.gaussian import bounded_inflation
 from tg_nebp.filters import (AgentPrior, AnchorAt, CentralizedIEKF,
                              FixedLagGaussianBP, GaussianBP, ParticleBP,
-                             TrackingSession)
+                             StateField, TrackingSession, check_state)
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange, MotionModel
 
 STEPS = 6
@@ -747,6 +749,80 @@ def test_a_saved_state_with_any_field_damaged_is_refused(data, name):
                                if saved['state'][f] is not None])
     fresh.load_state_dict(saved)
     assert fresh.ids == session.ids
+
+
+def _covariances(state, fields):
+    # every covariance of a tracker's state: (field name, tensor)
+    for name, spec in fields.items():
+        value = getattr(state, name)
+        if spec.kind == 'cov' and value is not None:
+            yield from ((name, item) for item in (
+                value if spec.tuple else (value, )))
+
+
+@pytest.mark.parametrize('dtype', [torch.float32, torch.float64])
+def test_every_trackers_covariances_are_symmetric_and_reload(data, dtype,
+                                                             tmp_path):
+    # every tracker in both precisions (the particle trackers compute in
+    # the session's): each step's estimated covariances and those of its
+    # state exactly symmetric (formed so, in whatever order the BLAS at
+    # hand sums a product's two triangles), and the session saved after
+    # each step loads in another session; the same covariances made
+    # asymmetric far beyond rounding are refused by name
+    for name, make in live_trackers().items():
+        session = TrackingSession(make(), generator=gen(8), dtype=dtype)
+        fields = session.tracker.state_type.FIELDS
+        for t in range(STEPS):
+            with torch.no_grad():
+                out, = stream_realization(session, data, start=t,
+                                          steps=t + 1)
+            known = ~out.cov.isnan().flatten(1).any(1)
+            assert torch.equal(out.cov[known], out.cov[known].mT), name
+            covariances = list(_covariances(session.state, fields))
+            assert covariances, name
+            for field, cov in covariances:
+                assert torch.equal(cov, cov.mT), (name, field, t)
+            session.save(tmp_path / 'session.pt')
+            TrackingSession.load(tmp_path / 'session.pt', make())
+        saved = session.state_dict()
+        for field, cov in _covariances(session.state, fields):
+            if not cov.numel() or not bool(cov.abs().amax() > 0):
+                continue
+            skew = cov.clone()
+            skew[..., 0, 1] += 1e-2 * cov.abs().amax()
+            spec = fields[field]
+            value = tuple(skew if c is cov else c for c in getattr(
+                session.state, field)) if spec.tuple else skew
+            with pytest.raises(ValueError, match=f"'{field}'.* not symmetric"):
+                TrackingSession(make()).load_state_dict(dict(
+                    saved, state=dict(saved['state'], **{field: value})))
+
+
+def test_the_state_check_allows_rounding_of_the_dtype_only():
+    # a covariance off symmetric or below zero by less than half the
+    # digits of its dtype (relative to its largest entry) is rounding;
+    # by more it is damage: float32 and float64 alike
+    fields = dict(cov=StateField(('N', 'S', 'S'), 'cov'))
+    for dtype, rounding, damage in ((torch.float32, 1e-5, 1e-3),
+                                    (torch.float64, 1e-10, 1e-7)):
+        for scale in (1e-6, 1.0, 1e6):
+            for off, ok in ((rounding, True), (damage, False)):
+                skew = scale * torch.tensor([[1.0, 0.5 + off], [0.5, 0.5]],
+                                            dtype=torch.float64)
+                low = scale * torch.tensor([[1.0, 0.0], [0.0, -off]],
+                                           dtype=torch.float64)
+                for cov, what in ((skew, 'not symmetric'),
+                                  (low, 'not positive semi-definite')):
+                    state = _OneCov(cov.to(dtype).unsqueeze(0))
+                    if ok:
+                        check_state(state, fields, 1, 2)
+                    else:
+                        with pytest.raises(ValueError, match=what):
+                            check_state(state, fields, 1, 2)
+
+
+class _OneCov(NamedTuple):
+    cov: torch.Tensor
 
 
 def _same(a, b) -> bool:

@@ -13,7 +13,8 @@ from torch import Tensor
 from torch_geometric import EdgeIndex
 
 from tg_nebp.data.realization import num_steps_of, position_dim_of
-from tg_nebp.utils import compute_dtype
+from tg_nebp.utils import (compute_dtype, rounding_tolerance,
+                           symmetric_psd_defects)
 
 __all__ = [
     'check_lag',
@@ -298,19 +299,16 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
 
 def _check_symmetric_psd(matrices: Tensor, name: str, atol: float) -> None:
     # symmetric and positive semi-definite up to 'atol' relative to the
-    # largest entry (at least 1): covariances and information matrices
-    matrices = matrices.double()
-    scale = matrices.abs().amax((-1, -2)).clamp_min(1.0)
-    asym = (matrices - matrices.transpose(-1, -2)).abs().amax((-1, -2))
-    bad = asym > atol * scale
-    if bool(bad.any()):
-        raise ValueError(f"'{name}[{_first(bad)}]' is not symmetric")
-    min_eig = torch.linalg.eigvalsh(matrices).amin(-1)
-    bad = min_eig < -atol * scale
-    if bool(bad.any()):
-        i = _first(bad)
+    # largest entry, or the rounding of the dtype where that is coarser:
+    # covariances and information matrices
+    asymmetric, indefinite, lowest = symmetric_psd_defects(
+        matrices, max(atol, rounding_tolerance(matrices.dtype)))
+    if bool(asymmetric.any()):
+        raise ValueError(f"'{name}[{_first(asymmetric)}]' is not symmetric")
+    if bool(indefinite.any()):
+        i = _first(indefinite)
         raise ValueError(f"'{name}[{i}]' is not positive semi-definite "
-                         f"(smallest eigenvalue {float(min_eig[i]):.3g})")
+                         f"(smallest eigenvalue {float(lowest[i]):.3g})")
 
 
 def check_state_dim(size: int, motion,

@@ -12,6 +12,7 @@ from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               check_dense_joint, check_predicted_prior,
                               marginal_blocks, predict_joint, scope_index)
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
+from tg_nebp.utils import symmetrize
 
 __all__ = ['CentralizedIEKF', 'JointState']
 
@@ -149,7 +150,7 @@ class CentralizedIEKF(Tracker):
         check_dense_joint(max(a.numel() for a in layout.agents),
                           data.prior_mean.size(1), 'the centralized IEKF',
                           data.prior_mean.device)
-        prior_cov = data.prior_cov.double()
+        prior_cov = symmetrize(data.prior_cov.double())
         return JointState(data.prior_mean.double(), tuple(
             block_diagonal(prior_cov[nodes]) for nodes in layout.agents))
 

@@ -13,6 +13,7 @@ from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (FactorMessages,
                                               GaussianBelief, RangeMessages,
                                               as_factor_messages)
+from tg_nebp.utils import symmetrize
 
 __all__ = ['FixedLagGaussianBP', 'WindowState', 'SCHEDULES']
 
@@ -537,7 +538,7 @@ class FixedLagGaussianBP(GaussianBP):
             jacobian @ (belief.mean - point).unsqueeze(-1)).squeeze(-1)
         cross = cov @ jacobian.transpose(-1, -2)
         moved = jacobian @ cross + noise
-        moved = 0.5 * (moved + moved.transpose(-1, -2))
+        moved = symmetrize(moved)
         return GaussianBelief(mean, _inverse(moved)), moved, cross
 
     def _iterate_window(self, window: _Window, belief: GaussianBelief,

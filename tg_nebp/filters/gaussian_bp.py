@@ -12,6 +12,7 @@ from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
+from tg_nebp.utils import symmetrize
 
 __all__ = ['GaussianBP', 'GaussianState', 'GBP_RECOMMENDED']
 
@@ -25,7 +26,7 @@ GBP_RECOMMENDED = dict(num_iterations=20, tolerance=0.01, inflation=1.5)
 def _inverse(matrices: Tensor) -> Tensor:
     # covariance <-> information of the agents' small blocks, symmetrized
     inverse = torch.linalg.inv(matrices)
-    return 0.5 * (inverse + inverse.transpose(-1, -2))
+    return symmetrize(inverse)
 
 
 class GaussianState(NamedTuple):
@@ -192,8 +193,9 @@ class GaussianBP(Tracker):
         given = inputs(None if control is None else
                        control[agents].to(mean))
         jacobian = motion.jacobian(mean[agents], **given)
-        cov[agents] = (jacobian @ cov[agents] @ jacobian.transpose(-1, -2) +
-                       motion.noise_covariance(mean[agents], **given))
+        cov[agents] = symmetrize(
+            jacobian @ cov[agents] @ jacobian.transpose(-1, -2) +
+            motion.noise_covariance(mean[agents], **given))
         mean[agents] = motion.mean(mean[agents], **given)
         return mean, cov
 
@@ -229,7 +231,7 @@ class GaussianBP(Tracker):
                       generator=None) -> GaussianState:
         r"""The state before the first step of the nodes of :obj:`data`
         (its :obj:`prior_mean`, :obj:`prior_cov` and :obj:`anchor` are
-        read): the prior in float64, every node :obj:`fresh` (a given
+        read): the prior in float64 (its triangles averaged), every node :obj:`fresh` (a given
         prior: not inflated before its first prediction), and the
         :meth:`initial_memory`. A prior whose prediction is singular is
         refused (:func:`~tg_nebp.gaussian.check_predicted_prior`). No
@@ -237,7 +239,8 @@ class GaussianBP(Tracker):
         check_predicted_prior(data, self.motion, 'Gaussian BP',
                               self.use_control)
         anchor = data.anchor
-        cov = data.prior_cov.double()
+        # symmetric to rounding as validated; carried exactly symmetric
+        cov = symmetrize(data.prior_cov.double())
         return GaussianState(data.prior_mean.double(), cov,
                              torch.ones_like(anchor),
                              self.initial_memory(anchor.numel(),

@@ -366,7 +366,9 @@ class ParticleBP(Tracker):
                validate: bool = True,
                sample_offsets: Optional[Tensor] = None) -> Tensor:
         r"""The update step: :obj:`num_iterations` message passing
-        iterations (:meth:`iterate`); returns normalized log-weights. Edges
+        iterations (:meth:`iterate`); returns normalized log-weights in
+        :obj:`log_weights`' dtype (a learned layer computes in its
+        parameters': the state stays of one dtype). Edges
         are summed per receiver, so a plain :obj:`edge_index` is sorted by
         receiver first; :meth:`steps` passes an already sorted
         :class:`~torch_geometric.EdgeIndex` and :obj:`validate=False` (it
@@ -394,7 +396,7 @@ class ParticleBP(Tracker):
             # normalizing scales each message by a per-node constant: the
             # beliefs are unchanged and the log-weights stay bounded
             sender = log_normalize(belief)
-        return sender
+        return sender.to(log_weights.dtype)
 
     def _update_both(self, particles: Tensor, log_weights: Tensor,
                      edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,

@@ -9,20 +9,18 @@ from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from tg_nebp.utils import rounding_tolerance, symmetric_psd_defects
+
 __all__ = ['StateField', 'FIELD_KINDS', 'check_state']
 
 #: Every kind of a state's field, :obj:`"float"` (finite),
 #: :obj:`"cov"` (finite, symmetric positive semi-definite in its last two
-#: dimensions), :obj:`"nan"` (finite or NaN: NaN marks an entry that is
+#: dimensions, to the rounding of its dtype:
+#: :func:`~tg_nebp.utils.rounding_tolerance`), :obj:`"nan"` (finite or NaN: NaN marks an entry that is
 #: not there), :obj:`"log_weights"` (normalized log-weights along the last
 #: dimension: no NaN, no :math:`+\infty`), :obj:`"bool"` and
 #: :obj:`"index"` (integers, at least zero).
 FIELD_KINDS = ('float', 'cov', 'nan', 'log_weights', 'bool', 'index')
-
-# a covariance's asymmetry and most negative eigenvalue, relative to its
-# largest entry, that rounding explains
-_ROUNDING = 1e-8
-
 
 class StateField(NamedTuple):
     r"""One field of a tracker's state: its :obj:`shape`, a name per
@@ -103,16 +101,16 @@ def _value_error(name: str, value: Tensor, kind: str) -> Optional[str]:
     if kind == 'cov' and (value.dim() < 2 or value.size(-1) != value.size(-2)):
         return f"{name} holds covariances that are not square"
     if kind == 'cov' and value.numel():
-        matrices = value.double().reshape(-1, value.size(-2), value.size(-1))
-        scale = matrices.abs().amax((-1, -2)).clamp_min(1.0)
-        asymmetry = (matrices - matrices.transpose(-1, -2)).abs().amax(
-            (-1, -2))
-        if bool((asymmetry > _ROUNDING * scale).any()):
-            return f"{name} holds a covariance that is not symmetric"
-        lowest = torch.linalg.eigvalsh(matrices).amin(-1)
-        if bool((lowest < -_ROUNDING * scale).any()):
+        asymmetric, indefinite, lowest = symmetric_psd_defects(
+            value.reshape(-1, value.size(-2), value.size(-1)))
+        if bool(asymmetric.any()):
+            return (f"{name} holds a covariance that is not symmetric "
+                    f"(beyond {rounding_tolerance(value.dtype):.1e} of its "
+                    f"largest entry)")
+        if bool(indefinite.any()):
             return (f"{name} holds a covariance that is not positive "
-                    f"semi-definite (eigenvalue {float(lowest.min()):.3g})")
+                    f"semi-definite (eigenvalue "
+                    f"{float(lowest[indefinite].min()):.3g})")
     return None
 
 

@@ -5,6 +5,7 @@ from torch import Tensor
 
 from tg_nebp.data.validation import check_number
 from tg_nebp.models.base import MotionModel, StateLayout
+from tg_nebp.utils import symmetrize
 
 __all__ = ['ConstantVelocityDrag', 'ConstantVelocity', 'UnicycleOdometry']
 
@@ -300,4 +301,4 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
         idle = torch.diag_embed(self._idle_variances(states).expand(
             states.shape))
         return torch.where(missing.view(missing.shape + (1, 1)), idle,
-                           0.5 * (cov + cov.transpose(-1, -2)))
+                           symmetrize(cov))

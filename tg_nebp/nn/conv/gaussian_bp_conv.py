@@ -8,7 +8,8 @@ from torch_geometric.nn.conv import MessagePassing
 from tg_nebp.data.validation import (check_gaussian_belief, check_links,
                                      check_number)
 from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
-from tg_nebp.utils import compute_dtype, link_factors, long_edge_index
+from tg_nebp.utils import (compute_dtype, link_factors, long_edge_index,
+                           symmetrize)
 
 __all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages',
            'RangeMessages', 'Factors', 'Linearization', 'ENDS',
@@ -181,7 +182,7 @@ def _marginal_information(info: Tensor, mean: Tensor, width: int,
         eta_r = eta_r - (gain @ eta[:, width:].unsqueeze(-1)).squeeze(-1)
     eye = torch.eye(width, dtype=info.dtype, device=info.device)
     info_rr = torch.where(anchor.view(-1, 1, 1), eye,
-                          0.5 * (info_rr + info_rr.transpose(-1, -2)))
+                          symmetrize(info_rr))
     return info_rr, eta_r.masked_fill(anchor.view(-1, 1), 0.0)
 
 
@@ -221,7 +222,7 @@ def position_covariance(belief: GaussianBelief, width: int,
                          f"information: its prior and messages leave a "
                          f"state entry undetermined")
     cov = cov[:, :width, :width]
-    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    cov = symmetrize(cov)
     return cov.masked_fill(anchor.view(-1, 1, 1), 0.0)
 
 
@@ -787,7 +788,7 @@ class GaussianBPConv(MessagePassing):
         agent = ~known_j
         info = torch.where(agent.view(-1, 1, 1),
                            tt - gain @ ts.transpose(-1, -2), tt)
-        info = 0.5 * (info + info.transpose(-1, -2))
+        info = symmetrize(info)
         source = torch.where(agent.view(-1, 1), eta_s + ext_eta, point_j)
         eta = eta_t - ((torch.where(agent.view(-1, 1, 1), gain, ts) @
                         source.unsqueeze(-1)).squeeze(-1))
