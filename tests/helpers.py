@@ -268,6 +268,33 @@ def linear_kalman_filter(data, motion, measurement, inflation=1.0,
     return (np.stack(means, 1), np.stack(covs, 1), agents)
 
 
+def tree_realization(steps=4):
+    r"""Two agents each measured by its own anchor at every step, measuring
+    each other at step 1 only (:func:`linear_scenario`'s linear Gaussian
+    links): the space-time graph is a tree (the two time chains joined by
+    one factor), where Gaussian BP is exact. Returns the scenario and the
+    realization."""
+    scenario = linear_scenario(steps=steps, num_agents=2)
+    data = scenario.generate(gen(6))
+    own = {0: 2, 1: 3}
+    edges, attrs, times = [], [], []
+    for t in range(steps):
+        links = [(own[0], 0), (own[1], 1)] + ([(1, 0), (0, 1)] if t == 1
+                                              else [])
+        for j, i in sorted(links, key=lambda link: link[1]):
+            noise = 0.5 * torch.randn(2, dtype=torch.float64,
+                                      generator=gen(100 * t + 10 * j + i))
+            attrs.append(data.states[j, t, :2] - data.states[i, t, :2] +
+                         scenario.measurement_model.OFFSET + noise)
+            edges.append((j, i))
+            times.append(t)
+    out = data.clone()
+    out.edge_index = torch.tensor(edges).t()
+    out.edge_attr = torch.stack(attrs)
+    out.edge_time = torch.tensor(times)
+    return scenario, out
+
+
 def linear_rts_smoother(data, motion, measurement, lag=None):
     r"""The Rauch-Tung-Striebel smoother of the same problem as
     :func:`linear_kalman_filter`, written independently of the library:
@@ -413,10 +440,12 @@ def live_trackers():
     process (the learned ones with fixed random weights), for the live
     session tests: Gaussian BP plain and recommended, the IEKF joint and
     marginal, particle BP plain and recommended (M-sample messages,
-    regularized), NEBP, the Gaussian NEBP and fixed-lag Gaussian BP (a
-    window of 3 steps)."""
+    regularized), NEBP, the Gaussian NEBP, fixed-lag Gaussian BP (a
+    window of 3 steps) and hybrid BP (over Gaussian BP and over that
+    window)."""
     from tg_nebp.filters import (NEBP, CentralizedIEKF, FixedLagGaussianBP,
-                                 GaussianBP, GaussianNEBP, ParticleBP)
+                                 GaussianBP, GaussianNEBP, HybridBP,
+                                 ParticleBP)
     return {
         'gbp': lambda: GaussianBP(),
         'gbp-recommended': lambda: GaussianBP.recommended(),
@@ -429,6 +458,8 @@ def live_trackers():
                                        hidden_dim=8), seed=4, scale=0.1),
         'gnebp': lambda: randomize(GaussianNEBP.recommended(hidden_dim=8),
                                    seed=5, scale=0.1),
+        'hybrid': lambda: HybridBP.recommended(num_particles=20),
+        'hybrid-lag3': lambda: HybridBP.recommended(lag=3, num_particles=20),
     }
 
 

@@ -64,7 +64,7 @@ def test_measurement_is_not_for_nebp(tmp_path, capsys):
             '--quiet']
     assert main(argv) == 2
     assert ("'measurement' (--measurement) is for method bp or iekf or gbp "
-            "or pcrb, not nebp") in capsys.readouterr().err
+            "or hybrid or pcrb, not nebp") in capsys.readouterr().err
 
 
 def test_samples_flag(tmp_path):

@@ -374,7 +374,8 @@ def _add_method_options(parser: argparse.ArgumentParser):
         'worth)')
     add('--lag', type=_lag, default=None, metavar='L',
         help='smooth over a window of L steps, the newest counted (gbp: '
-        'fixed-lag Gaussian BP; iekf: the centralized smoother; pcrb: the '
+        'fixed-lag Gaussian BP; hybrid: over it, its filtered estimates; '
+        'iekf: the centralized smoother; pcrb: the '
         'smoothing bound at lag L), or over the whole sequence with '
         "'all' (iekf, pcrb); a smoother writes its filtered entry and its "
         "smoothed one (KEY-smoothed)")
@@ -382,12 +383,12 @@ def _add_method_options(parser: argparse.ArgumentParser):
         help='iekf: keep only every agent\'s marginal between steps (the '
         'ideal of a distributed filter)')
     add('--inflation', type=_at_least(1, _number), default=None,
-        metavar='K', help='gbp: multiply every belief covariance by K '
-        'before the next prediction (default: 1.5; 1 is plain Gaussian BP)')
+        metavar='K', help='gbp, hybrid: multiply every belief covariance by '
+        'K before the next prediction (default: 1.5; 1 is plain Gaussian BP)')
     add('--tolerance', type=_at_least(0, _number), default=None,
-        metavar='T', help='gbp, gnebp: stop a step\'s iterations once no '
-        'belief mean moves by more than T (default: 0.01; 0 runs every '
-        'iteration)')
+        metavar='T', help='gbp, gnebp, hybrid: stop a step\'s iterations '
+        'once no belief mean moves by more than T (default: 0.01; 0 runs '
+        'every iteration)')
     add('--ends', choices=['both', 'receiver'], default=None,
         help="bp, gbp: which ends of a link its range informs: 'both' (a "
         "pair of nodes' two ranges one factor that informs both, extrinsic "
@@ -395,11 +396,11 @@ def _add_method_options(parser: argparse.ArgumentParser):
         "receiver for bp, both for gbp)")
     add('--checkpoint', default=None,
         help='NEBP checkpoint (with --method nebp), Gaussian NEBP '
-        'checkpoint (with --method gnebp): a path, or one shipped: '
-        f"{', '.join(PRETRAINED)}")
+        'checkpoint (with --method gnebp, or hybrid: hybrid BP over it): '
+        f"a path, or one shipped: {', '.join(PRETRAINED)}")
     add('--particles', type=_positive, default=None,
         help="particles K per agent (default: 1000 for BP, the checkpoint's "
-        'K for NEBP; any K for an equivariant checkpoint)')
+        'K for NEBP, any K for an equivariant checkpoint; 100 for hybrid)')
     add('--iterations', type=_positive, default=None,
         help='message passing iterations per step (bp, default: 1; gbp, at '
         'most, default: 20) or Gauss-Newton iterations per step (iekf, '
@@ -421,7 +422,8 @@ def _evaluate_command(sub) -> None:
         'realizations and merges its entry into DIR/metrics.json: particle '
         'BP (bp), NEBP from a checkpoint (nebp), Gaussian BP (gbp), '
         'Gaussian NEBP from a checkpoint (gnebp; shipped ones by name: '
-        f"{', '.join(PRETRAINED)}), the "
+        f"{', '.join(PRETRAINED)}), hybrid BP (hybrid: Gaussian BP between "
+        'the agents, particles within each, lost agents relocated), the '
         'centralized iterated EKF (iekf; iekf-marginal with --marginal) or '
         'the posterior Cramer-Rao bound of the same realizations (pcrb: its '
         'RMSE is the floor, its outage that of an efficient estimator); an '

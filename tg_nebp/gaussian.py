@@ -23,7 +23,8 @@ __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'check_predicted_prior', 'predict_joint', 'range_blocks',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
            'unit_vectors', 'scope_index', 'WoodburyPrior', 'WoodburyUpdate',
-           'JOINT_COPIES', 'bounded_inflation', 'joint_cross',
+           'JOINT_COPIES', 'bounded_inflation', 'bounded_inflation_map',
+           'joint_cross',
            'rts_backward']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
@@ -145,7 +146,9 @@ def bounded_inflation(cov: Tensor, predicted: Tensor,
 
     which is :math:`\kappa \boldsymbol{\Sigma}` where every direction's
     variance was reduced at least :math:`\kappa` times, and leaves a
-    direction that no link measured as it is. A global inflation
+    direction that no link measured as it is (:obj:`cov` of a
+    condition number beyond :math:`\epsilon^{-1/2}` of its dtype counts
+    as one without a Cholesky factor, below). A global inflation
     :math:`\kappa \boldsymbol{\Sigma}` compensates the information that a
     filter of marginals counts again (shared through links); applied to a
     direction that got none, it compounds with every step: a robot seeing
@@ -156,17 +159,7 @@ def bounded_inflation(cov: Tensor, predicted: Tensor,
     kappa = kappa.to(cov).view(-1, 1)
     if not kappa.requires_grad and bool((kappa == 1).all()):
         return cov  # nothing inflated (plain Gaussian BP)
-    lower, failed = torch.linalg.cholesky_ex(cov)
-    ok = failed == 0
-    safe = torch.where(ok.view(-1, 1, 1), lower,
-                       torch.eye(cov.size(-1), dtype=cov.dtype,
-                                 device=cov.device))
-    half = torch.linalg.solve_triangular(safe, predicted, upper=False)
-    whitened = torch.linalg.solve_triangular(safe, half.transpose(-1, -2),
-                                             upper=False)
-    eigvals, eigvecs = torch.linalg.eigh(
-        symmetrize(whitened))
-    factor = torch.minimum(kappa, eigvals.clamp_min(1.0))
+    ok, safe, eigvecs, factor = _inflation_factors(cov, predicted, kappa)
     root = safe @ eigvecs
     # what is added to cov: exactly zero where nothing is inflated (an
     # untrained learned inflation of 1 is plain Gaussian BP bit for bit)
@@ -174,6 +167,49 @@ def bounded_inflation(cov: Tensor, predicted: Tensor,
     added = symmetrize(added)
     return torch.where(ok.view(-1, 1, 1), cov + added,
                        kappa.view(-1, 1, 1) * cov)
+
+
+def bounded_inflation_map(cov: Tensor, predicted: Tensor,
+                          kappa: Tensor) -> Tensor:
+    r"""The linear maps :math:`\mathbf{A}` :math:`(N, S, S)` that inflate
+    a cloud of covariance :obj:`cov` about its mean as
+    :func:`bounded_inflation` inflates the covariance,
+    :math:`\mathbf{A} oldsymbol{\Sigma} \mathbf{A}^	op =
+    oldsymbol{\Sigma}'`: :math:`\mathbf{A} = \mathbf{L} \mathbf{U}
+    \operatorname{diag}(\sqrt{f}) \mathbf{U}^	op \mathbf{L}^{-1}`. A
+    particle belief moved by it keeps its shape (its modes, their
+    weights) and widens where the links narrowed it. The identity where
+    :obj:`cov` has no Cholesky factor (an anchor's zero, a cloud
+    collapsed onto a point)."""
+    kappa = kappa.to(cov).view(-1, 1)
+    ok, safe, eigvecs, factor = _inflation_factors(cov, predicted, kappa)
+    eye = torch.eye(cov.size(-1), dtype=cov.dtype, device=cov.device)
+    scaled = (safe @ eigvecs) * factor.sqrt().unsqueeze(-2)
+    inverse_root = torch.linalg.solve_triangular(safe, eye.expand_as(safe),
+                                                 upper=False)
+    mapped = scaled @ eigvecs.transpose(-1, -2) @ inverse_root
+    return torch.where(ok.view(-1, 1, 1), mapped, eye)
+
+
+def _inflation_factors(cov: Tensor, predicted: Tensor, kappa: Tensor):
+    # the Cholesky factors L of cov (where it has one: 'ok'; an identity
+    # elsewhere), the eigenvectors U of L^-1 P L^-T and the factors
+    # min(kappa, max(lambda, 1)) of every direction. A factor whose
+    # diagonal spans more than half the digits of the dtype (a particle
+    # cloud collapsed onto a line) would whiten P beyond what eigh solves:
+    # such a covariance counts as one without a factor
+    lower, failed = torch.linalg.cholesky_ex(cov)
+    diagonal = lower.diagonal(dim1=-2, dim2=-1).abs()
+    ok = (failed == 0) & (diagonal.amin(-1) > diagonal.amax(-1) *
+                          torch.finfo(cov.dtype).eps**0.25)
+    safe = torch.where(ok.view(-1, 1, 1), lower,
+                       torch.eye(cov.size(-1), dtype=cov.dtype,
+                                 device=cov.device))
+    half = torch.linalg.solve_triangular(safe, predicted, upper=False)
+    whitened = torch.linalg.solve_triangular(safe, half.transpose(-1, -2),
+                                             upper=False)
+    eigvals, eigvecs = torch.linalg.eigh(symmetrize(whitened))
+    return ok, safe, eigvecs, torch.minimum(kappa, eigvals.clamp_min(1.0))
 
 
 def block_diagonal(blocks: Tensor) -> Tensor:

@@ -38,7 +38,8 @@ def test_rows_in_order_with_the_scenario_likelihood():
                     'iekf-marginal gaussian', 'iekf-marginal student-t',
                     'iekf-marginal nlos', 'gbp gaussian', 'gbp-plain gaussian',
                     'gbp student-t', 'gbp-plain student-t', 'gbp nlos',
-                    'gbp-plain nlos', 'bp-paper nlos', 'bp-recommended nlos']
+                    'gbp-plain nlos', 'hybrid nlos', 'bp-paper nlos',
+                    'bp-recommended nlos']
     built = compare_methods(tiny_scenario())['iekf-marginal student-t'][1]()
     assert isinstance(built, CentralizedIEKF) and built.marginal
     assert built.measurement == StudentTRange()
@@ -133,7 +134,7 @@ def test_arguments_are_checked_before_any_work(tmp_path):
             (dict(methods=['pcrb', 'pcrbb']), ValueError,
              r"'methods'\[1\] = 'pcrbb' selects no row of any scenario; the "
              r"rows start with pcrb, iekf, iekf-marginal, gbp, gbp-plain, "
-             r"bp-paper, bp-recommended \(and nebp or gnebp, with a "
+             r"hybrid, bp-paper, bp-recommended \(and nebp or gnebp, with a "
              r"checkpoint\)"),
             (dict(methods=['nebp']), ValueError, r"'methods'\[0\] = 'nebp' "
              r"selects NEBP's rows, which need a checkpoint"),

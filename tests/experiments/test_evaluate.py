@@ -252,7 +252,7 @@ def test_method_tracker_builds_the_smoothers(scenario):
     with pytest.raises(ValueError, match="'lag' and 'marginal'"):
         method_tracker('iekf', scenario, lag=3, marginal=True)
     with pytest.raises(ValueError, match=r"'lag' \(--lag\) is for method "
-                       r"gbp or iekf or pcrb, not bp"):
+                       r"gbp or hybrid or iekf or pcrb, not bp"):
         method_tracker('bp', scenario, lag=3)
     with pytest.raises(ValueError, match="'lag' must be positive"):
         method_tracker('gbp', scenario, lag=0)

@@ -312,3 +312,24 @@ def test_robots_replay_with_odometry_scores_as_evaluate(tmp_path, capsys):
                  '--no-control', '--input', str(measurements), '--output',
                  str(estimates)]) == 0
     assert score_files(str(estimates), str(truth))['rmse'] > entry['rmse']
+
+
+def test_hybrid_tracks_live(recorded, tmp_path):
+    # hybrid BP through the live path, alone and over a window: a line out
+    # per line in, and (nothing relocated on this network) the lines of
+    # its Gaussian tracker
+    measurements = tmp_path / 'm.jsonl'
+    measurements.write_text('\n'.join(recorded['lines']) + '\n')
+    for extra in ([], ['--lag', '2']):
+        lines = {}
+        for method in ('hybrid', 'gbp'):
+            out = tmp_path / f'{method}{len(extra)}.jsonl'
+            assert main(['track', '--method', method, '--scenario',
+                         str(recorded['scenario']), '--input',
+                         str(measurements), '--output', str(out)] +
+                        (['--particles', '20'] if method == 'hybrid' else
+                         []) + extra) == 0
+            lines[method] = [json.loads(line) for line in
+                             out.read_text().split('\n')[:-1]]
+        assert len(lines['hybrid']) == len(recorded['lines'])
+        assert lines['hybrid'] == lines['gbp']

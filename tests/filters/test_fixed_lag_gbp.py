@@ -12,8 +12,8 @@ from tg_nebp.filters import (AgentPrior, FixedLagGaussianBP, GaussianBP,
 from tg_nebp.models import ConstantVelocity, StudentTRange
 
 from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
-                     linear_rts_smoother, linear_scenario, stream_realization,
-                     tiny_scenario)
+                     linear_rts_smoother, stream_realization, tiny_scenario,
+                     tree_realization)
 
 
 @pytest.mark.parametrize('options', [
@@ -28,31 +28,6 @@ def test_a_one_step_window_is_gaussian_bp_bit_for_bit(options):
     out = FixedLagGaussianBP(1, **options)(data)
     assert torch.equal(out.mean, expected.mean)
     assert torch.equal(out.cov, expected.cov)
-
-
-def tree_realization(steps=4):
-    # two agents each measured by its own anchor at every step, measuring
-    # each other at step 1 only: the space-time graph is a tree (the two
-    # time chains joined by one factor), where Gaussian BP is exact
-    scenario = linear_scenario(steps=steps, num_agents=2)
-    data = scenario.generate(gen(6))
-    own = {0: 2, 1: 3}
-    edges, attrs, times = [], [], []
-    for t in range(steps):
-        links = [(own[0], 0), (own[1], 1)] + ([(1, 0), (0, 1)] if t == 1
-                                              else [])
-        for j, i in sorted(links, key=lambda link: link[1]):
-            noise = 0.5 * torch.randn(2, dtype=torch.float64,
-                                      generator=gen(100 * t + 10 * j + i))
-            attrs.append(data.states[j, t, :2] - data.states[i, t, :2] +
-                         scenario.measurement_model.OFFSET + noise)
-            edges.append((j, i))
-            times.append(t)
-    out = data.clone()
-    out.edge_index = torch.tensor(edges).t()
-    out.edge_attr = torch.stack(attrs)
-    out.edge_time = torch.tensor(times)
-    return scenario, out
 
 
 def test_on_a_space_time_tree_it_is_the_kalman_filter_and_smoother():

@@ -24,9 +24,10 @@ from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
 from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, WHOLE_SEQUENCE,
                                           check_run, lag_key,
                                           realizations_of, scenario_of)
-from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
-                             FixedLagGaussianBP, GaussianBP, ParticleBP,
-                             Smoothed, Tracker)
+from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
+                             CentralizedSmoother, FixedLagGaussianBP,
+                             GaussianBP, HybridBP, ParticleBP, Smoothed,
+                             Tracker)
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
@@ -71,11 +72,14 @@ def compare_methods(scenario: Scenario,
     :meth:`GaussianBP.recommended <tg_nebp.filters.GaussianBP.recommended>`)
     and without inflation (:obj:`"gbp-plain ..."`), particle BP in the
     paper's configuration at :math:`K = 1000`
-    (:obj:`"bp-paper ..."`) and the recommended one
+    (:obj:`"bp-paper ..."`), hybrid BP over Gaussian BP
+    (:obj:`"hybrid ..."`, :meth:`HybridBP.recommended
+    <tg_nebp.filters.HybridBP.recommended>`) and the recommended one
     (:obj:`"bp-recommended ..."`, :meth:`ParticleBP.recommended
     <tg_nebp.filters.ParticleBP.recommended>`), both with the scenario's
     likelihood, and NEBP from every checkpoint, particle
     (:obj:`"nebp <file> <hash>"`) or Gaussian (:obj:`"gnebp <file>
+    <hash>"`, and hybrid BP over it, :obj:`"hybrid-gnebp <file>
     <hash>"`; a name of :data:`~tg_nebp.training.PRETRAINED` is the
     shipped checkpoint): the file's hash is part of the key, so a changed
     checkpoint is a new row.
@@ -88,7 +92,8 @@ def compare_methods(scenario: Scenario,
     scenario's likelihood (:obj:`"iekf-lagL ..."`) and the full one
     (:obj:`"iekf-smoother ..."`), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
-    :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended)."""
+    :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
+    hybrid BP over it (:obj:`"hybrid-lagL ..."`, filtered)."""
     from tg_nebp.training import (checkpoint_base, checkpoint_path,
                                   tracker_from_checkpoint)
 
@@ -178,6 +183,15 @@ def compare_methods(scenario: Scenario,
             f'{shown[likelihood]} likelihood',
             lambda m=measurement: Smoothed(FixedLagGaussianBP.recommended(
                 lag=lag, motion=motion, measurement=m)))
+    methods[f'hybrid {own.name}'] = (
+        'hybrid BP over Gaussian BP, recommended (K = 100)',
+        lambda: HybridBP.recommended(motion=motion, measurement=own))
+    if lag is not None:
+        methods[f'hybrid{suffix} {own.name}'] = (
+            f'hybrid BP over fixed-lag Gaussian BP (window {lag}), '
+            f'filtered',
+            lambda: HybridBP.recommended(lag=lag, motion=motion,
+                                         measurement=own))
     methods[f'bp-paper {own.name}'] = (
         "particle BP, the paper's configuration (K = 1,000, M = 1)",
         lambda: ParticleBP(1000, motion=motion, measurement=own))
@@ -195,6 +209,11 @@ def compare_methods(scenario: Scenario,
         methods[f'{kind} {path.name} {_file_hash(path)}'] = (
             f'{"Gaussian " if base == "gaussian" else ""}NEBP from {path}',
             lambda path=path: tracker_from_checkpoint(path))
+        if base == 'gaussian':  # the learned correction inside hybrid BP
+            methods[f'hybrid-{kind} {path.name} {_file_hash(path)}'] = (
+                f'hybrid BP over Gaussian NEBP from {path}',
+                lambda path=path: HybridBP(tracker_from_checkpoint(path),
+                                           **HYBRID_RECOMMENDED))
     return methods
 
 

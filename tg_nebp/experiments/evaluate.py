@@ -14,9 +14,10 @@ from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
                               load_scenario)
 from tg_nebp.evaluation import evaluate_method
-from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
-                             FixedLagGaussianBP, GaussianBP, ParticleBP,
-                             Smoothed, Tracker)
+from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
+                             CentralizedSmoother, FixedLagGaussianBP,
+                             GaussianBP, HybridBP, ParticleBP, Smoothed,
+                             Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -29,27 +30,28 @@ __all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
 
 #: The methods of :func:`method_tracker`, by their :obj:`metrics.json` key
 #: stem: particle BP, NEBP from a checkpoint, Gaussian BP, Gaussian NEBP
-#: from a checkpoint, the centralized IEKF and the posterior CRB.
-METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'iekf', 'pcrb')
+#: from a checkpoint, hybrid BP (over Gaussian BP, a window of it or a
+#: Gaussian NEBP checkpoint), the centralized IEKF and the posterior CRB.
+METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'hybrid', 'iekf', 'pcrb')
 
 #: Every option of :func:`method_tracker` (the flag of
 #: :obj:`tg-nebp evaluate` is :obj:`--` and the name with hyphens) and the
 #: methods that take it: another method refuses it rather than ignore it.
 METHOD_OPTIONS = {
-    'checkpoint': ('nebp', 'gnebp'),
-    'particles': ('bp', 'nebp'),
+    'checkpoint': ('nebp', 'gnebp', 'hybrid'),
+    'particles': ('bp', 'nebp', 'hybrid'),
     'samples': ('bp', 'nebp'),
     'compile': ('bp', 'nebp', 'gbp'),
     'resampler': ('bp', ),
     'regularize': ('bp', ),
     'ess_threshold': ('bp', ),
-    'measurement': ('bp', 'iekf', 'gbp', 'pcrb'),
-    'iterations': ('bp', 'iekf', 'gbp', 'gnebp'),
+    'measurement': ('bp', 'iekf', 'gbp', 'hybrid', 'pcrb'),
+    'iterations': ('bp', 'iekf', 'gbp', 'gnebp', 'hybrid'),
     'ends': ('bp', 'gbp'),
     'marginal': ('iekf', ),
-    'inflation': ('gbp', ),
-    'tolerance': ('gbp', 'gnebp'),
-    'lag': ('gbp', 'iekf', 'pcrb'),
+    'inflation': ('gbp', 'hybrid'),
+    'tolerance': ('gbp', 'gnebp', 'hybrid'),
+    'lag': ('gbp', 'hybrid', 'iekf', 'pcrb'),
     'no_control': METHODS,
 }
 
@@ -203,7 +205,15 @@ def method_tracker(method: str, scenario: Scenario,
     :obj:`pcrb` the smoothing bound at that lag (keys
     :obj:`"gbp-lagL"`, :obj:`"iekf-lagL"`, :obj:`"pcrb-lagL"`);
     :obj:`lag="all"` (:data:`WHOLE_SEQUENCE`) is the full smoother and its
-    bound (:obj:`"iekf-smoother"`, :obj:`"pcrb-smoother"`)."""
+    bound (:obj:`"iekf-smoother"`, :obj:`"pcrb-smoother"`).
+
+    :obj:`hybrid` is :class:`~tg_nebp.filters.HybridBP`
+    (:obj:`HYBRID_RECOMMENDED`, :obj:`particles` per agent) over Gaussian
+    BP (recommended, with :obj:`iterations`, :obj:`inflation`,
+    :obj:`tolerance`), over fixed-lag Gaussian BP with a :obj:`lag` of
+    more than one step (its filtered estimates; key
+    :obj:`"hybrid-lagL"`), or over the Gaussian NEBP of a
+    :obj:`checkpoint` (key :obj:`"hybrid-gnebp"`)."""
     method, key = _method_tracker(method, scenario, measurement, particles,
                                   iterations, samples, resampler,
                                   regularize, ess_threshold, ends, marginal,
@@ -241,10 +251,10 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
             check_positive_int(options[name], name)
     if samples is not None and samples != 'all':
         check_positive_int(samples, 'samples')
-    if lag == WHOLE_SEQUENCE and method == 'gbp':
+    if lag == WHOLE_SEQUENCE and method in ('gbp', 'hybrid'):
         raise ValueError(f"'lag' {WHOLE_SEQUENCE!r} (the whole sequence) is "
-                         f"for method iekf or pcrb; gbp takes a window of "
-                         f"L steps")
+                         f"for method iekf or pcrb; {method} takes a window "
+                         f"of L steps")
     if lag is not None and lag != WHOLE_SEQUENCE:
         check_positive_int(lag, 'lag')
     if lag is not None and marginal:
@@ -286,6 +296,10 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
             given['tolerance'] = None
         return checked_models(gaussian_nebp_from_checkpoint(
             checkpoint, **given), scenario, checkpoint), 'gnebp'
+    if method == 'hybrid':
+        return _hybrid(scenario, models, checkpoint, particles, lag,
+                       _given(num_iterations=iterations, inflation=inflation,
+                              tolerance=tolerance), measurement)
     if method == 'nebp':
         if checkpoint is None:
             raise ValueError("method 'nebp' needs a checkpoint (--checkpoint "
@@ -306,6 +320,35 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
                    regularize=regularize, ess_threshold=ess_threshold,
                    ends=ends)
     return ParticleBP(**given, compile=compile, **models), 'bp'
+
+
+def _hybrid(scenario, models: dict, checkpoint: Optional[str],
+            particles: Optional[int], lag, given: dict,
+            measurement: Optional[str]) -> Tuple[HybridBP, str]:
+    # hybrid BP over Gaussian BP, a window of it, or a Gaussian NEBP
+    # checkpoint, and its metrics.json key
+    if given.get('tolerance') == 0:  # every iteration
+        given['tolerance'] = None
+    if checkpoint is not None:
+        for name, value in (('lag', lag), ('inflation',
+                                           given.get('inflation')),
+                            ('measurement', measurement)):
+            if value is not None:
+                raise ValueError(
+                    f"'{name}' and 'checkpoint': hybrid BP over a Gaussian "
+                    f"NEBP checkpoint runs it as trained (one step, its "
+                    f"learned inflation, its likelihood)")
+        gaussian = checked_models(gaussian_nebp_from_checkpoint(
+            checkpoint, **given), scenario, checkpoint)
+        key = 'hybrid-gnebp'
+    elif lag is not None and lag > 1:
+        gaussian = FixedLagGaussianBP.recommended(lag=lag, **given, **models)
+        key = 'hybrid' + lag_key(lag)
+    else:
+        gaussian = GaussianBP.recommended(**given, **models)
+        key = 'hybrid'
+    return HybridBP(gaussian, **{**HYBRID_RECOMMENDED,
+                                 **_given(num_particles=particles)}), key
 
 
 def evaluate_scenario(method: str,

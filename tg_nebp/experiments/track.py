@@ -23,7 +23,7 @@ __all__ = ['LIVE_METHODS', 'track_stream', 'record_realization',
 
 #: Every tracker of :data:`~tg_nebp.experiments.evaluate.METHODS` runs
 #: live (the bound, which is not a tracker, does not).
-LIVE_METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'iekf')
+LIVE_METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'hybrid', 'iekf')
 
 
 @contextlib.contextmanager
@@ -72,10 +72,10 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     if method not in LIVE_METHODS:
         raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
                          f"(the bound does not track), got {method!r}")
-    if options.get('lag') is not None and method != 'gbp':
+    if options.get('lag') is not None and method not in ('gbp', 'hybrid'):
         raise ValueError(f"'lag' (--lag) tracks live with method gbp "
-                         f"(fixed-lag Gaussian BP); the {method} smoother is "
-                         f"an offline reference")
+                         f"(fixed-lag Gaussian BP) or hybrid (over it); the "
+                         f"{method} smoother is an offline reference")
     tracker, _ = method_tracker(method, scenario_of(scenario), **options)
     tracker = tracker.to(device).eval()
     done = written = 0

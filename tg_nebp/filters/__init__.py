@@ -8,9 +8,11 @@ from .particle_bp import ParticleBP, ParticleState
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF, JointState
 from .centralized_smoother import CentralizedSmoother
-from .gaussian_bp import GBP_RECOMMENDED, GaussianBP, GaussianState
+from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
+                          SolvedStep)
 from .gaussian_nebp import GaussianNEBP
 from .fixed_lag_gbp import FixedLagGaussianBP, WindowState
+from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import AgentPrior, AnchorAt, TrackingSession
 from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
                               strips)
@@ -28,6 +30,9 @@ __all__ = [
     'GaussianNEBP',
     'FixedLagGaussianBP',
     'WindowState',
+    'HybridBP',
+    'HYBRID_RECOMMENDED',
+    'SolvedStep',
     'PartitionedGaussianBP',
     'TrackingSession',
     'GaussianState',

@@ -5,7 +5,8 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_positive_int
-from tg_nebp.filters.gaussian_bp import GaussianBP, GaussianState, _inverse
+from tg_nebp.filters.gaussian_bp import (GaussianBP, GaussianState,
+                                         SolvedStep, _inverse)
 from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.gaussian import bounded_inflation, rts_backward
@@ -249,13 +250,14 @@ class FixedLagGaussianBP(GaussianBP):
             base.mean.new_zeros(num, 0, control_dim), None, None,
             torch.zeros(num, dtype=torch.long, device=base.mean.device))
 
-    def step(self, state: WindowState, edge_index: Tensor,
-             edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
-             motion: Optional[MotionModel] = None,
-             graph_of: Optional[Tensor] = None, num_graphs: int = 1,
-             control: Optional[Tensor] = None
-             ) -> Tuple[StepOutput, WindowState]:
-        r"""One time step: the step's links :obj:`edge_index`
+    def solve_step(self, state: WindowState, edge_index: Tensor,
+                   edge_attr: Tensor, anchor: Tensor, t: int,
+                   generator=None, motion: Optional[MotionModel] = None,
+                   graph_of: Optional[Tensor] = None, num_graphs: int = 1,
+                   control: Optional[Tensor] = None) -> SolvedStep:
+        r"""One time step (:meth:`~tg_nebp.filters.Tracker.step` returns
+        the first two fields: the output and the state): the step's links
+        :obj:`edge_index`
         :math:`(2, E)` (sorted by receiver), features :obj:`edge_attr`
         :math:`(E, F)`, motion model :obj:`motion` (the tracker's by
         default) and known inputs :obj:`control` :math:`(N, C)` join the
@@ -263,7 +265,10 @@ class FixedLagGaussianBP(GaussianBP):
         oldest step is marginalized out. Returns the step's
         :class:`~tg_nebp.filters.StepOutput` (the newest state, and the
         window) and the state after it; :obj:`graph_of` and
-        :obj:`num_graphs` as :class:`~tg_nebp.filters.GaussianBP`."""
+        :obj:`num_graphs` as :class:`~tg_nebp.filters.GaussianBP`. The
+        rest of the :class:`~tg_nebp.filters.SolvedStep` is the newest
+        step's: its nodes' final beliefs (their marginals in the window),
+        the factors of its links and their last messages."""
         num, size = state.mean.shape
         if graph_of is None:
             graph_of = torch.zeros_like(anchor, dtype=torch.long)
@@ -295,9 +300,21 @@ class FixedLagGaussianBP(GaussianBP):
                             window.link_attr, self._time_steps(state, motion),
                             window.control, tuple(messages),
                             window.factors.index, state.start)
+        # the newest step's nodes, factors and messages, in its numbering
+        newest = slice((width - 1) * num, width * num)
+        factors = self.conv.factors(edge_index.long(), anchor, size)
+        into = (window.factors.index[1] >= newest.start).nonzero().view(-1)
+        rows, found = _matched(
+            window.factors.index[:, into] - newest.start, factors.index)
+        last = type(messages)(*(part.new_zeros(
+            (factors.index.size(1), ) + part.shape[1:]).index_copy(
+                0, rows, part[into[found]]) for part in messages))
+        solved = SolvedStep(output, state, GaussianBelief(
+            belief.mean[newest], belief.info[newest]), factors, last)
         if width == self.lag:
-            state = self._slide(state, window, messages, anchor)
-        return output, state
+            solved = solved._replace(state=self._slide(state, window,
+                                                       messages, anchor))
+        return solved
 
     def _time_steps(self, state: WindowState,
                     motion: Optional[MotionModel]) -> Tensor:
@@ -760,6 +777,36 @@ class FixedLagGaussianBP(GaussianBP):
             links=links, control=control, message_index=index,
             start=torch.cat([state.start, torch.full_like(joined.start,
                                                           width)]))
+
+    def reinitialized(self, state: WindowState, nodes: Tensor, mean: Tensor,
+                      cov: Tensor) -> WindowState:
+        r"""The :obj:`state` with the :obj:`nodes` (a mask :math:`(N)`)
+        started afresh from the Gaussians of their rows of :obj:`mean`
+        :math:`(N, S)` and :obj:`cov` :math:`(N, S, S)` (see
+        :meth:`GaussianBP.reinitialized
+        <tg_nebp.filters.GaussianBP.reinitialized>`): as a node that
+        joins, each enters the window at the next step with that prior,
+        and its links and messages in the window are dropped (they were
+        linearized at the states it is taken off)."""
+        num, width = state.window.shape[:2]
+        ends_kept = ~nodes[state.links % num].any(0)
+        messages, index = state.messages, state.message_index
+        if index is not None:
+            carried = ~nodes[index % num].any(0)
+            messages = tuple(m[carried] for m in messages)
+            index = index[:, carried]
+            if index.size(1) == 0:
+                messages = index = None
+        rows = nodes.view(-1, 1, 1)
+        return state._replace(
+            mean=torch.where(nodes.view(-1, 1), mean, state.mean),
+            cov=torch.where(rows, cov, state.cov), fresh=state.fresh | nodes,
+            predicted=torch.where(rows, cov, state.predicted),
+            window=torch.where(rows, mean.unsqueeze(1), state.window),
+            links=state.links[:, ends_kept],
+            link_attr=state.link_attr[ends_kept], messages=messages,
+            message_index=index,
+            start=torch.where(nodes, width, state.start))
 
     def settings(self) -> dict:
         return dict(super().settings(), lag=self.lag,

@@ -1,4 +1,4 @@
-from typing import Iterator, NamedTuple, Optional, Tuple
+from typing import Any, Iterator, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -14,7 +14,7 @@ from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
 from tg_nebp.utils import symmetrize
 
-__all__ = ['GaussianBP', 'GaussianState', 'GBP_RECOMMENDED']
+__all__ = ['GaussianBP', 'GaussianState', 'SolvedStep', 'GBP_RECOMMENDED']
 
 #: The largest covariance inflation :class:`GaussianBP` accepts.
 MAX_INFLATION = 10.0
@@ -55,7 +55,8 @@ class GaussianState(NamedTuple):
 class _Active(NamedTuple):
     # the graphs of a batch that still iterate in a time step: their nodes
     # (rows of the batch), prior and current beliefs, links, anchor mask,
-    # previous messages, factors, memory and graph of every node
+    # previous messages, factors, memory, graph of every node and the rows
+    # of the step's message edges that its messages are
     nodes: Tensor
     prior: GaussianBelief
     belief: GaussianBelief
@@ -66,17 +67,39 @@ class _Active(NamedTuple):
     factors: Factors
     memory: Optional[Tensor]
     graph_of: Tensor
+    message_rows: Tensor
 
 
 def _written(work: _Active, belief: GaussianBelief,
-             memory: Optional[Tensor]):
-    # the beliefs and memory of the whole batch with those of the graphs
-    # that iterate replaced (out of place: gradients flow)
+             memory: Optional[Tensor], messages: tuple):
+    # the beliefs, memory and messages of the whole batch with those of
+    # the graphs that iterate replaced (out of place: gradients flow)
     belief = GaussianBelief(*(full.index_copy(0, work.nodes, part)
                               for full, part in zip(belief, work.belief)))
     if memory is not None:
         memory = memory.index_copy(0, work.nodes, work.memory)
-    return belief, memory
+    messages = type(messages)(*(
+        full.index_copy(0, work.message_rows, part)
+        for full, part in zip(messages, work.messages)))
+    return belief, memory, messages
+
+
+class SolvedStep(NamedTuple):
+    r"""A Gaussian tracker's time step with what its iterations ended
+    on (:meth:`GaussianBP.solve_step`): the step's :obj:`output` and the
+    :obj:`state` after it (what :meth:`~tg_nebp.filters.Tracker.step`
+    returns), the step's final beliefs :obj:`belief` in information form
+    (one row per node), the :obj:`factors` of the step's links (in the
+    nodes' numbering) and the last :obj:`messages` on their message edges
+    (:class:`~tg_nebp.nn.conv.RangeMessages` or
+    :class:`~tg_nebp.nn.conv.FactorMessages`; :obj:`None` without
+    links): what a method that reads Gaussian BP's messages (the sources'
+    extrinsic beliefs) needs of the step."""
+    output: StepOutput
+    state: Any
+    belief: GaussianBelief
+    factors: Factors
+    messages: Optional[tuple]
 
 
 class GaussianBP(Tracker):
@@ -252,7 +275,8 @@ class GaussianBP(Tracker):
              graph_of: Optional[Tensor] = None, num_graphs: int = 1,
              control: Optional[Tensor] = None
              ) -> Tuple[StepOutput, GaussianState]:
-        r"""One time step, the arithmetic that the offline loop
+        r"""One time step (:meth:`solve_step`'s output and state), the
+        arithmetic that the offline loop
         (:meth:`steps`), a live session
         (:class:`~tg_nebp.filters.TrackingSession`) and a partitioned run
         share: the last step's beliefs handed on (:meth:`carry`) and
@@ -268,6 +292,18 @@ class GaussianBP(Tracker):
         the state after it. :obj:`graph_of` :math:`(N)` gives every
         node's graph of a batch of :obj:`num_graphs` (one graph by
         default)."""
+        return self.solve_step(state, edge_index, edge_attr, anchor, t,
+                               generator, motion, graph_of, num_graphs,
+                               control)[:2]
+
+    def solve_step(self, state: GaussianState, edge_index: Tensor,
+                   edge_attr: Tensor, anchor: Tensor, t: int,
+                   generator=None, motion: Optional[MotionModel] = None,
+                   graph_of: Optional[Tensor] = None, num_graphs: int = 1,
+                   control: Optional[Tensor] = None) -> SolvedStep:
+        r""":meth:`step` with what its iterations ended on
+        (:class:`~tg_nebp.filters.SolvedStep`: the final beliefs, the
+        step's factors and their last messages); the same arguments."""
         mean, cov, memory = state.mean, state.cov, state.memory
         if not bool(state.fresh.all()):
             mean, cov, memory, predicted = self.carry(mean, cov, memory,
@@ -286,18 +322,37 @@ class GaussianBP(Tracker):
         edge_index = edge_index.long()
         if graph_of is None:
             graph_of = torch.zeros_like(anchor, dtype=torch.long)
-        belief, memory = self._iterate_step(
+        factors = self.conv.factors(edge_index, anchor, mean.size(-1))
+        belief, memory, messages = self._iterate_step(
             _Active(torch.arange(anchor.numel(), device=anchor.device),
                     prior, prior, edge_index, edge_attr, anchor, None,
-                    self.conv.factors(edge_index, anchor, mean.size(-1)),
-                    memory, graph_of), num_graphs, generator)
+                    factors, memory, graph_of,
+                    torch.arange(factors.index.size(1),
+                                 device=anchor.device)),
+            num_graphs, generator)
         # every step's messages start afresh: wrapping the angles between
         # steps changes nothing but the report
         mean = self.motion.layout(belief.mean.size(-1)).wrap(belief.mean)
         cov = torch.zeros_like(belief.info)
         cov[agents] = _inverse(belief.info[agents])
-        return StepOutput(t, mean, cov), GaussianState(
-            mean, cov, torch.zeros_like(state.fresh), memory, predicted)
+        return SolvedStep(StepOutput(t, mean, cov), GaussianState(
+            mean, cov, torch.zeros_like(state.fresh), memory, predicted),
+            belief, factors, messages)
+
+    def reinitialized(self, state: GaussianState, nodes: Tensor,
+                      mean: Tensor, cov: Tensor) -> GaussianState:
+        r"""The :obj:`state` with the beliefs of the :obj:`nodes` (a mask
+        :math:`(N)`) replaced by the Gaussians of their rows of
+        :obj:`mean` :math:`(N, S)` and :obj:`cov` :math:`(N, S, S)`,
+        given as priors (:obj:`fresh`: not inflated before their next
+        prediction): what re-initializes a lost agent
+        (:class:`~tg_nebp.filters.HybridBP` does where its particles
+        contradict the belief). Rows outside the mask are unchanged."""
+        rows = nodes.view(-1, 1, 1)
+        return state._replace(
+            mean=torch.where(nodes.view(-1, 1), mean, state.mean),
+            cov=torch.where(rows, cov, state.cov), fresh=state.fresh | nodes,
+            predicted=torch.where(rows, cov, state.predicted))
 
     def initial_memory(self, num_nodes: int,
                        device=None) -> Optional[Tensor]:
@@ -332,33 +387,38 @@ class GaussianBP(Tracker):
         return mean, cov, memory, predicted
 
     def _iterate_step(self, work: _Active, num_graphs: int, generator
-                      ) -> Tuple[GaussianBelief, Optional[Tensor]]:
-        # the iterations of one step: the beliefs and memory of every node
+                      ) -> Tuple[GaussianBelief, Optional[Tensor],
+                                 Optional[tuple]]:
+        # the iterations of one step: the beliefs, memory and messages
         # at the end. A graph whose means all moved by at most the
         # tolerance in an iteration has converged: it keeps that
-        # iteration's beliefs, and the iterations go on without it (the
-        # graphs share no link), so each graph of a batch gets what it gets
-        # alone and batching does not iterate converged graphs
-        belief, memory = work.belief, work.memory
+        # iteration's beliefs and messages, and the iterations go on
+        # without it (the graphs share no link), so each graph of a batch
+        # gets what it gets alone and batching does not iterate converged
+        # graphs
+        belief, memory, messages = work.belief, work.memory, None
         for iteration in range(self.num_iterations):
-            new, messages, new_memory = self.iterate(
+            new, new_messages, new_memory = self.iterate(
                 work.prior, work.belief, work.edge_index, work.edge_attr,
                 work.anchor, work.messages, generator, work.factors,
                 work.memory, iteration)
             step = (new.mean - work.belief.mean).abs().amax(-1)
-            work = work._replace(belief=new, messages=messages,
+            work = work._replace(belief=new, messages=new_messages,
                                  memory=new_memory)
+            if messages is None:  # the first iteration's: every edge's
+                messages = new_messages
             if self.tolerance is None:
                 continue
             largest = self.largest_moves(step, work.graph_of, num_graphs)
             # NaN compares false: a diverged graph is not converged
             done = (largest <= self.tolerance)[work.graph_of]
             if bool(done.any()):
-                belief, memory = _written(work, belief, memory)
+                belief, memory, messages = _written(work, belief, memory,
+                                                    messages)
                 if bool(done.all()):
-                    return belief, memory
+                    return belief, memory, messages
                 work = self._restrict(work, ~done)
-        return _written(work, belief, memory)
+        return _written(work, belief, memory, messages)
 
     def largest_moves(self, step: Tensor, graph_of: Tensor,
                       num_graphs: int) -> Tensor:
@@ -389,7 +449,7 @@ class GaussianBP(Tracker):
             self.conv.restricted_factors(work.factors, keep,
                                          work.prior.mean.size(-1)),
             None if work.memory is None else work.memory[nodes],
-            work.graph_of[nodes])
+            work.graph_of[nodes], work.message_rows[kept])
 
     def settings(self) -> dict:
         return dict(iterations=self.num_iterations,

@@ -70,6 +70,27 @@ def _draw(draw: Callable, generator: Generators,
     return torch.cat([draw(*part, g) for part, g in zip(slices, generator)])
 
 
+def sample_gaussian(mean: Tensor, cov: Tensor, num: int,
+                    generator: Generators = None,
+                    counts: Optional[List[int]] = None) -> Tensor:
+    r""":obj:`num` draws :math:`(N, K, S)` of every node's Gaussian
+    :math:`\mathcal{N}(\boldsymbol{\mu}_i, \boldsymbol{\Sigma}_i)`
+    (:obj:`mean` :math:`(N, S)`, :obj:`cov` :math:`(N, S, S)`) in the
+    dtype of :obj:`mean`, from :obj:`generator` (one, or one per graph of
+    node counts :obj:`counts`); a zero covariance (an anchor's) gives
+    copies of the mean. A PSD square root, not Cholesky: singular
+    covariances are fine."""
+    eigvals, eigvecs = torch.linalg.eigh(cov.double())
+    root = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
+
+    def standard_normal(mean: Tensor, g: Optional[torch.Generator]):
+        return torch.randn((mean.size(0), num, mean.size(-1)),
+                           dtype=mean.dtype, device=mean.device, generator=g)
+
+    noise = _draw(standard_normal, generator, counts, mean)
+    return mean.unsqueeze(1) + noise @ root.to(noise.dtype).transpose(-1, -2)
+
+
 def _check_prediction(particles: Tensor, motion, t: int) -> None:
     # an unstable motion model (the explicit quadratic drag beyond
     # |v| = 2 / (drag dt)) would otherwise yield NaN weights first
@@ -329,23 +350,12 @@ class ParticleBP(Tracker):
                 generator, or one per graph of :obj:`data`.
                 (default: :obj:`None`)
         """
-        # a PSD square root (not Cholesky) also covers singular priors
-        eigvals, eigvecs = torch.linalg.eigh(data.prior_cov.double())
-        root = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
-
-        def standard_normal(mean: Tensor, g: Optional[torch.Generator]):
-            return torch.randn(
-                (mean.size(0), self.num_particles, mean.size(-1)),
-                dtype=mean.dtype, device=mean.device, generator=g)
-
         # half precision is drawn in float32 (torch has no half normals on
         # every device, and the filter computes in float32 anyway)
         mean = data.prior_mean.to(compute_dtype(data.prior_mean,
                                                 data.prior_cov))
-        noise = _draw(standard_normal, generator,
-                      _nodes_per_graph(data, generator), mean)
-        offset = noise @ root.to(noise.dtype).transpose(-1, -2)
-        return mean.unsqueeze(1) + offset
+        return sample_gaussian(mean, data.prior_cov, self.num_particles,
+                               generator, _nodes_per_graph(data, generator))
 
     def predict(self, particles: Tensor, anchor: Tensor,
                 generator: Optional[torch.Generator] = None,

@@ -6,8 +6,10 @@ from .gaussian_bp_conv import (FactorMessages, Factors, GaussianBelief,
                                position_covariance)
 from .gaussian_nebp_conv import (CorrectionFeatures, GaussianNEBPConv,
                                  bounded_log)
+from .hybrid_bp_conv import HybridBPConv, SourceBeliefs
 
 __all__ = ['ParticleBPConv', 'NEBPConv', 'EquivariantNEBPConv',
            'GaussianBPConv', 'GaussianBelief', 'FactorMessages',
            'RangeMessages', 'Factors', 'Linearization', 'GaussianNEBPConv',
-           'CorrectionFeatures', 'bounded_log', 'position_covariance']
+           'CorrectionFeatures', 'bounded_log', 'position_covariance',
+           'HybridBPConv', 'SourceBeliefs']

@@ -13,7 +13,8 @@ from tg_nebp.utils import (compute_dtype, link_factors, long_edge_index,
 
 __all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages',
            'RangeMessages', 'Factors', 'Linearization', 'ENDS',
-           'position_covariance', 'as_factor_messages']
+           'position_covariance', 'as_factor_messages',
+           'marginal_information']
 
 #: Which ends of a link its range informs: :obj:`"both"` (every measured
 #: range is shared with the neighbour it measured) or :obj:`"receiver"`
@@ -163,13 +164,15 @@ def _inverse(matrices: Tensor) -> Tensor:
     return adjugate / (a * d - b * c).view(-1, 1, 1)
 
 
-def _marginal_information(info: Tensor, mean: Tensor, width: int,
-                          anchor: Tensor) -> Tuple[Tensor, Tensor]:
-    # every agent's belief marginalized onto its first 'width' entries (the
-    # factors' scope), in information form (the Schur complement of the
-    # other entries): the information matrix (N, R, R) and vector (N, R);
-    # anchors (known, no belief to marginalize) get an identity and zeros,
-    # never used
+def marginal_information(info: Tensor, mean: Tensor, width: int,
+                         anchor: Tensor) -> Tuple[Tensor, Tensor]:
+    r"""Every agent's Gaussian belief (information :obj:`info`
+    :math:`(N, S, S)`, :obj:`mean` :math:`(N, S)`) marginalized onto its
+    first :obj:`width` entries :math:`R` (a factor's scope), in
+    information form (the Schur complement of the other entries): the
+    information matrices :math:`(N, R, R)` and vectors :math:`(N, R)`.
+    Anchors (known, no belief to marginalize; mask :obj:`anchor`) get an
+    identity and zeros, which no message reads."""
     eta = (info @ mean.unsqueeze(-1)).squeeze(-1)
     info_rr, eta_r = info[:, :width, :width], eta[:, :width]
     if width < mean.size(-1):
@@ -695,7 +698,7 @@ class GaussianBPConv(MessagePassing):
         as configured (but for the message edges :obj:`fresh`, which have
         no previous message)."""
         width = linearization.grad.size(-1) // 2
-        marginal_info, marginal_eta = _marginal_information(
+        marginal_info, marginal_eta = marginal_information(
             belief.info, belief.mean, width, anchor)
         new = self.edge_updater(
             factors.index, info=marginal_info, eta=marginal_eta,
