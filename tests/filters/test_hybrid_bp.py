@@ -14,16 +14,14 @@ import torch
 from scipy.stats import chi2
 from torch_geometric.data import Batch
 
-from tg_nebp.data import Realization
 from tg_nebp.filters import (CentralizedIEKF, FixedLagGaussianBP, GaussianBP,
                              GaussianNEBP, HybridBP)
 from tg_nebp.filters import silverman_bandwidth
-from tg_nebp.filters.hybrid_bp import SEARCH_EVERY
 from tg_nebp.models import ConstantVelocity, GaussianRange
 from tg_nebp.utils import weighted_moments
 
 from helpers import (gen, linear_kalman_filter, linear_offset_model,
-                     linear_scenario, randomize, tiny_scenario,
+                     linear_scenario, mirror, randomize, tiny_scenario,
                      tree_realization)
 
 
@@ -79,43 +77,6 @@ def data_models():
     return ConstantVelocity(0.1)
 
 
-def mirror(third=(15.0, 3.0), prior_y=-5.0, steps=8, prior_sd=0.5,
-           third_from=3):
-    r"""One agent at (5, 5), still, measured by anchors at (0, 0) and
-    (10, 0) (its mirror across their line, (5, -5), fits them as well) and
-    from step 'third_from' on by an anchor at 'third'; its prior at (5,
-    'prior_y') with 'prior_sd' per axis."""
-    truth = torch.tensor([5.0, 5.0, 0.0, 0.0])
-    anchors = torch.tensor([[0.0, 0.0], [10.0, 0.0], list(third)])
-    states = torch.zeros(4, steps, 4)
-    states[0] = truth
-    states[1:, :, :2] = anchors.unsqueeze(1)
-    g = gen(1)
-    edges, ranges, times = [], [], []
-    for t in range(steps):
-        for a in range(3 if t >= third_from else 2):
-            distance = (anchors[a] - truth[:2]).norm()
-            edges.append((a + 1, 0))
-            ranges.append(float(distance + 0.3 * torch.randn(
-                (), generator=g, dtype=torch.float64)))
-            times.append(t)
-    prior_mean = torch.zeros(4, 4)
-    prior_mean[0] = torch.tensor([5.0, prior_y, 0.0, 0.0])
-    prior_mean[1:, :2] = anchors
-    prior_cov = torch.zeros(4, 4, 4)
-    prior_cov[0] = torch.diag(torch.tensor([prior_sd**2, prior_sd**2,
-                                            0.01, 0.01]))
-    data = Realization(
-        states=states, edge_index=torch.tensor(edges).t(),
-        edge_attr=torch.tensor(ranges).view(-1, 1),
-        edge_time=torch.tensor(times),
-        anchor=torch.tensor([False, True, True, True]),
-        prior_mean=prior_mean, prior_cov=prior_cov, num_steps=steps,
-        num_nodes=4)
-    return data, dict(motion=ConstantVelocity(sigma_a=0.05),
-                      measurement=GaussianRange(sigma=0.3))
-
-
 @pytest.mark.parametrize('third', [(15.0, 3.0), (-4.0, 4.0)])
 def test_a_lost_agent_is_relocated_from_its_links(third):
     # the prior on the mirror position: two anchors cannot tell, and when
@@ -132,8 +93,9 @@ def test_a_lost_agent_is_relocated_from_its_links(third):
     steps = list(hybrid.steps(data, gen(0)))
     errors = [float((s.mean[0, :2] - truth).norm()) for s in steps]
     assert min(errors[:3]) > 8  # lost while two anchors cannot tell
+    # found at the step its third anchor contradicts the mirror
     found = next(t for t, e in enumerate(errors) if e < 1.0)
-    assert found < 3 + SEARCH_EVERY
+    assert found == 3
     for step in steps[found:]:
         error = step.mean[0, :2] - truth
         nees = float(error @ torch.linalg.solve(step.cov[0, :2, :2], error))
@@ -141,27 +103,28 @@ def test_a_lost_agent_is_relocated_from_its_links(third):
 
 
 def test_consistent_agents_are_never_relocated():
-    # several tiny networks, no agent off: no relocation, and the reports
-    # are Gaussian BP's bit for bit
-    searched, events = [], []
+    # several tiny networks, no agent off: every agent with links searched
+    # at every step, none relocated, and the reports are Gaussian BP's bit
+    # for bit
+    searched, moved = 0, 0
     for seed in range(4):
         data = tiny_scenario(steps=15).generate(gen(40 + seed))
         hybrid = HybridBP.recommended()
-        relocated = hybrid.relocated
+        solve = hybrid.gaussian.solve_step
 
-        def counted(gaussian, search, *args, call=relocated):
-            out = call(gaussian, search, *args)
-            searched.append(int(search.searched.sum()))
-            events.append(int(out[0].sum()))
-            return out
+        def counted(*args, call=solve, **kwargs):
+            nonlocal searched, moved
+            solved = call(*args, **kwargs)
+            searched += int(solved.search.searched.sum())
+            moved += int(solved.search.moved.sum())
+            return solved
 
-        hybrid.relocated = counted
+        hybrid.gaussian.solve_step = counted
         ours = hybrid(data, gen(seed))
         theirs = GaussianBP.recommended()(data)
         assert torch.equal(ours.mean, theirs.mean)
         assert torch.equal(ours.cov, theirs.cov)
-    # every agent searched at its first step and every fourth after
-    assert sum(events) == 0 and sum(searched) >= 4 * 3 * 15 // 4
+    assert moved == 0 and searched >= 4 * 2 * 15
 
 
 def test_two_modes_are_kept_with_the_weights_of_the_grid_posterior():
@@ -276,8 +239,7 @@ def test_bad_settings_are_refused_by_name():
                             r"'proposal' \+ 'modes'"),
                            (dict(spread=0.5), "'spread'"),
                            (dict(bandwidth=1.0), "'bandwidth'"),
-                           (dict(num_particles=0), "'num_particles'"),
-                           (dict(margin=-1.0), "'margin'")):
+                           (dict(num_particles=0), "'num_particles'")):
         with pytest.raises(ValueError, match=match):
             HybridBP(**options)
     with pytest.raises(TypeError, match="'gaussian'"):

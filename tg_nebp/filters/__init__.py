@@ -12,6 +12,7 @@ from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
                           SolvedStep)
 from .gaussian_nebp import GaussianNEBP
 from .fixed_lag_gbp import FixedLagGaussianBP, WindowState
+from .relocation import LinkSearch
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import AgentPrior, AnchorAt, TrackingSession
 from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
@@ -32,6 +33,7 @@ __all__ = [
     'WindowState',
     'HybridBP',
     'HYBRID_RECOMMENDED',
+    'LinkSearch',
     'SolvedStep',
     'PartitionedGaussianBP',
     'TrackingSession',

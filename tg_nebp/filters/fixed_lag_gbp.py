@@ -7,6 +7,7 @@ from torch import Tensor
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.filters.gaussian_bp import (GaussianBP, GaussianState,
                                          SolvedStep, _inverse)
+from tg_nebp.filters.relocation import LinkSearch, relocation_step
 from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.gaussian import bounded_inflation, rts_backward
@@ -195,8 +196,9 @@ class FixedLagGaussianBP(GaussianBP):
             (default: :obj:`ConstantVelocityDrag()`)
         measurement (MeasurementModel, optional): Measurement model.
             (default: :obj:`GaussianRange()`)
-        ends, damping, tolerance, inflation, compile: As
-            :class:`~tg_nebp.filters.GaussianBP`.
+        ends, damping, tolerance, inflation, compile, relocation: As
+            :class:`~tg_nebp.filters.GaussianBP` (a relocated agent rejoins
+            the window: :meth:`reinitialized`).
         schedule (str, optional): :obj:`"sweep"` sends every factor's
             messages and solves every agent's chain at every iteration;
             :obj:`"residual"` only those that can have changed: the
@@ -223,9 +225,10 @@ class FixedLagGaussianBP(GaussianBP):
                  measurement: Optional[MeasurementModel] = None,
                  ends: str = 'both', damping: float = 0.0,
                  tolerance: Optional[float] = 0.01, inflation: float = 1.0,
-                 compile: bool = False, schedule: str = 'sweep'):
+                 compile: bool = False, schedule: str = 'sweep',
+                 relocation: Optional[LinkSearch] = None):
         super().__init__(num_iterations, motion, measurement, ends, damping,
-                         tolerance, inflation, compile)
+                         tolerance, inflation, compile, relocation)
         self.lag = check_positive_int(lag, 'lag')
         if schedule not in SCHEDULES:
             raise ValueError(f"'schedule' must be one of {list(SCHEDULES)}, "
@@ -314,7 +317,9 @@ class FixedLagGaussianBP(GaussianBP):
         if width == self.lag:
             solved = solved._replace(state=self._slide(state, window,
                                                        messages, anchor))
-        return solved
+        if self.relocation is None:
+            return solved
+        return relocation_step(self, solved, edge_index, edge_attr, anchor)
 
     def _time_steps(self, state: WindowState,
                     motion: Optional[MotionModel]) -> Tensor:

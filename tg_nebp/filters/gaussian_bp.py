@@ -12,6 +12,8 @@ from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
+from tg_nebp.filters.relocation import LinkSearch, Search, relocation_step
+from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv
 from tg_nebp.utils import symmetrize
 
 __all__ = ['GaussianBP', 'GaussianState', 'SolvedStep', 'GBP_RECOMMENDED']
@@ -94,12 +96,16 @@ class SolvedStep(NamedTuple):
     (:class:`~tg_nebp.nn.conv.RangeMessages` or
     :class:`~tg_nebp.nn.conv.FactorMessages`; :obj:`None` without
     links): what a method that reads Gaussian BP's messages (the sources'
-    extrinsic beliefs) needs of the step."""
+    extrinsic beliefs) needs of the step; and the tracker's
+    :obj:`relocation` search of the step (a
+    :class:`~tg_nebp.filters.relocation.Search`; :obj:`None` without
+    one)."""
     output: StepOutput
     state: Any
     belief: GaussianBelief
     factors: Factors
     messages: Optional[tuple]
+    search: Optional[Search] = None
 
 
 class GaussianBP(Tracker):
@@ -161,6 +167,11 @@ class GaussianBP(Tracker):
             model with :func:`torch.compile` (see
             :class:`~tg_nebp.nn.conv.GaussianBPConv`; the first steps
             compile). (default: :obj:`False`)
+        relocation (LinkSearch, optional): Search every agent from its
+            links at every step and start again the lost ones where their
+            links decisively put them
+            (:class:`~tg_nebp.filters.LinkSearch`); :obj:`None` never
+            does. (default: :obj:`None`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -175,7 +186,8 @@ class GaussianBP(Tracker):
                  measurement: Optional[MeasurementModel] = None,
                  ends: str = 'both', damping: float = 0.0,
                  tolerance: Optional[float] = 0.01, inflation: float = 1.0,
-                 compile: bool = False):
+                 compile: bool = False,
+                 relocation: Optional[LinkSearch] = None):
         super().__init__(motion, measurement)
         self.num_iterations = check_positive_int(num_iterations,
                                                  'num_iterations')
@@ -185,6 +197,22 @@ class GaussianBP(Tracker):
         self.inflation = check_number(inflation, 'inflation', minimum=1.0,
                                       inclusive=True, maximum=MAX_INFLATION)
         self.conv = GaussianBPConv(self.measurement, ends, damping, compile)
+        self.relocate_with(relocation)
+
+    def relocate_with(self, relocation: Optional[LinkSearch]
+                      ) -> 'GaussianBP':
+        r"""Sets the tracker's :obj:`relocation` (see the class; a
+        :class:`~tg_nebp.filters.LinkSearch` or :obj:`None`) and returns
+        it: a tracker built elsewhere (from a checkpoint) takes one too."""
+        if relocation is not None and not isinstance(relocation,
+                                                     LinkSearch):
+            raise TypeError(f"'relocation' must be a LinkSearch or None, "
+                            f"got {relocation!r}")
+        self.relocation = relocation
+        # the exact messages a search scores its candidates by
+        self.link_conv = (None if relocation is None else
+                          HybridBPConv(self.measurement))
+        return self
 
     @classmethod
     def recommended(cls, **overrides) -> 'GaussianBP':
@@ -335,9 +363,12 @@ class GaussianBP(Tracker):
         mean = self.motion.layout(belief.mean.size(-1)).wrap(belief.mean)
         cov = torch.zeros_like(belief.info)
         cov[agents] = _inverse(belief.info[agents])
-        return SolvedStep(StepOutput(t, mean, cov), GaussianState(
+        solved = SolvedStep(StepOutput(t, mean, cov), GaussianState(
             mean, cov, torch.zeros_like(state.fresh), memory, predicted),
             belief, factors, messages)
+        if self.relocation is None:
+            return solved
+        return relocation_step(self, solved, edge_index, edge_attr, anchor)
 
     def reinitialized(self, state: GaussianState, nodes: Tensor,
                       mean: Tensor, cov: Tensor) -> GaussianState:
@@ -452,14 +483,19 @@ class GaussianBP(Tracker):
             work.graph_of[nodes], work.message_rows[kept])
 
     def settings(self) -> dict:
-        return dict(iterations=self.num_iterations,
-                    measurement=self.measurement.config(),
-                    ends=self.conv.ends, damping=self.conv.damping,
-                    tolerance=self.tolerance, inflation=self.inflation)
+        out = dict(iterations=self.num_iterations,
+                   measurement=self.measurement.config(),
+                   ends=self.conv.ends, damping=self.conv.damping,
+                   tolerance=self.tolerance, inflation=self.inflation)
+        if self.relocation is not None:
+            out['relocation'] = self.relocation.settings()
+        return out
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}(num_iterations='
                 f'{self.num_iterations}, motion={self.motion}, '
                 f'measurement={self.measurement}, ends={self.conv.ends!r}, '
                 f'damping={self.conv.damping}, tolerance={self.tolerance}, '
-                f'inflation={self.inflation})')
+                f'inflation={self.inflation}'
+                + ('' if self.relocation is None else
+                   f', relocation={self.relocation}') + ')')

@@ -1,7 +1,7 @@
-r"""Hybrid BP: Gaussian belief propagation between the agents, a particle
-belief within each agent that keeps the hypotheses a Gaussian cannot, and
-the search that relocates an agent whose links decisively put it
-elsewhere than its Gaussian belief."""
+r"""Hybrid BP: Gaussian belief propagation between the agents (with the
+search that relocates an agent whose links decisively put it elsewhere
+than its Gaussian belief), and a particle belief within each agent that
+keeps the hypotheses a Gaussian cannot."""
 import functools
 import math
 from typing import Any, Dict, Iterator, List, NamedTuple, Optional, Tuple
@@ -16,12 +16,13 @@ from tg_nebp.filters.gaussian_bp import GaussianBP, SolvedStep
 from tg_nebp.filters.particle_bp import (Generators, _check_prediction,
                                          _draw, _nodes_per_graph,
                                          sample_gaussian)
+from tg_nebp.filters.relocation import LinkSearch, Search
 from tg_nebp.filters.resampling import silverman_bandwidth
 from tg_nebp.filters.state import StateField, check_state
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import bounded_inflation_map, graph_index
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
-from tg_nebp.nn.conv import HybridBPConv, SourceBeliefs
+from tg_nebp.nn.conv import HybridBPConv
 from tg_nebp.utils import log_normalize, symmetrize, weighted_moments
 
 __all__ = ['HybridBP', 'HYBRID_RECOMMENDED', 'PARTICLE_FIELDS',
@@ -39,23 +40,12 @@ PARTICLE_FIELDS = dict(
     particle_cov=StateField(('N', 'S', 'S'), 'cov'),
     particle_predicted=StateField(('N', 'S', 'S'), 'cov'))
 
-#: The search of an agent's links (:meth:`HybridBP.search`): candidate
-#: positions in this many directions about each of its links' sources (at
-#: the link's range), for at most :data:`SEARCH_LINKS` of its links, each
-#: refined by :data:`SEARCH_STEPS` Gauss-Newton steps on its links.
-SEARCH_DIRECTIONS = 8
-SEARCH_LINKS = 4
-SEARCH_STEPS = 2
-#: Every agent's links are searched once every this many steps
-#: (:meth:`HybridBP.searched`), staggered over the agents, and at its
-#: first step.
-SEARCH_EVERY = 4
 #: The best candidates of a search that the proposal draws about.
 SEARCH_MODES = 4
 
 #: The configuration of :meth:`HybridBP.recommended` (see its docstring).
 HYBRID_RECOMMENDED = dict(num_particles=100, proposal=0.7, modes=0.2,
-                          spread=1.5, margin=10.0)
+                          spread=1.5)
 
 
 @functools.lru_cache(maxsize=None)
@@ -90,22 +80,6 @@ def kernel_density(points: Tensor, centers: Tensor, log_weights: Tensor,
                            -1) - log_norm.unsqueeze(-1)
 
 
-def _directions(count: int, dim: int, like: Tensor) -> Tensor:
-    # 'count' unit vectors (count, dim) spread over the circle (2-D), the
-    # sphere (3-D: a Fibonacci lattice) or the line (1-D: +-1)
-    k = torch.arange(count, dtype=like.dtype, device=like.device)
-    if dim == 1:
-        return torch.where(k % 2 == 0, 1.0, -1.0).view(-1, 1)
-    if dim == 2:
-        angle = 2 * math.pi * k / count
-        return torch.stack([angle.cos(), angle.sin()], -1)
-    height = 1 - 2 * (k + 0.5) / count
-    angle = math.pi * (3 - math.sqrt(5)) * k
-    radius = (1 - height.square()).sqrt()
-    return torch.stack([radius * angle.cos(), radius * angle.sin(),
-                        height], -1)
-
-
 def _log_gaussian(points: Tensor, mean: Tensor, lower: Tensor) -> Tensor:
     # log N(points (N, P, S); mean (N, S), L L^T) (N, P)
     white = torch.linalg.solve_triangular(
@@ -128,15 +102,6 @@ class _Prior(NamedTuple):
     predicted: Tensor
 
 
-class _Search(NamedTuple):
-    # a search's candidates (N, C, S) (the 0-th: the Gaussian posterior's
-    # mean), their scores (N, C) (the exact log-messages of the agent's
-    # links, summed) and the agents searched (N)
-    candidates: Tensor
-    scores: Tensor
-    searched: Tensor
-
-
 class HybridBP(Tracker):
     r"""Hybrid belief propagation: the agents exchange the messages of
     Gaussian BP (plain, over a window of steps, or with a learned
@@ -144,9 +109,11 @@ class HybridBP(Tracker):
     while every agent keeps a particle belief of its own, drawn where
     Gaussian BP and the agent's own links put it and weighed by the true
     likelihood of its links, which holds the hypotheses a Gaussian cannot
-    (the mirror positions of an agent measured by nodes on a line), and
-    an agent whose links decisively put it elsewhere than its Gaussian
-    belief is relocated there, so that no agent stays lost in a wrong mode.
+    (the mirror positions of an agent measured by nodes on a line); an
+    agent whose links decisively put it elsewhere than its Gaussian belief
+    is relocated there (the Gaussian tracker's
+    :class:`~tg_nebp.filters.LinkSearch`), so that no agent stays lost in
+    a wrong mode.
     Gaussian-BP-informed proposals for particle BP (`"Neural Enhanced
     Belief Propagation for Cooperative Localization"
     <https://arxiv.org/abs/2105.12903>`_'s particles are too few where a
@@ -159,17 +126,12 @@ class HybridBP(Tracker):
        (:meth:`~tg_nebp.filters.GaussianBP.solve_step`): every agent's
        Gaussian posterior, and the final messages, whose sources'
        extrinsic beliefs the agents' particles read
-       (:meth:`~tg_nebp.nn.conv.HybridBPConv.sources`);
-    2. the agents due (every :data:`SEARCH_EVERY`-th in turn, and every
-       agent at its first step) search their links (:meth:`search`):
-       candidates on the rings their links allow, refined by Gauss-Newton
-       steps, scored by the exact likelihood of all their links. An agent
-       whose best candidate scores :obj:`margin` nats above its Gaussian
-       posterior's mean is **relocated** there: its Gaussian belief starts
-       again from that candidate
-       (:meth:`~tg_nebp.filters.GaussianBP.reinitialized`), and so do its
-       particles;
-    3. every agent's particles of the last step, their cloud inflated as
+       (:meth:`~tg_nebp.nn.conv.HybridBPConv.sources`); with its
+       :obj:`relocation` (:class:`~tg_nebp.filters.LinkSearch`), every
+       agent is searched from its links, and one whose links decisively
+       put it elsewhere is **relocated** there: its Gaussian belief starts
+       again from that candidate, and so do its particles;
+    2. every agent's particles of the last step, their cloud inflated as
        the Gaussian tracker inflates its beliefs (its
        :meth:`~tg_nebp.filters.GaussianBP.inflation_of`, bounded by the
        last step's prediction:
@@ -180,52 +142,54 @@ class HybridBP(Tracker):
        its centers shrunk towards the mean by :math:`\sqrt{1 - h^2}` so
        that the density keeps the cloud's covariance: Liu and West's
        kernel);
-    4. :math:`K` new particles are drawn from the mixture :math:`q` of
+    3. :math:`K` new particles are drawn from the mixture :math:`q` of
        the Gaussian posterior widened by :math:`c` (:obj:`spread`) with
        weight :obj:`proposal`, the same Gaussian about each of the
-       :data:`SEARCH_MODES` best candidates of a search with weight
-       :obj:`modes` (agents searched at this step), and the prior density
+       :data:`SEARCH_MODES` best candidates of the search with weight
+       :obj:`modes` (the other hypotheses its links allow), and the prior
+       density
        :math:`\hat{p}`, weighted :math:`\hat{p}(\mathbf{x}) /
        q(\mathbf{x})` and then by the messages of the step's links at
        every particle (:class:`~tg_nebp.nn.conv.HybridBPConv`: the exact
        likelihood with the source's extrinsic Gaussian integrated out);
-    5. the estimate of every agent is its Gaussian posterior (or the
+    4. the estimate of every agent is its Gaussian posterior (or the
        relocated Gaussian), with its particle belief in the step's
        :class:`~tg_nebp.filters.StepOutput` (:obj:`particles`,
        :obj:`log_weights`) and, over a window, the window's revisions of
        the past (:obj:`window_mean`, :obj:`window_cov`: the Gaussian
        tracker's).
 
-    Where nothing is relocated the estimates are the Gaussian tracker's,
-    bit for bit. The cost per step is the Gaussian tracker's plus
-    :math:`O(N K^2 S)` for the kernel density, :math:`O(|\mathcal{E}| K)`
-    for the messages (:math:`O(|\mathcal{E}| K R^2)` for a model without
-    a range's closed form) and the searches' :math:`O(|\mathcal{E}|
-    \cdot \mathrm{links} \cdot \mathrm{directions} / 4)`. Anchors hold
-    :math:`K` copies of their known state.
+    The estimates are the Gaussian tracker's (with its relocations), bit
+    for bit: the particles keep every agent's non-Gaussian belief beside
+    them (its modes, for a figure of the hypotheses or a downstream
+    decision), but on the validation realizations they did not beat the
+    Gaussian where it stands (the note of issue 47 has the measurements).
+    The cost per step is the Gaussian tracker's plus :math:`O(N K^2 S)`
+    for the kernel density and :math:`O(|\mathcal{E}| K)` for the
+    messages (:math:`O(|\mathcal{E}| K R^2)` for a model without a
+    range's closed form). Anchors hold :math:`K` copies of their known
+    state.
 
     Args:
         gaussian (GaussianBP, optional): The Gaussian tracker between the
             agents: a :class:`~tg_nebp.filters.GaussianBP`,
             :class:`~tg_nebp.filters.FixedLagGaussianBP` (its filtered
             estimates) or :class:`~tg_nebp.filters.GaussianNEBP`, whose
-            models are the tracker's. (default:
-            :obj:`GaussianBP.recommended()` with :obj:`motion` and
-            :obj:`measurement`)
+            models are the tracker's, and whose :obj:`relocation` relocates
+            lost agents (and gives the particles the search's candidates).
+            (default: :obj:`GaussianBP.recommended()` with :obj:`motion`,
+            :obj:`measurement` and a :class:`~tg_nebp.filters.LinkSearch`)
         num_particles (int, optional): :math:`K` per agent.
             (default: :obj:`100`)
         proposal (float, optional): The share of particles drawn about the
             Gaussian posterior, in :math:`(0, 1)`. (default: :obj:`0.7`)
-        modes (float, optional): The share drawn about a search's best
-            candidates (of an agent searched at the step; the Gaussian
-            posterior's otherwise); :obj:`proposal` + :obj:`modes` below
-            1, the rest from the prior density. (default: :obj:`0.2`)
+        modes (float, optional): The share drawn about the search's best
+            candidates (the Gaussian posterior's without a search);
+            :obj:`proposal` + :obj:`modes` below 1, the rest from the prior
+            density. (default: :obj:`0.2`)
         spread (float, optional): :math:`c \ge 1`, the factor of the
             Gaussian posterior's covariance in the proposal.
             (default: :obj:`1.5`)
-        margin (float, optional): The nats by which a search's best
-            candidate must beat the Gaussian posterior's mean to relocate
-            an agent. (default: :obj:`10.0`)
         bandwidth (float, optional): The kernel's :math:`h \in (0, 1)`;
             :obj:`None` for Silverman's rule
             (:func:`~tg_nebp.filters.silverman_bandwidth`).
@@ -247,13 +211,14 @@ class HybridBP(Tracker):
     def __init__(self, gaussian: Optional[GaussianBP] = None,
                  num_particles: int = 100, proposal: float = 0.7,
                  modes: float = 0.2, spread: float = 1.5,
-                 margin: float = 10.0, bandwidth: Optional[float] = None,
+                 bandwidth: Optional[float] = None,
                  chunk_size: Optional[int] = None,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None):
         if gaussian is None:
             gaussian = GaussianBP.recommended(motion=motion,
-                                              measurement=measurement)
+                                              measurement=measurement,
+                                              relocation=LinkSearch())
         elif motion is not None or measurement is not None:
             raise ValueError("'motion' and 'measurement' are those of the "
                              "'gaussian' tracker: give them to it")
@@ -275,7 +240,6 @@ class HybridBP(Tracker):
                              f"{self.proposal} + {self.modes}")
         self.spread = check_number(spread, 'spread', minimum=1.0,
                                    inclusive=True)
-        self.margin = check_number(margin, 'margin')
         if bandwidth is not None:
             bandwidth = check_number(bandwidth, 'bandwidth')
             if bandwidth >= 1:
@@ -295,16 +259,15 @@ class HybridBP(Tracker):
         <tg_nebp.filters.FixedLagGaussianBP.recommended>` (its filtered
         estimates); :obj:`motion` and :obj:`measurement` among the
         :obj:`overrides` go to that tracker, the others replace the
-        hybrid's own settings. The settings were fixed on validation
-        realizations of the paper's network (seed 11) and of the robots
-        before any test realization was tracked: no consistent agent was
-        relocated there (a margin of 10 nats: a Gaussian posterior that
-        fits its links is beaten by that much with probability below
-        :math:`10^{-4}`)."""
+        hybrid's own settings. Both trackers relocate lost agents
+        (:class:`~tg_nebp.filters.LinkSearch` with its defaults, fixed on
+        validation realizations before any test realization was
+        tracked)."""
         models = {key: overrides.pop(key) for key in ('motion',
                                                       'measurement')
                   if key in overrides}
         lag = check_positive_int(lag, 'lag')
+        models['relocation'] = LinkSearch()
         gaussian = (GaussianBP.recommended(**models) if lag == 1 else
                     FixedLagGaussianBP.recommended(lag=lag, **models))
         return cls(gaussian, **{**HYBRID_RECOMMENDED, **overrides})
@@ -414,31 +377,22 @@ class HybridBP(Tracker):
             base, edge_index, edge_attr, anchor, t, first, motion, graph_of,
             num_graphs, control)
         edge_index, edge_attr = edge_index.long(), edge_attr.double()
-        sources = self.conv.sources(solved.belief, solved.factors,
-                                    solved.messages, anchor)
-        search = self.search(solved.output, sources, solved.factors,
-                             edge_index, edge_attr,
-                             self.searched(base.fresh, anchor, graph_of, t))
-        moved, mean, cov = self.relocated(solved.output, search, sources,
-                                          solved.factors, edge_index,
-                                          edge_attr)
-        gaussian = solved.output._replace(mean=mean, cov=cov)
+        search = solved.search
+        sources = (self.conv.sources(solved.belief, solved.factors,
+                                     solved.messages, anchor)
+                   if search is None else search.sources)
         prior = self._prior(particles, log_weights, anchor, generator,
                             counts, motion, control, t)
-        drawn, log_weights = self._proposed(gaussian, prior, search, moved,
+        drawn, log_weights = self._proposed(solved.output, prior, search,
                                             anchor, generator, counts)
         log_weights, _ = self.conv(drawn, log_weights, sources,
                                    solved.factors, edge_index, edge_attr)
-        base = solved.state
-        if bool(moved.any()):
-            base = self.gaussian.reinitialized(base, moved, mean, cov)
-        layout = self.motion.layout(mean.size(-1))
-        # a window's revisions of the past are the Gaussian tracker's
-        output = solved.output._replace(mean=layout.wrap(mean), cov=cov,
-                                        particles=drawn,
+        # the estimates (and a window's revisions of the past) are the
+        # Gaussian tracker's
+        output = solved.output._replace(particles=drawn,
                                         log_weights=log_weights)
         return output, self.state_type(
-            *base, drawn, log_weights,
+            *solved.state, drawn, log_weights,
             weighted_moments(drawn, log_weights)[1], prior.predicted)
 
     def _inflated(self, base, particles: Tensor, log_weights: Tensor,
@@ -491,7 +445,7 @@ class HybridBP(Tracker):
         return _Prior(centers, log_weights, lower, cloud)
 
     def _proposed(self, gaussian: StepOutput, prior: _Prior,
-                  search: _Search, moved: Tensor, anchor: Tensor,
+                  search: Optional[Search], anchor: Tensor,
                   generator: Generators, counts: Optional[List[int]]
                   ) -> Tuple[Tensor, Tensor]:
         # K draws per agent from q: the Gaussian posterior widened (share
@@ -507,6 +461,11 @@ class HybridBP(Tracker):
         usable = (failed == 0) & ~anchor
         lower = torch.where(usable.view(-1, 1, 1), lower, eye)
         mean = gaussian.mean.to(prior.centers)
+        if search is None:  # no search: no modes, nobody moved
+            search = Search(mean.unsqueeze(1), mean.new_zeros(
+                mean.size(0), 1), torch.zeros_like(anchor),
+                torch.zeros_like(anchor), None)
+        moved = search.moved
         count = min(SEARCH_MODES, search.candidates.size(1))
         best = search.scores.topk(count, -1).indices
         modes = search.candidates.gather(1, best.unsqueeze(-1).expand(
@@ -563,127 +522,17 @@ class HybridBP(Tracker):
         log_weights = torch.where(anchor.view(-1, 1), 0.0, log_weights)
         return drawn, log_normalize(log_weights)
 
-    def searched(self, fresh: Tensor, anchor: Tensor,
-                 graph_of: Optional[Tensor], t: int) -> Tensor:
-        r"""The agents :math:`(N)` whose links are searched at time index
-        :obj:`t` (:meth:`search`): every :data:`SEARCH_EVERY`-th agent of
-        each graph (by its index in its graph), in turn, so that each
-        agent is searched every :data:`SEARCH_EVERY` steps at a
-        :data:`SEARCH_EVERY`-th of the cost, and every :obj:`fresh` agent
-        (a prior's first step, where its links may allow modes its prior
-        does not single out)."""
-        index = torch.arange(anchor.numel(), device=anchor.device)
-        if graph_of is not None and anchor.numel():
-            start = index.new_full((int(graph_of.max()) + 1, ),
-                                   anchor.numel()).scatter_reduce(
-                                       0, graph_of, index, 'amin')
-            index = index - start[graph_of]
-        return (((index + t) % SEARCH_EVERY == 0) | fresh) & ~anchor
-
-    def search(self, gaussian: StepOutput, sources: SourceBeliefs, factors,
-               edge_index: Tensor, edge_attr: Tensor,
-               searched: Tensor) -> _Search:
-        r"""The search of the agents :obj:`searched` :math:`(N)` from their
-        links: candidates in :data:`SEARCH_DIRECTIONS` directions about
-        the sources of :data:`SEARCH_LINKS` of each agent's links at their
-        ranges (the rings its links allow), each moved by
-        :data:`SEARCH_STEPS` Gauss-Newton steps on the agent's links (the
-        target side of the model's
-        :meth:`~tg_nebp.models.MeasurementModel.linearize`), scored by the
-        messages of all its links (:class:`~tg_nebp.nn.conv.HybridBPConv`:
-        the exact likelihood, the sources' extrinsic beliefs integrated
-        out). The first candidate of every agent is its Gaussian
-        posterior's mean (:obj:`gaussian`). Only the scope of the factors
-        is searched (a candidate keeps the posterior's velocity or
-        heading)."""
-        mean = gaussian.mean.to(sources.state)
-        num, size = mean.shape
-        width = sources.info.size(-1)
-        dim = self.motion.layout(size).position_dim
-        # the links of the agents searched at this step only
-        kept = searched[factors.index[1]]
-        factors = factors._replace(index=factors.index[:, kept],
-                                   link=factors.link[kept],
-                                   end=factors.end[kept],
-                                   reverse=factors.reverse[kept])
-        sources = SourceBeliefs(*(part[kept] for part in sources))
-        target = factors.index[1]
-        degree = torch.bincount(target, minlength=num)
-        searched = searched & (degree > 0)
-        if not target.numel():
-            return _Search(mean.unsqueeze(1), mean.new_zeros(num, 1),
-                           searched)
-        first = torch.cumsum(degree, 0) - degree
-        ranges = self.conv.ranges(factors, edge_attr)
-        # candidate 1 + k * DIRECTIONS + d: the k-th link, direction d
-        directions = _directions(SEARCH_DIRECTIONS, dim, mean)
-        links = min(SEARCH_LINKS, int(degree.max()))
-        k = torch.arange(links, device=mean.device)
-        edge = (first.view(-1, 1) + k).clamp_max(target.numel() - 1)
-        has = k.view(1, -1) < degree.view(-1, 1)  # (N, links)
-        centers = sources.state[edge][..., :dim]  # (N, links, D)
-        ring = (centers.unsqueeze(2) + ranges[edge].view(num, links, 1, 1) *
-                directions).flatten(1, 2)  # (N, links * DIRECTIONS, D)
-        held = has.repeat_interleave(SEARCH_DIRECTIONS, 1)
-        ring = torch.where(held.unsqueeze(-1), ring,
-                           mean[:, :dim].unsqueeze(1))
-        candidates = mean.unsqueeze(1).repeat(1, ring.size(1) + 1, 1)
-        candidates[:, 1:, :dim] = ring
-        eye = torch.eye(width, dtype=mean.dtype, device=mean.device)
-        for _ in range(SEARCH_STEPS):
-            grad, curv = self.conv.target_linearization(
-                candidates, sources, factors, edge_index, edge_attr)
-            damping = 1e-3 * curv.diagonal(dim1=-2, dim2=-1).mean(
-                -1, keepdim=True).unsqueeze(-1) + 1e-9
-            step = torch.linalg.solve(curv + damping * eye,
-                                      grad.unsqueeze(-1)).squeeze(-1)
-            candidates = candidates.clone()
-            candidates[:, 1:, :width] = candidates[:, 1:, :width] + \
-                step[:, 1:]
-        scores = candidates.new_zeros(num, candidates.size(1)).index_add(
-            0, target, self.conv.log_messages(candidates, sources, factors,
-                                              edge_index, edge_attr))
-        return _Search(candidates, scores, searched)
-
-    def relocated(self, gaussian: StepOutput, search: _Search,
-                  sources: SourceBeliefs, factors, edge_index: Tensor,
-                  edge_attr: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        r"""The agents :math:`(N)` whose search's best candidate scores
-        :obj:`margin` nats above their Gaussian posterior's mean, and the
-        Gaussians of every agent after the relocations :math:`(N, S)`,
-        :math:`(N, S, S)`: a relocated agent's at that candidate, its
-        posterior's covariance plus the inverse of its links' curvature
-        there on the factors' scope (what its links alone know of it), the
-        others' their posteriors."""
-        mean, cov = gaussian.mean.to(search.candidates), gaussian.cov
-        best = search.scores.argmax(-1)
-        gain = search.scores.gather(1, best.view(-1, 1)).view(-1) - \
-            search.scores[:, 0]
-        moved = search.searched & (gain > self.margin)
-        if not bool(moved.any()):
-            return moved, mean, cov
-        size, width = mean.size(-1), sources.info.size(-1)
-        found = search.candidates.gather(
-            1, best.view(-1, 1, 1).expand(-1, 1, size)).squeeze(1)
-        _, curvature = self.conv.target_linearization(
-            found.unsqueeze(1), sources, factors, edge_index, edge_attr)
-        widened = cov.clone()
-        widened[:, :width, :width] = widened[:, :width, :width] + \
-            torch.linalg.pinv(curvature.squeeze(1), hermitian=True)
-        return (moved, torch.where(moved.view(-1, 1), found, mean),
-                torch.where(moved.view(-1, 1, 1), symmetrize(widened), cov))
-
     def settings(self) -> dict:
         return dict(self.gaussian.settings(), gaussian=type(
             self.gaussian).__name__, particles=self.num_particles,
             proposal=self.proposal, modes=self.modes, spread=self.spread,
-            margin=self.margin, bandwidth=self.bandwidth)
+            bandwidth=self.bandwidth)
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}({self.gaussian!r}, '
                 f'num_particles={self.num_particles}, '
                 f'proposal={self.proposal}, modes={self.modes}, '
-                f'spread={self.spread}, margin={self.margin})')
+                f'spread={self.spread})')
 
 
 class _Fields(NamedTuple):

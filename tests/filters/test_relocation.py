@@ -1,0 +1,84 @@
+r"""The relocation of lost agents (LinkSearch) in every Gaussian tracker:
+an agent locked on the mirror position of two anchors, when a third one
+contradicts it, is relocated at once by Gaussian BP, fixed-lag Gaussian BP
+(rejoining its window) and the Gaussian NEBP, where the same trackers
+without it stay lost; the search's candidates, settings and refusals."""
+import math
+
+import pytest
+import torch
+from scipy.stats import chi2
+
+from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, GaussianNEBP,
+                             LinkSearch, TrackingSession)
+from tg_nebp.filters.relocation import directions
+
+from helpers import gen, mirror, randomize, stream_realization
+
+
+def trackers(models):
+    return {
+        'gbp': lambda relocation: GaussianBP.recommended(
+            relocation=relocation, **models),
+        'lag3': lambda relocation: FixedLagGaussianBP.recommended(
+            lag=3, relocation=relocation, **models),
+        'gnebp': lambda relocation: randomize(GaussianNEBP.recommended(
+            **models), seed=2, scale=0.05).relocate_with(relocation)}
+
+
+@pytest.mark.parametrize('name', ['gbp', 'lag3', 'gnebp'])
+def test_every_gaussian_tracker_relocates_a_lost_agent(name):
+    data, models = mirror((-4.0, 4.0))
+    truth = data.states[0, 0, :2].double()
+    make = trackers(models)[name]
+    with torch.no_grad():
+        lost = make(None)(data)
+        found = make(LinkSearch())(data)
+    errors = (found.mean[0, :, :2] - truth).norm(dim=-1)
+    assert float((lost.mean[0, -1, :2] - truth).norm()) > 5
+    assert bool((errors[:3] > 8).all())  # two anchors cannot tell
+    assert bool((errors[3:] < 1.0).all())  # the third one decides at once
+    for t in range(3, data.num_steps):
+        error = found.mean[0, t, :2] - truth
+        nees = error @ torch.linalg.solve(found.cov[0, t, :2, :2], error)
+        assert float(nees) < chi2.ppf(0.99, 2)
+
+
+def test_a_live_session_relocates_as_the_offline_loop():
+    data, models = mirror()
+    tracker = FixedLagGaussianBP.recommended(lag=3,
+                                             relocation=LinkSearch(), **models)
+    offline = tracker(data)
+    outputs = stream_realization(TrackingSession(tracker), data)
+    assert torch.equal(torch.stack([o.mean for o in outputs], 1),
+                       offline.mean)
+
+
+def test_the_search_is_its_settings():
+    search = LinkSearch(margin=8.0, directions=6)
+    tracker = GaussianBP(relocation=search)
+    assert tracker.settings()['relocation'] == dict(
+        margin=8.0, directions=6, links=4, steps=2)
+    assert 'relocation' not in GaussianBP().settings()
+    assert search == LinkSearch(margin=8.0, directions=6)
+    assert 'LinkSearch(margin=8.0' in repr(tracker)
+    for options, match in ((dict(margin=0.0), "'margin'"),
+                           (dict(directions=0), "'directions'"),
+                           (dict(links=0), "'links'"),
+                           (dict(steps=-1), "'steps"),):
+        with pytest.raises(ValueError, match=match):
+            LinkSearch(**options)
+    with pytest.raises(TypeError, match="'relocation'"):
+        GaussianBP(relocation='search')
+
+
+@pytest.mark.parametrize('dim', [1, 2, 3])
+def test_the_directions_are_unit_vectors_spread_evenly(dim):
+    out = directions(12, dim, torch.zeros((), dtype=torch.float64))
+    assert out.shape == (12, dim)
+    torch.testing.assert_close(out.norm(dim=-1), torch.ones(
+        12, dtype=torch.float64))
+    # evenly spread: they cancel out (a lattice on the sphere nearly)
+    assert float(out.sum(0).norm()) < (1e-9 if dim < 3 else 0.5)
+    with pytest.raises(ValueError, match='1 to 3 dimensions'):
+        directions(4, 4, out)

@@ -1,0 +1,224 @@
+r"""The relocation of a lost agent: a Gaussian tracker's agent whose links
+decisively put it elsewhere than its Gaussian belief (a mirror position it
+locked onto, a wrong local optimum of its ranges) is searched for from its
+links alone and started again where they put it. A component of every
+Gaussian BP tracker (:class:`~tg_nebp.filters.GaussianBP`,
+:class:`~tg_nebp.filters.FixedLagGaussianBP`,
+:class:`~tg_nebp.filters.GaussianNEBP`: their :obj:`relocation`), and of
+:class:`~tg_nebp.filters.HybridBP`, whose particles draw about the
+search's candidates."""
+import math
+from typing import NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from tg_nebp.data.validation import check_number, check_positive_int
+from tg_nebp.nn.conv.gaussian_bp_conv import Factors
+from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv, SourceBeliefs
+from tg_nebp.utils import symmetrize
+
+__all__ = ['LinkSearch', 'Search', 'directions']
+
+
+class Search(NamedTuple):
+    r"""A step's search (:meth:`LinkSearch.search`): every agent's
+    :obj:`candidates` :math:`(N, C, S)` (the first its Gaussian posterior's
+    mean), their :obj:`scores` :math:`(N, C)` (the exact log-likelihood of
+    all its links, the sources' extrinsic beliefs integrated out), the
+    agents searched :obj:`searched` :math:`(N)` (those with links), the
+    agents :obj:`moved` :math:`(N)` and the sources the scores read
+    (:class:`~tg_nebp.nn.conv.SourceBeliefs`, one per message edge)."""
+    candidates: Tensor
+    scores: Tensor
+    searched: Tensor
+    moved: Tensor
+    sources: SourceBeliefs
+
+
+def directions(count: int, dim: int, like: Tensor) -> Tensor:
+    r""":obj:`count` unit vectors :math:`(C, D)` spread over the circle
+    (:math:`D = 2`), the sphere (:math:`D = 3`: a Fibonacci lattice) or
+    the line (:math:`D = 1`: :math:`\pm 1`), in the dtype and on the
+    device of :obj:`like`."""
+    k = torch.arange(count, dtype=like.dtype, device=like.device)
+    if dim == 1:
+        return torch.where(k % 2 == 0, 1.0, -1.0).to(like.dtype).view(-1, 1)
+    if dim == 2:
+        angle = 2 * math.pi * k / count
+        return torch.stack([angle.cos(), angle.sin()], -1)
+    if dim != 3:
+        raise ValueError(f"the search spreads directions in 1 to 3 "
+                         f"dimensions, got {dim}")
+    height = 1 - 2 * (k + 0.5) / count
+    angle = math.pi * (3 - math.sqrt(5)) * k
+    radius = (1 - height.square()).sqrt()
+    return torch.stack([radius * angle.cos(), radius * angle.sin(), height],
+                       -1)
+
+
+class LinkSearch:
+    r"""The search of every agent from its links at every step, and the
+    relocation of those whose links decisively put them elsewhere than
+    their Gaussian posterior: the multiple-hypothesis re-initialization of
+    robotics, for the agents of a Gaussian BP tracker.
+
+    Candidates in :obj:`directions` directions about the sources of
+    :obj:`links` of the agent's links, at their ranges (the rings its
+    links allow), each moved by :obj:`steps` Gauss-Newton steps on the
+    agent's links (the target side of the measurement model's
+    :meth:`~tg_nebp.models.MeasurementModel.linearize`), are scored by the
+    messages of all its links at them
+    (:meth:`HybridBPConv.log_messages
+    <tg_nebp.nn.conv.HybridBPConv.log_messages>`: the exact likelihood,
+    the sources' extrinsic beliefs integrated out), and so is the
+    posterior's mean. An agent whose best candidate scores :obj:`margin`
+    nats more is relocated: its belief starts again at that candidate
+    (:meth:`GaussianBP.reinitialized
+    <tg_nebp.filters.GaussianBP.reinitialized>`), its covariance the
+    posterior's plus the inverse of its links' curvature there on the
+    factors' scope (what its links alone know of it); the rest of the state
+    (a velocity, a heading) is the posterior's.
+
+    A posterior that fits its links as well as their noise allows is
+    beaten by :obj:`margin` nats with a probability of about
+    :math:`e^{-\mathrm{margin}}` per agent and step in the linear Gaussian
+    case (the likelihood ratio of two fits); with the default of 10 no
+    consistent agent was relocated on the validation realizations of the
+    paper's network, the robots and 3-D, and on the sparse network the
+    search relocated 16 agents of 1,000 (10 realizations, seed 11) and
+    cut the RMSE of Gaussian BP by 12 %.
+
+    Args:
+        margin (float, optional): The nats by which the best candidate must
+            beat the posterior's mean. (default: :obj:`10.0`)
+        directions (int, optional): Directions about each link's source.
+            (default: :obj:`8`)
+        links (int, optional): The links of an agent searched about, at
+            most. (default: :obj:`4`)
+        steps (int, optional): Gauss-Newton steps of every candidate.
+            (default: :obj:`2`)
+    """
+    def __init__(self, margin: float = 10.0, directions: int = 8,
+                 links: int = 4, steps: int = 2):
+        self.margin = check_number(margin, 'margin')
+        self.directions = check_positive_int(directions, 'directions')
+        self.links = check_positive_int(links, 'links')
+        self.steps = check_positive_int(steps + 1, 'steps + 1') - 1
+
+    def settings(self) -> dict:
+        return dict(margin=self.margin, directions=self.directions,
+                    links=self.links, steps=self.steps)
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}(margin={self.margin}, '
+                f'directions={self.directions}, links={self.links}, '
+                f'steps={self.steps})')
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, LinkSearch) and \
+            self.settings() == other.settings()
+
+    def search(self, conv: HybridBPConv, mean: Tensor, cov: Tensor,
+               sources: SourceBeliefs, factors: Factors, edge_index: Tensor,
+               edge_attr: Tensor, position_dim: int) -> Search:
+        r"""Every agent's candidates and their scores, and the agents to
+        relocate, from the Gaussian posterior :obj:`mean` :math:`(N, S)`
+        (its :obj:`cov` is not read) and the step's links (their
+        :obj:`factors` and :obj:`sources`, the
+        :class:`~tg_nebp.nn.conv.SourceBeliefs` of :obj:`conv`)."""
+        mean = mean.to(sources.state)
+        num, size = mean.shape
+        width = sources.info.size(-1)
+        target = factors.index[1]
+        degree = torch.bincount(target, minlength=num)
+        searched = degree > 0
+        if not target.numel():
+            none = torch.zeros_like(searched)
+            return Search(mean.unsqueeze(1), mean.new_zeros(num, 1), none,
+                          none, sources)
+        # message edges are sorted by target: each agent's are contiguous
+        first = torch.cumsum(degree, 0) - degree
+        ranges = conv.ranges(factors, edge_attr)
+        spread = directions(self.directions, position_dim, mean)
+        links = min(self.links, int(degree.max()))
+        k = torch.arange(links, device=mean.device)
+        edge = (first.view(-1, 1) + k).clamp_max(target.numel() - 1)
+        has = k.view(1, -1) < degree.view(-1, 1)  # (N, links)
+        centers = sources.state[edge][..., :position_dim]
+        ring = (centers.unsqueeze(2) + ranges[edge].view(num, links, 1, 1) *
+                spread).flatten(1, 2)  # (N, links * directions, D)
+        held = has.repeat_interleave(self.directions, 1)
+        ring = torch.where(held.unsqueeze(-1), ring,
+                           mean[:, :position_dim].unsqueeze(1))
+        candidates = mean.unsqueeze(1).repeat(1, ring.size(1) + 1, 1)
+        candidates[:, 1:, :position_dim] = ring
+        eye = torch.eye(width, dtype=mean.dtype, device=mean.device)
+        for _ in range(self.steps):
+            grad, curv = conv.target_linearization(
+                candidates, sources, factors, edge_index, edge_attr)
+            damping = 1e-3 * curv.diagonal(dim1=-2, dim2=-1).mean(
+                -1, keepdim=True).unsqueeze(-1) + 1e-9
+            step = torch.linalg.solve(curv + damping * eye,
+                                      grad.unsqueeze(-1)).squeeze(-1)
+            candidates = candidates.clone()
+            candidates[:, 1:, :width] = candidates[:, 1:, :width] + \
+                step[:, 1:]
+        scores = candidates.new_zeros(num, candidates.size(1)).index_add(
+            0, target, conv.log_messages(candidates, sources, factors,
+                                         edge_index, edge_attr))
+        gain = scores.amax(-1) - scores[:, 0]
+        return Search(candidates, scores, searched,
+                      searched & (gain > self.margin), sources)
+
+    def relocated(self, conv: HybridBPConv, search: Search, mean: Tensor,
+                  cov: Tensor, factors: Factors, edge_index: Tensor,
+                  edge_attr: Tensor) -> Tuple[Tensor, Tensor]:
+        r"""The Gaussians :math:`(N, S)`, :math:`(N, S, S)` of every agent
+        after the relocations of :obj:`search`: a moved agent's at its best
+        candidate with the posterior's covariance :obj:`cov` plus the
+        inverse of its links' curvature there on the factors' scope, the
+        others' the posterior :obj:`mean`, :obj:`cov`."""
+        moved = search.moved
+        mean = mean.to(search.candidates)
+        if not bool(moved.any()):
+            return mean, cov
+        size, width = mean.size(-1), search.sources.info.size(-1)
+        best = search.scores.argmax(-1)
+        found = search.candidates.gather(
+            1, best.view(-1, 1, 1).expand(-1, 1, size)).squeeze(1)
+        _, curvature = conv.target_linearization(
+            found.unsqueeze(1), search.sources, factors, edge_index,
+            edge_attr)
+        widened = cov.clone()
+        widened[:, :width, :width] = widened[:, :width, :width] + \
+            torch.linalg.pinv(curvature.squeeze(1), hermitian=True)
+        return (torch.where(moved.view(-1, 1), found, mean),
+                torch.where(moved.view(-1, 1, 1), symmetrize(widened), cov))
+
+
+def relocation_step(tracker, solved, edge_index: Tensor, edge_attr: Tensor,
+                    anchor: Tensor):
+    r"""A Gaussian tracker's :class:`~tg_nebp.filters.SolvedStep` with its
+    :obj:`relocation` (a :class:`LinkSearch`) applied: the search of every
+    agent, the moved agents' estimates and state started again there, the
+    :class:`Search` in the step's :obj:`search`."""
+    conv = tracker.link_conv
+    edge_index, edge_attr = edge_index.long(), edge_attr.double()
+    sources = conv.sources(solved.belief, solved.factors, solved.messages,
+                           anchor)
+    dim = tracker.motion.layout(solved.output.mean.size(-1)).position_dim
+    search = tracker.relocation.search(
+        conv, solved.output.mean, solved.output.cov, sources,
+        solved.factors, edge_index, edge_attr, dim)
+    search = search._replace(moved=search.moved & ~anchor)
+    if not bool(search.moved.any()):
+        return solved._replace(search=search)
+    mean, cov = tracker.relocation.relocated(
+        conv, search, solved.output.mean, solved.output.cov, solved.factors,
+        edge_index, edge_attr)
+    layout = tracker.motion.layout(mean.size(-1))
+    return solved._replace(
+        output=solved.output._replace(mean=layout.wrap(mean), cov=cov),
+        state=tracker.reinitialized(solved.state, search.moved, mean, cov),
+        search=search)
