@@ -1,6 +1,8 @@
 r"""Seconds per time step and peak memory of Gaussian BP, fixed-lag Gaussian
 BP (gbp-lag5: a window of 5 steps; gbp-lag5-residual: with residual
-scheduling), its learned correction and particle BP
+scheduling), its learned correction, Gaussian BP with the relocation of
+lost agents (gbp-relocation), hybrid BP (hybrid, hybrid-lag3) and particle
+BP
 on the paper's test network grown to many agents
 (Scenario.grown, the same density), each measurement in a fresh process:
 the figures of the docs' pages on Gaussian BP and Gaussian NEBP.
@@ -10,6 +12,8 @@ the figures of the docs' pages on Gaussian BP and Gaussian NEBP.
         gbp-lag5 --steps 8      # a full window from the fifth step on
     python benchmarks/gbp_scaling.py --agents 100 10000 --methods gbp \
         gnebp:paper     # a Gaussian NEBP checkpoint: a path or shipped name
+    python benchmarks/gbp_scaling.py --agents 100 1000 10000 --methods gbp \
+        gbp-relocation hybrid --steps 6
 """
 import argparse
 import json
@@ -22,7 +26,8 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
     import torch
 
     from tg_nebp.datasets import Scenario
-    from tg_nebp.filters import FixedLagGaussianBP, GaussianBP, ParticleBP
+    from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, HybridBP,
+                                 LinkSearch, ParticleBP)
     from tg_nebp.training import gaussian_nebp_from_checkpoint
 
     scenario = Scenario.load('paper_test').grown(agents).replace(
@@ -39,6 +44,10 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
         'gbp-lag5': lambda: FixedLagGaussianBP.recommended(lag=5, **models),
         'gbp-lag5-residual': lambda: FixedLagGaussianBP.recommended(
             lag=5, schedule='residual', **models),
+        'gbp-relocation': lambda: GaussianBP.recommended(
+            relocation=LinkSearch(), **models),
+        'hybrid': lambda: HybridBP.recommended(**models),
+        'hybrid-lag3': lambda: HybridBP.recommended(lag=3, **models),
         'bp': lambda: ParticleBP(1000, **models),
         'bp-recommended': lambda: ParticleBP.recommended(**models),
         'gnebp': lambda: gaussian_nebp_from_checkpoint(
