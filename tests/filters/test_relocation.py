@@ -37,8 +37,13 @@ def test_every_gaussian_tracker_relocates_a_lost_agent(name):
     errors = (found.mean[0, :, :2] - truth).norm(dim=-1)
     assert float((lost.mean[0, -1, :2] - truth).norm()) > 5
     assert bool((errors[:3] > 8).all())  # two anchors cannot tell
-    assert bool((errors[3:] < 1.0).all())  # the third one decides at once
-    for t in range(3, data.num_steps):
+    # the third anchor decides at the agent's first search after it (the
+    # agent is searched every 'every' steps), and for good
+    search = LinkSearch()
+    at = int((errors < 1.0).nonzero()[0, 0])
+    assert 3 <= at < 3 + search.every
+    assert bool((errors[at:] < 1.0).all())
+    for t in range(at, data.num_steps):
         error = found.mean[0, t, :2] - truth
         nees = error @ torch.linalg.solve(found.cov[0, t, :2, :2], error)
         assert float(nees) < chi2.ppf(0.99, 2)
@@ -58,14 +63,15 @@ def test_the_search_is_its_settings():
     search = LinkSearch(margin=8.0, directions=6)
     tracker = GaussianBP(relocation=search)
     assert tracker.settings()['relocation'] == dict(
-        margin=8.0, directions=6, links=4, steps=2)
+        margin=8.0, directions=6, links=4, steps=2, every=4)
     assert 'relocation' not in GaussianBP().settings()
     assert search == LinkSearch(margin=8.0, directions=6)
     assert 'LinkSearch(margin=8.0' in repr(tracker)
     for options, match in ((dict(margin=0.0), "'margin'"),
                            (dict(directions=0), "'directions'"),
                            (dict(links=0), "'links'"),
-                           (dict(steps=-1), "'steps"),):
+                           (dict(steps=-1), "'steps"),
+                           (dict(every=0), "'every'")):
         with pytest.raises(ValueError, match=match):
             LinkSearch(**options)
     with pytest.raises(TypeError, match="'relocation'"):

@@ -26,8 +26,8 @@ from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, WHOLE_SEQUENCE,
                                           realizations_of, scenario_of)
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
-                             GaussianBP, HybridBP, ParticleBP, Smoothed,
-                             Tracker)
+                             GaussianBP, HybridBP, LinkSearch, ParticleBP,
+                             Smoothed, Tracker)
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
@@ -184,7 +184,7 @@ def compare_methods(scenario: Scenario,
             lambda m=measurement: Smoothed(FixedLagGaussianBP.recommended(
                 lag=lag, motion=motion, measurement=m)))
     methods[f'hybrid {own.name}'] = (
-        'hybrid BP over Gaussian BP, recommended (K = 100)',
+        'hybrid BP over Gaussian BP, recommended (K = 50)',
         lambda: HybridBP.recommended(motion=motion, measurement=own))
     if lag is not None:
         methods[f'hybrid{suffix} {own.name}'] = (
@@ -212,8 +212,8 @@ def compare_methods(scenario: Scenario,
         if base == 'gaussian':  # the learned correction inside hybrid BP
             methods[f'hybrid-{kind} {path.name} {_file_hash(path)}'] = (
                 f'hybrid BP over Gaussian NEBP from {path}',
-                lambda path=path: HybridBP(tracker_from_checkpoint(path),
-                                           **HYBRID_RECOMMENDED))
+                lambda path=path: HybridBP(tracker_from_checkpoint(
+                    path).relocate_with(LinkSearch()), **HYBRID_RECOMMENDED))
     return methods
 
 

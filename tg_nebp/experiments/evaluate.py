@@ -16,8 +16,8 @@ from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
-                             GaussianBP, HybridBP, ParticleBP, Smoothed,
-                             Tracker)
+                             GaussianBP, HybridBP, LinkSearch, ParticleBP,
+                             Smoothed, Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -339,13 +339,16 @@ def _hybrid(scenario, models: dict, checkpoint: Optional[str],
                     f"NEBP checkpoint runs it as trained (one step, its "
                     f"learned inflation, its likelihood)")
         gaussian = checked_models(gaussian_nebp_from_checkpoint(
-            checkpoint, **given), scenario, checkpoint)
+            checkpoint, **given), scenario, checkpoint).relocate_with(
+                LinkSearch())
         key = 'hybrid-gnebp'
     elif lag is not None and lag > 1:
-        gaussian = FixedLagGaussianBP.recommended(lag=lag, **given, **models)
+        gaussian = FixedLagGaussianBP.recommended(
+            lag=lag, relocation=LinkSearch(), **given, **models)
         key = 'hybrid' + lag_key(lag)
     else:
-        gaussian = GaussianBP.recommended(**given, **models)
+        gaussian = GaussianBP.recommended(relocation=LinkSearch(), **given,
+                                          **models)
         key = 'hybrid'
     return HybridBP(gaussian, **{**HYBRID_RECOMMENDED,
                                  **_given(num_particles=particles)}), key

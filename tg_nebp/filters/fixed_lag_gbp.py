@@ -319,7 +319,8 @@ class FixedLagGaussianBP(GaussianBP):
                                                        messages, anchor))
         if self.relocation is None:
             return solved
-        return relocation_step(self, solved, edge_index, edge_attr, anchor)
+        return relocation_step(self, solved, edge_index, edge_attr, anchor,
+                               state.fresh, graph_of, t)
 
     def _time_steps(self, state: WindowState,
                     motion: Optional[MotionModel]) -> Tensor:

@@ -368,7 +368,8 @@ class GaussianBP(Tracker):
             belief, factors, messages)
         if self.relocation is None:
             return solved
-        return relocation_step(self, solved, edge_index, edge_attr, anchor)
+        return relocation_step(self, solved, edge_index, edge_attr, anchor,
+                               state.fresh, graph_of, t)
 
     def reinitialized(self, state: GaussianState, nodes: Tensor,
                       mean: Tensor, cov: Tensor) -> GaussianState:

@@ -44,7 +44,7 @@ PARTICLE_FIELDS = dict(
 SEARCH_MODES = 4
 
 #: The configuration of :meth:`HybridBP.recommended` (see its docstring).
-HYBRID_RECOMMENDED = dict(num_particles=100, proposal=0.7, modes=0.2,
+HYBRID_RECOMMENDED = dict(num_particles=50, proposal=0.7, modes=0.2,
                           spread=1.5)
 
 
@@ -180,7 +180,7 @@ class HybridBP(Tracker):
             (default: :obj:`GaussianBP.recommended()` with :obj:`motion`,
             :obj:`measurement` and a :class:`~tg_nebp.filters.LinkSearch`)
         num_particles (int, optional): :math:`K` per agent.
-            (default: :obj:`100`)
+            (default: :obj:`50`)
         proposal (float, optional): The share of particles drawn about the
             Gaussian posterior, in :math:`(0, 1)`. (default: :obj:`0.7`)
         modes (float, optional): The share drawn about the search's best
@@ -209,7 +209,7 @@ class HybridBP(Tracker):
           :class:`~tg_nebp.filters.StepOutput`
     """
     def __init__(self, gaussian: Optional[GaussianBP] = None,
-                 num_particles: int = 100, proposal: float = 0.7,
+                 num_particles: int = 50, proposal: float = 0.7,
                  modes: float = 0.2, spread: float = 1.5,
                  bandwidth: Optional[float] = None,
                  chunk_size: Optional[int] = None,
@@ -464,7 +464,7 @@ class HybridBP(Tracker):
         if search is None:  # no search: no modes, nobody moved
             search = Search(mean.unsqueeze(1), mean.new_zeros(
                 mean.size(0), 1), torch.zeros_like(anchor),
-                torch.zeros_like(anchor), None)
+                torch.zeros_like(anchor), None, None)
         moved = search.moved
         count = min(SEARCH_MODES, search.candidates.size(1))
         best = search.scores.topk(count, -1).indices

@@ -18,7 +18,13 @@ from tg_nebp.nn.conv.gaussian_bp_conv import Factors
 from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv, SourceBeliefs
 from tg_nebp.utils import symmetrize
 
-__all__ = ['LinkSearch', 'Search', 'directions']
+__all__ = ['LinkSearch', 'Search', 'directions', 'UNIQUE_DISTANCE']
+
+#: A candidate farther than this many standard deviations of what the
+#: links alone know at the best one (the Mahalanobis distance in their
+#: curvature) is another mode: a relocation needs the best to beat every
+#: other mode by the search's margin too.
+UNIQUE_DISTANCE = 3.0
 
 
 class Search(NamedTuple):
@@ -26,14 +32,17 @@ class Search(NamedTuple):
     :obj:`candidates` :math:`(N, C, S)` (the first its Gaussian posterior's
     mean), their :obj:`scores` :math:`(N, C)` (the exact log-likelihood of
     all its links, the sources' extrinsic beliefs integrated out), the
-    agents searched :obj:`searched` :math:`(N)` (those with links), the
-    agents :obj:`moved` :math:`(N)` and the sources the scores read
-    (:class:`~tg_nebp.nn.conv.SourceBeliefs`, one per message edge)."""
+    agents searched :obj:`searched` :math:`(N)` (those due with links), the
+    agents :obj:`moved` :math:`(N)`, the sources of the step's message
+    edges (:class:`~tg_nebp.nn.conv.SourceBeliefs`, one per message edge)
+    and the curvature :math:`(N, R, R)` of every agent's links at its best
+    candidate (what they alone know of it there)."""
     candidates: Tensor
     scores: Tensor
     searched: Tensor
     moved: Tensor
     sources: SourceBeliefs
+    curvature: Tensor
 
 
 def directions(count: int, dim: int, like: Tensor) -> Tensor:
@@ -72,8 +81,14 @@ class LinkSearch:
     (:meth:`HybridBPConv.log_messages
     <tg_nebp.nn.conv.HybridBPConv.log_messages>`: the exact likelihood,
     the sources' extrinsic beliefs integrated out), and so is the
-    posterior's mean. An agent whose best candidate scores :obj:`margin`
-    nats more is relocated: its belief starts again at that candidate
+    posterior's mean. An agent is relocated where its best candidate
+    scores :obj:`margin` nats more than the posterior's mean and than
+    every candidate of another mode (farther than
+    :data:`UNIQUE_DISTANCE` standard deviations of what the links know
+    there), its links measuring every direction there: where they leave
+    a ring, a line or a mirror open, the agent is not relocated (the
+    particles of :class:`~tg_nebp.filters.HybridBP` keep the hypotheses).
+    A relocated agent's belief starts again at that candidate
     (:meth:`GaussianBP.reinitialized
     <tg_nebp.filters.GaussianBP.reinitialized>`), its covariance the
     posterior's plus the inverse of its links' curvature there on the
@@ -100,52 +115,77 @@ class LinkSearch:
             (default: :obj:`2`)
     """
     def __init__(self, margin: float = 10.0, directions: int = 8,
-                 links: int = 4, steps: int = 2):
+                 links: int = 4, steps: int = 2, every: int = 4):
         self.margin = check_number(margin, 'margin')
         self.directions = check_positive_int(directions, 'directions')
         self.links = check_positive_int(links, 'links')
         self.steps = check_positive_int(steps + 1, 'steps + 1') - 1
+        self.every = check_positive_int(every, 'every')
 
     def settings(self) -> dict:
         return dict(margin=self.margin, directions=self.directions,
-                    links=self.links, steps=self.steps)
+                    links=self.links, steps=self.steps, every=self.every)
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}(margin={self.margin}, '
                 f'directions={self.directions}, links={self.links}, '
-                f'steps={self.steps})')
+                f'steps={self.steps}, every={self.every})')
 
     def __eq__(self, other) -> bool:
         return isinstance(other, LinkSearch) and \
             self.settings() == other.settings()
 
-    def search(self, conv: HybridBPConv, mean: Tensor, cov: Tensor,
+    def due(self, fresh: Tensor, anchor: Tensor, graph_of: Optional[Tensor],
+            t: int) -> Tensor:
+        r"""The agents :math:`(N)` searched at time index :obj:`t`: every
+        :obj:`every`-th agent of each graph (by its index in its graph) in
+        turn, so that each is searched every :obj:`every` steps at that
+        fraction of the cost (and a batch searches what each graph does
+        alone), and every :obj:`fresh` one (a prior's first step)."""
+        index = torch.arange(anchor.numel(), device=anchor.device)
+        if graph_of is not None and anchor.numel():
+            start = index.new_full((int(graph_of.max()) + 1, ),
+                                   anchor.numel()).scatter_reduce(
+                                       0, graph_of, index, 'amin')
+            index = index - start[graph_of]
+        return (((index + t) % self.every == 0) | fresh) & ~anchor
+
+    def search(self, conv: HybridBPConv, mean: Tensor,
                sources: SourceBeliefs, factors: Factors, edge_index: Tensor,
-               edge_attr: Tensor, position_dim: int) -> Search:
-        r"""Every agent's candidates and their scores, and the agents to
-        relocate, from the Gaussian posterior :obj:`mean` :math:`(N, S)`
-        (its :obj:`cov` is not read) and the step's links (their
+               edge_attr: Tensor, position_dim: int, due: Tensor) -> Search:
+        r"""The candidates of the agents :obj:`due` :math:`(N)` and their
+        scores, and the agents to relocate, from the Gaussian posterior
+        :obj:`mean` :math:`(N, S)` and the step's links (their
         :obj:`factors` and :obj:`sources`, the
         :class:`~tg_nebp.nn.conv.SourceBeliefs` of :obj:`conv`)."""
         mean = mean.to(sources.state)
         num, size = mean.shape
         width = sources.info.size(-1)
-        target = factors.index[1]
+        # the message edges into the agents searched (sorted by target,
+        # each agent's contiguous)
+        kept = due[factors.index[1]]
+        into = factors._replace(index=factors.index[:, kept],
+                                link=factors.link[kept],
+                                end=factors.end[kept],
+                                reverse=factors.reverse[kept])
+        sourced = SourceBeliefs(*(part[kept] for part in sources))
+        target = into.index[1]
         degree = torch.bincount(target, minlength=num)
         searched = degree > 0
+        none = torch.zeros_like(searched)
+        eye = torch.eye(width, dtype=mean.dtype, device=mean.device)
         if not target.numel():
-            none = torch.zeros_like(searched)
             return Search(mean.unsqueeze(1), mean.new_zeros(num, 1), none,
-                          none, sources)
-        # message edges are sorted by target: each agent's are contiguous
+                          none, sources, eye.expand(num, width, width))
+        pairs = conv.pairs(into)
         first = torch.cumsum(degree, 0) - degree
-        ranges = conv.ranges(factors, edge_attr)
+        ranges = conv.ranges(into, edge_attr, pairs)
         spread = directions(self.directions, position_dim, mean)
         links = min(self.links, int(degree.max()))
         k = torch.arange(links, device=mean.device)
         edge = (first.view(-1, 1) + k).clamp_max(target.numel() - 1)
         has = k.view(1, -1) < degree.view(-1, 1)  # (N, links)
-        centers = sources.state[edge][..., :position_dim]
+        centers = sourced.state[edge][..., :position_dim]
         ring = (centers.unsqueeze(2) + ranges[edge].view(num, links, 1, 1) *
                 spread).flatten(1, 2)  # (N, links * directions, D)
         held = has.repeat_interleave(self.directions, 1)
@@ -153,10 +193,9 @@ class LinkSearch:
                            mean[:, :position_dim].unsqueeze(1))
         candidates = mean.unsqueeze(1).repeat(1, ring.size(1) + 1, 1)
         candidates[:, 1:, :position_dim] = ring
-        eye = torch.eye(width, dtype=mean.dtype, device=mean.device)
+        linearized = (sourced, into, edge_index, edge_attr, pairs)
         for _ in range(self.steps):
-            grad, curv = conv.target_linearization(
-                candidates, sources, factors, edge_index, edge_attr)
+            grad, curv = conv.target_linearization(candidates, *linearized)
             damping = 1e-3 * curv.diagonal(dim1=-2, dim2=-1).mean(
                 -1, keepdim=True).unsqueeze(-1) + 1e-9
             step = torch.linalg.solve(curv + damping * eye,
@@ -165,15 +204,32 @@ class LinkSearch:
             candidates[:, 1:, :width] = candidates[:, 1:, :width] + \
                 step[:, 1:]
         scores = candidates.new_zeros(num, candidates.size(1)).index_add(
-            0, target, conv.log_messages(candidates, sources, factors,
-                                         edge_index, edge_attr))
-        gain = scores.amax(-1) - scores[:, 0]
-        return Search(candidates, scores, searched,
-                      searched & (gain > self.margin), sources)
+            0, target, conv.log_messages(candidates, *linearized))
+        best = scores.argmax(-1)
+        found = candidates.gather(1, best.view(-1, 1, 1).expand(
+            -1, 1, size))
+        # what the links alone know of the agent there: a relocation needs
+        # them to single out one place (no other mode close in score, and
+        # every direction measured; a ring, a line of links or a mirror
+        # left open is a hypothesis the particles keep, not a relocation)
+        _, curvature = conv.target_linearization(found, *linearized)
+        curvature = curvature.squeeze(1)
+        offset = (candidates[..., :width] - found[..., :width])
+        distance = (offset.unsqueeze(-2) @ curvature.unsqueeze(1) @
+                    offset.unsqueeze(-1)).view(scores.shape)
+        other = torch.where(distance > UNIQUE_DISTANCE**2, scores,
+                            -math.inf).amax(-1)
+        top = scores.gather(1, best.view(-1, 1)).view(-1)
+        eigenvalues = torch.linalg.eigvalsh(curvature)
+        measured = eigenvalues[:, 0] > 1e-6 * eigenvalues[:, -1].clamp_min(
+            torch.finfo(eigenvalues.dtype).tiny)
+        moved = (searched & (top - scores[:, 0] > self.margin) &
+                 (top - other > self.margin) & measured)
+        return Search(candidates, scores, searched, moved, sources,
+                      curvature)
 
-    def relocated(self, conv: HybridBPConv, search: Search, mean: Tensor,
-                  cov: Tensor, factors: Factors, edge_index: Tensor,
-                  edge_attr: Tensor) -> Tuple[Tensor, Tensor]:
+    def relocated(self, search: Search, mean: Tensor, cov: Tensor
+                  ) -> Tuple[Tensor, Tensor]:
         r"""The Gaussians :math:`(N, S)`, :math:`(N, S, S)` of every agent
         after the relocations of :obj:`search`: a moved agent's at its best
         candidate with the posterior's covariance :obj:`cov` plus the
@@ -183,40 +239,39 @@ class LinkSearch:
         mean = mean.to(search.candidates)
         if not bool(moved.any()):
             return mean, cov
-        size, width = mean.size(-1), search.sources.info.size(-1)
+        size, width = mean.size(-1), search.curvature.size(-1)
         best = search.scores.argmax(-1)
         found = search.candidates.gather(
             1, best.view(-1, 1, 1).expand(-1, 1, size)).squeeze(1)
-        _, curvature = conv.target_linearization(
-            found.unsqueeze(1), search.sources, factors, edge_index,
-            edge_attr)
         widened = cov.clone()
         widened[:, :width, :width] = widened[:, :width, :width] + \
-            torch.linalg.pinv(curvature.squeeze(1), hermitian=True)
+            torch.linalg.pinv(search.curvature, hermitian=True)
         return (torch.where(moved.view(-1, 1), found, mean),
                 torch.where(moved.view(-1, 1, 1), symmetrize(widened), cov))
 
 
 def relocation_step(tracker, solved, edge_index: Tensor, edge_attr: Tensor,
-                    anchor: Tensor):
+                    anchor: Tensor, fresh: Tensor,
+                    graph_of: Optional[Tensor], t: int):
     r"""A Gaussian tracker's :class:`~tg_nebp.filters.SolvedStep` with its
-    :obj:`relocation` (a :class:`LinkSearch`) applied: the search of every
-    agent, the moved agents' estimates and state started again there, the
-    :class:`Search` in the step's :obj:`search`."""
+    :obj:`relocation` (a :class:`LinkSearch`) applied at time index
+    :obj:`t`: the search of the agents due (:meth:`LinkSearch.due`; the
+    step's :obj:`fresh` nodes among them), the moved agents' estimates
+    and state started again there, the :class:`Search` in the step's
+    :obj:`search`."""
     conv = tracker.link_conv
     edge_index, edge_attr = edge_index.long(), edge_attr.double()
     sources = conv.sources(solved.belief, solved.factors, solved.messages,
                            anchor)
     dim = tracker.motion.layout(solved.output.mean.size(-1)).position_dim
-    search = tracker.relocation.search(
-        conv, solved.output.mean, solved.output.cov, sources,
-        solved.factors, edge_index, edge_attr, dim)
-    search = search._replace(moved=search.moved & ~anchor)
+    relocation = tracker.relocation
+    search = relocation.search(
+        conv, solved.output.mean, sources, solved.factors, edge_index,
+        edge_attr, dim, relocation.due(fresh, anchor, graph_of, t))
     if not bool(search.moved.any()):
         return solved._replace(search=search)
-    mean, cov = tracker.relocation.relocated(
-        conv, search, solved.output.mean, solved.output.cov, solved.factors,
-        edge_index, edge_attr)
+    mean, cov = relocation.relocated(search, solved.output.mean,
+                                     solved.output.cov)
     layout = tracker.motion.layout(mean.size(-1))
     return solved._replace(
         output=solved.output._replace(mean=layout.wrap(mean), cov=cov),

@@ -138,10 +138,20 @@ class HybridBPConv(MessagePassing):
                                        mean)
         return SourceBeliefs(state, info, symmetrize(cov), known)
 
-    def ranges(self, factors: Factors, edge_attr: Tensor) -> Tensor:
+    @staticmethod
+    def pairs(factors: Factors) -> Tuple[Tensor, Tensor]:
+        r"""Every (message edge, link) pair of the same factor, as two index
+        vectors: a message edge reads each of its factor's links (the two
+        ranges of a pair). The methods below compute them unless given
+        (:obj:`pairs`), as a caller that evaluates many candidates on one
+        step's factors passes them once."""
+        return _pairs(factors)
+
+    def ranges(self, factors: Factors, edge_attr: Tensor,
+               pairs: Optional[Tuple[Tensor, Tensor]] = None) -> Tensor:
         r"""Every message edge's range :math:`(M)`: the mean first feature
         (the range) of its factor's links."""
-        edge, link = _pairs(factors)
+        edge, link = pairs or _pairs(factors)
         count = factors.index.size(1)
         total = edge_attr.new_zeros(count).index_add(0, edge,
                                                      edge_attr[link, 0])
@@ -180,12 +190,15 @@ class HybridBPConv(MessagePassing):
 
     def log_messages(self, particles: Tensor, sources: SourceBeliefs,
                      factors: Factors, edge_index: Tensor,
-                     edge_attr: Tensor) -> Tensor:
+                     edge_attr: Tensor,
+                     pairs: Optional[Tuple[Tensor, Tensor]] = None
+                     ) -> Tensor:
         r"""The log-message :math:`(M, K)` of every message edge of
         :obj:`factors` at its target's particles."""
+        pairs = pairs or _pairs(factors)
         if self.rank_one:
             value, score, weight, unit = self._range_terms(
-                particles, sources, factors, edge_index, edge_attr)
+                particles, sources, factors, edge_attr, pairs)
             spread = ((unit.unsqueeze(-2) @ sources.cov.unsqueeze(1)) @
                       unit.unsqueeze(-1)).view(unit.shape[:2])
             grows = 1 + weight * spread
@@ -196,7 +209,7 @@ class HybridBPConv(MessagePassing):
         out_l = particles.new_zeros(count, num)
         out_g = particles.new_zeros(count, num, width)
         out_w = particles.new_zeros(count, num, width, width)
-        pair_edge, pair_link = _pairs(factors)
+        pair_edge, pair_link = pairs
         chunk = self.chunk_size or max(pair_link.numel(), 1)
         for start in range(0, pair_link.numel(), chunk):
             edge = pair_edge[start:start + chunk]
@@ -211,7 +224,8 @@ class HybridBPConv(MessagePassing):
 
     def target_linearization(self, particles: Tensor,
                              sources: SourceBeliefs, factors: Factors,
-                             edge_index: Tensor, edge_attr: Tensor
+                             edge_index: Tensor, edge_attr: Tensor,
+                             pairs: Optional[Tuple[Tensor, Tensor]] = None
                              ) -> Tuple[Tensor, Tensor]:
         r"""The gradient :math:`(N, K, R)` and curvature :math:`(N, K, R,
         R)` of every agent's links' log-likelihood with respect to its own
@@ -224,16 +238,17 @@ class HybridBPConv(MessagePassing):
         grad = particles.new_zeros(num_nodes, num, width)
         curv = particles.new_zeros(num_nodes, num, width, width)
         target = factors.index[1]
+        pairs = pairs or _pairs(factors)
         if self.rank_one:
             _, score, weight, unit = self._range_terms(
-                particles, sources, factors, edge_index, edge_attr)
+                particles, sources, factors, edge_attr, pairs, value=False)
             # d grows with the target's position against u (u: to the
             # source)
             grad = grad.index_add(0, target, -score.unsqueeze(-1) * unit)
             return grad, curv.index_add(
                 0, target, weight.view(weight.shape + (1, 1)) *
                 unit.unsqueeze(-1) * unit.unsqueeze(-2))
-        pair_edge, pair_link = _pairs(factors)
+        pair_edge, pair_link = pairs
         chunk = self.chunk_size or max(pair_link.numel(), 1)
         for start in range(0, pair_link.numel(), chunk):
             edge = pair_edge[start:start + chunk]
@@ -247,12 +262,13 @@ class HybridBPConv(MessagePassing):
         return grad, curv
 
     def _range_terms(self, particles: Tensor, sources: SourceBeliefs,
-                     factors: Factors, edge_index: Tensor,
-                     edge_attr: Tensor):
+                     factors: Factors, edge_attr: Tensor,
+                     pairs: Tuple[Tensor, Tensor], value: bool = True):
         # a range model's terms per message edge at its target's particles
-        # (M, K): the log-likelihood, score and robust weight of its links
-        # at the distance to the source's extrinsic mean (summed over the
-        # factor's links), and the unit vectors (M, K, R) to the source
+        # (M, K): the log-likelihood (zero without 'value'), score and
+        # robust weight of its links at the distance to the source's
+        # extrinsic mean (summed over the factor's links), and the unit
+        # vectors (M, K, R) to the source
         width = sources.info.size(-1)
         offset = (sources.state[:, :width].unsqueeze(1) -
                   particles[factors.index[1], :, :width])
@@ -260,20 +276,22 @@ class HybridBPConv(MessagePassing):
         unit = offset / distance.clamp_min(
             torch.finfo(offset.dtype).tiny).unsqueeze(-1)
         count, num = distance.shape
-        value = distance.new_zeros(count, num)
-        score, weight = torch.zeros_like(value), torch.zeros_like(value)
-        pair_edge, pair_link = _pairs(factors)
+        total = distance.new_zeros(count, num)
+        score, weight = torch.zeros_like(total), torch.zeros_like(total)
+        pair_edge, pair_link = pairs
         chunk = self.chunk_size or max(pair_link.numel(), 1)
         for start in range(0, pair_link.numel(), chunk):
             edge = pair_edge[start:start + chunk]
             z = edge_attr[pair_link[start:start + chunk]]
             at = distance[edge]
-            value = value.index_add(
-                0, edge, self.measurement.log_likelihood_of_distance(z, at))
+            if value:
+                total = total.index_add(
+                    0, edge, self.measurement.log_likelihood_of_distance(
+                        z, at))
             s, w = self.measurement.robust_weights(z, at)
             score = score.index_add(0, edge, s)
             weight = weight.index_add(0, edge, w)
-        return value, score, weight, unit
+        return total, score, weight, unit
 
     def _linearized(self, particles: Tensor, sources: SourceBeliefs,
                     factors: Factors, edge: Tensor, link: Tensor,
