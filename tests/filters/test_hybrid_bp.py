@@ -17,7 +17,7 @@ from torch_geometric.data import Batch
 from tg_nebp.filters import (CentralizedIEKF, FixedLagGaussianBP, GaussianBP,
                              GaussianNEBP, HybridBP)
 from tg_nebp.filters import silverman_bandwidth
-from tg_nebp.models import ConstantVelocity, GaussianRange
+from tg_nebp.models import ConstantVelocity
 from tg_nebp.utils import weighted_moments
 
 from helpers import (gen, linear_kalman_filter, linear_offset_model,

@@ -3,7 +3,6 @@ an agent locked on the mirror position of two anchors, when a third one
 contradicts it, is relocated at once by Gaussian BP, fixed-lag Gaussian BP
 (rejoining its window) and the Gaussian NEBP, where the same trackers
 without it stay lost; the search's candidates, settings and refusals."""
-import math
 
 import pytest
 import torch
@@ -13,7 +12,7 @@ from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, GaussianNEBP,
                              LinkSearch, TrackingSession)
 from tg_nebp.filters.relocation import directions
 
-from helpers import gen, mirror, randomize, stream_realization
+from helpers import mirror, randomize, stream_realization
 
 
 def trackers(models):

@@ -12,7 +12,7 @@ from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
                           SolvedStep)
 from .gaussian_nebp import GaussianNEBP
 from .fixed_lag_gbp import FixedLagGaussianBP, WindowState
-from .relocation import LinkSearch
+from .relocation import LinkSearch, SearchResult
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import AgentPrior, AnchorAt, TrackingSession
 from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
@@ -34,6 +34,7 @@ __all__ = [
     'HybridBP',
     'HYBRID_RECOMMENDED',
     'LinkSearch',
+    'SearchResult',
     'SolvedStep',
     'PartitionedGaussianBP',
     'TrackingSession',

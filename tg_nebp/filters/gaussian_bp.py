@@ -12,7 +12,8 @@ from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv)
-from tg_nebp.filters.relocation import LinkSearch, Search, relocation_step
+from tg_nebp.filters.relocation import (LinkSearch, SearchResult,
+                                        relocation_step)
 from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv
 from tg_nebp.utils import symmetrize
 
@@ -98,14 +99,14 @@ class SolvedStep(NamedTuple):
     links): what a method that reads Gaussian BP's messages (the sources'
     extrinsic beliefs) needs of the step; and the tracker's
     :obj:`relocation` search of the step (a
-    :class:`~tg_nebp.filters.relocation.Search`; :obj:`None` without
+    :class:`~tg_nebp.filters.SearchResult`; :obj:`None` without
     one)."""
     output: StepOutput
     state: Any
     belief: GaussianBelief
     factors: Factors
     messages: Optional[tuple]
-    search: Optional[Search] = None
+    search: Optional[SearchResult] = None
 
 
 class GaussianBP(Tracker):
@@ -282,8 +283,9 @@ class GaussianBP(Tracker):
                       generator=None) -> GaussianState:
         r"""The state before the first step of the nodes of :obj:`data`
         (its :obj:`prior_mean`, :obj:`prior_cov` and :obj:`anchor` are
-        read): the prior in float64 (its triangles averaged), every node :obj:`fresh` (a given
-        prior: not inflated before its first prediction), and the
+        read): the prior in float64 (its triangles averaged), every node
+        :obj:`fresh` (a given prior: not inflated before its first
+        prediction), and the
         :meth:`initial_memory`. A prior whose prediction is singular is
         refused (:func:`~tg_nebp.gaussian.check_predicted_prior`). No
         draws."""

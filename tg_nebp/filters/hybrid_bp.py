@@ -12,11 +12,11 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.fixed_lag_gbp import FixedLagGaussianBP
-from tg_nebp.filters.gaussian_bp import GaussianBP, SolvedStep
+from tg_nebp.filters.gaussian_bp import GaussianBP
 from tg_nebp.filters.particle_bp import (Generators, _check_prediction,
                                          _draw, _nodes_per_graph,
                                          sample_gaussian)
-from tg_nebp.filters.relocation import LinkSearch, Search
+from tg_nebp.filters.relocation import LinkSearch, SearchResult
 from tg_nebp.filters.resampling import silverman_bandwidth
 from tg_nebp.filters.state import StateField, check_state
 from tg_nebp.filters.tracker import StepOutput, Tracker
@@ -43,7 +43,8 @@ PARTICLE_FIELDS = dict(
 #: The best candidates of a search that the proposal draws about.
 SEARCH_MODES = 4
 
-#: The configuration of :meth:`HybridBP.recommended` (see its docstring).
+#: The configuration of :meth:`~tg_nebp.filters.HybridBP.recommended` (see
+#: its docstring).
 HYBRID_RECOMMENDED = dict(num_particles=50, proposal=0.7, modes=0.2,
                           spread=1.5)
 
@@ -55,7 +56,6 @@ def _state_type(base: type) -> type:
     fields = list(base._fields) + list(PARTICLE_FIELDS)
     state = NamedTuple(f'Hybrid{base.__name__}', [(f, Any) for f in fields])
     state.FIELDS = dict(base.FIELDS, **PARTICLE_FIELDS)
-    state.BASE = base
     return state
 
 
@@ -145,7 +145,7 @@ class HybridBP(Tracker):
     3. :math:`K` new particles are drawn from the mixture :math:`q` of
        the Gaussian posterior widened by :math:`c` (:obj:`spread`) with
        weight :obj:`proposal`, the same Gaussian about each of the
-       :data:`SEARCH_MODES` best candidates of the search with weight
+       ``SEARCH_MODES`` (4) best candidates of the search with weight
        :obj:`modes` (the other hypotheses its links allow), and the prior
        density
        :math:`\hat{p}`, weighted :math:`\hat{p}(\mathbf{x}) /
@@ -256,7 +256,7 @@ class HybridBP(Tracker):
         <tg_nebp.filters.GaussianBP.recommended>`, or with a :obj:`lag`
         of more than one step over
         :meth:`FixedLagGaussianBP.recommended()
-        <tg_nebp.filters.FixedLagGaussianBP.recommended>` (its filtered
+        <tg_nebp.filters.GaussianBP.recommended>` (its filtered
         estimates); :obj:`motion` and :obj:`measurement` among the
         :obj:`overrides` go to that tracker, the others replace the
         hybrid's own settings. Both trackers relocate lost agents
@@ -300,7 +300,7 @@ class HybridBP(Tracker):
     def check_state(self, state, anchor: Tensor, state_size: int,
                     dtype: torch.dtype) -> Dict[str, int]:
         r"""The Gaussian tracker's checks of its part, the particle
-        fields' (:data:`PARTICLE_FIELDS`), and :math:`K` particles per
+        fields' (``PARTICLE_FIELDS``), and :math:`K` particles per
         node."""
         base, particles = self._split(state)
         sizes = self.gaussian.check_state(base, anchor, state_size, dtype)
@@ -445,7 +445,7 @@ class HybridBP(Tracker):
         return _Prior(centers, log_weights, lower, cloud)
 
     def _proposed(self, gaussian: StepOutput, prior: _Prior,
-                  search: Optional[Search], anchor: Tensor,
+                  search: Optional[SearchResult], anchor: Tensor,
                   generator: Generators, counts: Optional[List[int]]
                   ) -> Tuple[Tensor, Tensor]:
         # K draws per agent from q: the Gaussian posterior widened (share
@@ -462,7 +462,7 @@ class HybridBP(Tracker):
         lower = torch.where(usable.view(-1, 1, 1), lower, eye)
         mean = gaussian.mean.to(prior.centers)
         if search is None:  # no search: no modes, nobody moved
-            search = Search(mean.unsqueeze(1), mean.new_zeros(
+            search = SearchResult(mean.unsqueeze(1), mean.new_zeros(
                 mean.size(0), 1), torch.zeros_like(anchor),
                 torch.zeros_like(anchor), None, None)
         moved = search.moved

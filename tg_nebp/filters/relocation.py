@@ -18,7 +18,7 @@ from tg_nebp.nn.conv.gaussian_bp_conv import Factors
 from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv, SourceBeliefs
 from tg_nebp.utils import symmetrize
 
-__all__ = ['LinkSearch', 'Search', 'directions', 'UNIQUE_DISTANCE']
+__all__ = ['LinkSearch', 'SearchResult', 'directions', 'UNIQUE_DISTANCE']
 
 #: A candidate farther than this many standard deviations of what the
 #: links alone know at the best one (the Mahalanobis distance in their
@@ -27,7 +27,7 @@ __all__ = ['LinkSearch', 'Search', 'directions', 'UNIQUE_DISTANCE']
 UNIQUE_DISTANCE = 3.0
 
 
-class Search(NamedTuple):
+class SearchResult(NamedTuple):
     r"""A step's search (:meth:`LinkSearch.search`): every agent's
     :obj:`candidates` :math:`(N, C, S)` (the first its Gaussian posterior's
     mean), their :obj:`scores` :math:`(N, C)` (the exact log-likelihood of
@@ -84,7 +84,7 @@ class LinkSearch:
     posterior's mean. An agent is relocated where its best candidate
     scores :obj:`margin` nats more than the posterior's mean and than
     every candidate of another mode (farther than
-    :data:`UNIQUE_DISTANCE` standard deviations of what the links know
+    ``UNIQUE_DISTANCE`` (3) standard deviations of what the links know
     there), its links measuring every direction there: where they leave
     a ring, a line or a mirror open, the agent is not relocated (the
     particles of :class:`~tg_nebp.filters.HybridBP` keep the hypotheses).
@@ -152,7 +152,8 @@ class LinkSearch:
 
     def search(self, conv: HybridBPConv, mean: Tensor,
                sources: SourceBeliefs, factors: Factors, edge_index: Tensor,
-               edge_attr: Tensor, position_dim: int, due: Tensor) -> Search:
+               edge_attr: Tensor, position_dim: int,
+               due: Tensor) -> SearchResult:
         r"""The candidates of the agents :obj:`due` :math:`(N)` and their
         scores, and the agents to relocate, from the Gaussian posterior
         :obj:`mean` :math:`(N, S)` and the step's links (their
@@ -175,8 +176,9 @@ class LinkSearch:
         none = torch.zeros_like(searched)
         eye = torch.eye(width, dtype=mean.dtype, device=mean.device)
         if not target.numel():
-            return Search(mean.unsqueeze(1), mean.new_zeros(num, 1), none,
-                          none, sources, eye.expand(num, width, width))
+            return SearchResult(mean.unsqueeze(1), mean.new_zeros(num, 1),
+                                none, none, sources,
+                                eye.expand(num, width, width))
         pairs = conv.pairs(into)
         first = torch.cumsum(degree, 0) - degree
         ranges = conv.ranges(into, edge_attr, pairs)
@@ -225,10 +227,10 @@ class LinkSearch:
             torch.finfo(eigenvalues.dtype).tiny)
         moved = (searched & (top - scores[:, 0] > self.margin) &
                  (top - other > self.margin) & measured)
-        return Search(candidates, scores, searched, moved, sources,
-                      curvature)
+        return SearchResult(candidates, scores, searched, moved, sources,
+                            curvature)
 
-    def relocated(self, search: Search, mean: Tensor, cov: Tensor
+    def relocated(self, search: SearchResult, mean: Tensor, cov: Tensor
                   ) -> Tuple[Tensor, Tensor]:
         r"""The Gaussians :math:`(N, S)`, :math:`(N, S, S)` of every agent
         after the relocations of :obj:`search`: a moved agent's at its best
@@ -257,7 +259,7 @@ def relocation_step(tracker, solved, edge_index: Tensor, edge_attr: Tensor,
     :obj:`relocation` (a :class:`LinkSearch`) applied at time index
     :obj:`t`: the search of the agents due (:meth:`LinkSearch.due`; the
     step's :obj:`fresh` nodes among them), the moved agents' estimates
-    and state started again there, the :class:`Search` in the step's
+    and state started again there, the :class:`SearchResult` in the step's
     :obj:`search`."""
     conv = tracker.link_conv
     edge_index, edge_attr = edge_index.long(), edge_attr.double()

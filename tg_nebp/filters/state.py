@@ -16,8 +16,9 @@ __all__ = ['StateField', 'FIELD_KINDS', 'check_state']
 #: Every kind of a state's field, :obj:`"float"` (finite),
 #: :obj:`"cov"` (finite, symmetric positive semi-definite in its last two
 #: dimensions, to the rounding of its dtype:
-#: :func:`~tg_nebp.utils.rounding_tolerance`), :obj:`"nan"` (finite or NaN: NaN marks an entry that is
-#: not there), :obj:`"log_weights"` (normalized log-weights along the last
+#: :func:`~tg_nebp.utils.rounding_tolerance`), :obj:`"nan"` (finite or
+#: NaN: NaN marks an entry that is not there), :obj:`"log_weights"`
+#: (normalized log-weights along the last
 #: dimension: no NaN, no :math:`+\infty`), :obj:`"bool"` and
 #: :obj:`"index"` (integers, at least zero).
 FIELD_KINDS = ('float', 'cov', 'nan', 'log_weights', 'bool', 'index')
