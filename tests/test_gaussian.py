@@ -140,6 +140,31 @@ def test_bounded_inflation_against_the_generalized_eigenproblem():
     torch.testing.assert_close(wide, 1.5 * cov, rtol=1e-10, atol=1e-10)
 
 
+def test_the_inflation_map_moves_a_cloud_as_the_covariance_is_inflated():
+    # A C A^T is bounded_inflation's covariance; a cloud with no usable
+    # Cholesky factor (an anchor's zero, a cloud collapsed onto one
+    # particle: a covariance of subnormal entries, whose factor whitens
+    # the prediction beyond float64's range) stays where it is
+    from tg_nebp.gaussian import bounded_inflation, bounded_inflation_map
+    g = torch.Generator().manual_seed(4)
+    count, size = 5, 4
+    a = torch.randn(count, size, size, generator=g, dtype=torch.float64)
+    cov = a @ a.transpose(-1, -2) + 0.1 * torch.eye(size)
+    b = torch.randn(count, size, 2, generator=g, dtype=torch.float64)
+    predicted = cov + 3.0 * b @ b.transpose(-1, -2)
+    kappa = torch.linspace(1.2, 4.0, count, dtype=torch.float64)
+    cov[3] = 0.0
+    cov[4] = torch.diag(torch.tensor([1.5e-318, 3e-317, 2e-319, 4.5e-320],
+                                     dtype=torch.float64))
+    mapping = bounded_inflation_map(cov, predicted, kappa)
+    assert bool(torch.isfinite(mapping).all())
+    inflated = bounded_inflation(cov, predicted, kappa)
+    torch.testing.assert_close(mapping[:3] @ cov[:3] @ mapping[:3].mT,
+                               inflated[:3], rtol=1e-9, atol=1e-12)
+    eye = torch.eye(size, dtype=torch.float64).expand(2, -1, -1)
+    assert torch.equal(mapping[3:], eye)
+
+
 def test_rts_step_is_the_conditional_of_the_joint_gaussian():
     # x0 ~ N(m, P), x1 = F x0 + w (w singular: the constant-velocity
     # models'), y = H x1 + v: the smoothed x0 given y from one backward

@@ -202,12 +202,16 @@ def _inflation_factors(cov: Tensor, predicted: Tensor, kappa: Tensor):
     diagonal = lower.diagonal(dim1=-2, dim2=-1).abs()
     ok = (failed == 0) & (diagonal.amin(-1) > diagonal.amax(-1) *
                           torch.finfo(cov.dtype).eps**0.25)
-    safe = torch.where(ok.view(-1, 1, 1), lower,
-                       torch.eye(cov.size(-1), dtype=cov.dtype,
-                                 device=cov.device))
+    eye = torch.eye(cov.size(-1), dtype=cov.dtype, device=cov.device)
+    safe = torch.where(ok.view(-1, 1, 1), lower, eye)
     half = torch.linalg.solve_triangular(safe, predicted, upper=False)
     whitened = torch.linalg.solve_triangular(safe, half.transpose(-1, -2),
                                              upper=False)
+    # a factor of subnormal entries (a cloud collapsed onto one particle)
+    # passes the spread test and whitens P beyond the dtype's range
+    ok = ok & torch.isfinite(whitened).flatten(1).all(1)
+    safe = torch.where(ok.view(-1, 1, 1), safe, eye)
+    whitened = torch.where(ok.view(-1, 1, 1), whitened, predicted)
     eigvals, eigvecs = torch.linalg.eigh(symmetrize(whitened))
     return ok, safe, eigvecs, torch.minimum(kappa, eigvals.clamp_min(1.0))
 

@@ -215,6 +215,41 @@ def test_any_gaussian_tracker_inside(make):
     assert bool((torch.linalg.eigvalsh(cov) > 0).all())
 
 
+def test_the_particles_are_inflated_by_the_gaussians_own_factor():
+    # a learned inflation reads the covariance of the belief it inflates:
+    # the particles get the factor the Gaussian tracker gives its own
+    # belief (on a cloud collapsed onto a particle, whose covariance is
+    # subnormal, the learned factor was NaN and the whitening overflowed)
+    class Recording(GaussianNEBP):
+        def inflation_of(self, cov, memory, anchor):
+            seen.append(cov)
+            return super().inflation_of(cov, memory, anchor)
+
+    seen = []
+    data = tiny_scenario(steps=4).generate(gen(3))
+    gaussian = randomize(Recording.recommended(hidden_dim=8), seed=5,
+                         scale=0.1)
+    hybrid = HybridBP(gaussian, num_particles=30)
+    with torch.no_grad():
+        states = [state for _, state in _stepped(hybrid, data)]
+    # each step after the first: the particles' call and the tracker's
+    # read the same covariance, the Gaussian belief's of the step before
+    assert len(seen) == 2 * (len(states) - 1)
+    for t in range(1, len(states)):
+        particle_call, gaussian_call = seen[2 * t - 2], seen[2 * t - 1]
+        assert torch.equal(particle_call, states[t - 1].cov)
+        assert torch.equal(gaussian_call, states[t - 1].cov)
+
+
+def _stepped(hybrid, data):
+    # (output, state) after every step of one realization
+    state = hybrid.initial_state(data, gen(0))
+    for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+        output, state = hybrid.step(state, edge_index, edge_attr,
+                                    data.anchor, t, gen(t))
+        yield output, state
+
+
 def test_robots_and_three_dimensions_run():
     # odometry inputs and range-bearing links (the general messages of a
     # model without a closed form) and positions in 3-D

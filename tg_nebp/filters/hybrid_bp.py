@@ -398,12 +398,15 @@ class HybridBP(Tracker):
     def _inflated(self, base, particles: Tensor, log_weights: Tensor,
                   cov: Tensor, predicted: Tensor, anchor: Tensor) -> Tensor:
         # the particles of the last step inflated about their mean as the
-        # Gaussian tracker inflates its beliefs (not a fresh prior's)
+        # Gaussian tracker inflates its beliefs (not a fresh prior's), by
+        # the factor it gives its own belief: a learned inflation reads
+        # the Gaussian's covariance, not that of a cloud that may have
+        # collapsed onto a particle
         inflate = ~(base.fresh | anchor)
         if not bool(inflate.any()):
             return particles
-        kappa = self.gaussian.inflation_of(cov, getattr(base, 'memory',
-                                                        None), anchor)
+        kappa = self.gaussian.inflation_of(base.cov, getattr(base, 'memory',
+                                                             None), anchor)
         mapping = bounded_inflation_map(cov, predicted, kappa)
         center = torch.einsum('nk,nks->ns', log_weights.exp(), particles)
         moved = center.unsqueeze(1) + (particles - center.unsqueeze(1)
