@@ -400,7 +400,7 @@ def _add_method_options(parser: argparse.ArgumentParser):
         f"a path, or one shipped: {', '.join(PRETRAINED)}")
     add('--particles', type=_positive, default=None,
         help="particles K per agent (default: 1000 for BP, the checkpoint's "
-        'K for NEBP, any K for an equivariant checkpoint; 100 for hybrid)')
+        'K for NEBP, any K for an equivariant checkpoint; 50 for hybrid)')
     add('--iterations', type=_positive, default=None,
         help='message passing iterations per step (bp, default: 1; gbp, at '
         'most, default: 20) or Gauss-Newton iterations per step (iekf, '

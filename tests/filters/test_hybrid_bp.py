@@ -17,12 +17,38 @@ from torch_geometric.data import Batch
 from tg_nebp.filters import (CentralizedIEKF, FixedLagGaussianBP, GaussianBP,
                              GaussianNEBP, HybridBP)
 from tg_nebp.filters import silverman_bandwidth
+from tg_nebp.filters.hybrid_bp import kernel_density
 from tg_nebp.models import ConstantVelocity
 from tg_nebp.utils import weighted_moments
 
 from helpers import (gen, linear_kalman_filter, linear_offset_model,
                      linear_scenario, mirror, randomize, tiny_scenario,
                      tree_realization)
+
+
+def test_the_kernel_density_is_the_mixture_at_every_point():
+    # every node's mixture of its centers' Gaussians, evaluated at its
+    # points by plain loops in float64, in blocks of nodes of any size
+    points = torch.randn(5, 4, 3, generator=gen(1), dtype=torch.float64)
+    centers = torch.randn(5, 6, 3, generator=gen(2), dtype=torch.float64)
+    log_weights = torch.randn(5, 6, generator=gen(3),
+                              dtype=torch.float64).log_softmax(-1)
+    factor = torch.randn(5, 3, 3, generator=gen(4), dtype=torch.float64)
+    lower = torch.linalg.cholesky(factor @ factor.mT +
+                                  0.5 * torch.eye(3, dtype=torch.float64))
+    expected = torch.empty(5, 4, dtype=torch.float64)
+    for n in range(5):
+        for p in range(4):
+            expected[n, p] = math.log(sum(
+                math.exp(log_weights[n, l]) * math.exp(
+                    torch.distributions.MultivariateNormal(
+                        centers[n, l], scale_tril=lower[n]).log_prob(
+                            points[n, p]))
+                for l in range(6)))
+    for size in (1, 2, 5, 512):
+        torch.testing.assert_close(
+            kernel_density(points, centers, log_weights, lower, size),
+            expected, rtol=0, atol=1e-12)
 
 
 def test_on_a_tree_it_reports_the_kalman_filter():

@@ -23,6 +23,7 @@ from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import bounded_inflation_map, graph_index
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv import HybridBPConv
+from tg_nebp.nn.conv.hybrid_bp_conv import CHUNK_SIZE
 from tg_nebp.utils import log_normalize, symmetrize, weighted_moments
 
 __all__ = ['HybridBP', 'HYBRID_RECOMMENDED', 'PARTICLE_FIELDS',
@@ -60,24 +61,30 @@ def _state_type(base: type) -> type:
 
 
 def kernel_density(points: Tensor, centers: Tensor, log_weights: Tensor,
-                   lower: Tensor) -> Tensor:
+                   lower: Tensor, chunk_size: int = 512) -> Tensor:
     r"""The log-density :math:`(N, P)` at :obj:`points` :math:`(N, P, S)`
     of every node's Gaussian mixture :math:`\sum_l w_l \mathcal{N}(
     \mathbf{x}; \mathbf{c}_l, \mathbf{L} \mathbf{L}^\top)` of the
     :obj:`centers` :math:`(N, L, S)` with normalized :obj:`log_weights`
     :math:`(N, L)` and one kernel per node, its Cholesky factor
     :obj:`lower` :math:`(N, S, S)`: both whitened by the kernel once,
-    then squared distances (:math:`O(N P L S)`)."""
+    then squared distances (:math:`O(N P L S)`), :obj:`chunk_size` nodes
+    at a time (the :math:`(P, L)` distances of a large network's every
+    node at once would be fresh memory at every operation)."""
     size = points.size(-1)
-    whiten = functools.partial(torch.linalg.solve_triangular, lower,
-                               upper=False)
-    at = whiten(points.transpose(-1, -2)).transpose(-1, -2)
-    of = whiten(centers.transpose(-1, -2)).transpose(-1, -2)
-    squared = torch.cdist(at, of).square()
     log_norm = (torch.log(lower.diagonal(dim1=-2, dim2=-1)).sum(-1) +
                 0.5 * size * math.log(2 * math.pi))
-    return torch.logsumexp(log_weights.unsqueeze(1) - 0.5 * squared,
-                           -1) - log_norm.unsqueeze(-1)
+    out = []
+    for start in range(0, max(points.size(0), 1), chunk_size):
+        nodes = slice(start, start + chunk_size)
+        whiten = functools.partial(torch.linalg.solve_triangular,
+                                   lower[nodes], upper=False)
+        at = whiten(points[nodes].transpose(-1, -2)).transpose(-1, -2)
+        of = whiten(centers[nodes].transpose(-1, -2)).transpose(-1, -2)
+        squared = torch.cdist(at, of).square()
+        out.append(torch.logsumexp(
+            log_weights[nodes].unsqueeze(1) - 0.5 * squared, -1))
+    return torch.cat(out) - log_norm.unsqueeze(-1)
 
 
 def _log_gaussian(points: Tensor, mean: Tensor, lower: Tensor) -> Tensor:
@@ -194,9 +201,9 @@ class HybridBP(Tracker):
             :obj:`None` for Silverman's rule
             (:func:`~tg_nebp.filters.silverman_bandwidth`).
             (default: :obj:`None`)
-        chunk_size (int, optional): Links per chunk of the messages
-            (:class:`~tg_nebp.nn.conv.HybridBPConv`).
-            (default: :obj:`None`)
+        chunk_size (int, optional): Message edges per block of the
+            messages (:class:`~tg_nebp.nn.conv.HybridBPConv`; :obj:`None`
+            for all at once). (default: :obj:`4096`)
         motion (MotionModel, optional), measurement (MeasurementModel,
             optional): The models of the default :obj:`gaussian` tracker
             (:obj:`gaussian`'s otherwise).
@@ -212,7 +219,7 @@ class HybridBP(Tracker):
                  num_particles: int = 50, proposal: float = 0.7,
                  modes: float = 0.2, spread: float = 1.5,
                  bandwidth: Optional[float] = None,
-                 chunk_size: Optional[int] = None,
+                 chunk_size: Optional[int] = CHUNK_SIZE,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None):
         if gaussian is None:

@@ -226,10 +226,18 @@ def test_the_range_closed_form_equals_the_general_messages(model):
                             HybridBPConv(general).target_linearization(
                                 *args)):
         torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-10)
-    # chunked: the same
-    chunked = HybridBPConv(model, chunk_size=3)
-    torch.testing.assert_close(chunked.log_messages(*args),
-                               conv.log_messages(*args), rtol=0, atol=1e-12)
+    # in blocks of message edges (a block's edge between a factor's two
+    # ranges, one edge per block, more than all): the same, both paths
+    for measurement in (model, general):
+        whole = HybridBPConv(measurement, chunk_size=None)
+        expected = (whole.log_messages(*args),
+                    *whole.target_linearization(*args))
+        for size in (1, 3, 7, 10_000):
+            blocks = HybridBPConv(measurement, chunk_size=size)
+            for ours, theirs in zip((blocks.log_messages(*args),
+                                     *blocks.target_linearization(*args)),
+                                    expected):
+                torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-12)
 
 
 def test_the_belief_is_the_prior_plus_the_messages_normalized():

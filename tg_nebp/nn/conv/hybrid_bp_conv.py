@@ -12,6 +12,10 @@ from tg_nebp.utils import log_normalize, symmetrize
 
 __all__ = ['HybridBPConv', 'SourceBeliefs']
 
+# message edges per block of the per-particle evaluations: at K = 50 a
+# block's (M, K) temporaries are 1.6 MB in float64
+CHUNK_SIZE = 4096
+
 
 class SourceBeliefs(NamedTuple):
     r"""Every message edge's source as its message reads it
@@ -76,9 +80,13 @@ class HybridBPConv(MessagePassing):
     Args:
         measurement (MeasurementModel, optional): The measurement model.
             (default: :obj:`GaussianRange()`)
-        chunk_size (int, optional): Links per chunk of the per-particle
-            evaluations (bounds the memory at :math:`O(\text{chunk} \cdot
-            K R^2)`); :obj:`None` for all at once. (default: :obj:`None`)
+        chunk_size (int, optional): Message edges per block of the
+            per-particle evaluations (bounds their memory at
+            :math:`O(\text{chunk} \cdot K R^2)`, whatever the network's
+            size, so that the time grows linearly in the links: a large
+            network's temporaries would otherwise be fresh pages of memory
+            at every operation); :obj:`None` for all at once.
+            (default: :obj:`4096`)
 
     Shapes:
         - **input:**
@@ -93,7 +101,7 @@ class HybridBPConv(MessagePassing):
           :math:`(|\mathcal{V}|, K)` and the log-messages :math:`(M, K)`
     """
     def __init__(self, measurement: Optional[MeasurementModel] = None,
-                 chunk_size: Optional[int] = None):
+                 chunk_size: Optional[int] = CHUNK_SIZE):
         super().__init__(aggr='add', node_dim=0)
         self.measurement = measurement or GaussianRange()
         if not isinstance(self.measurement, MeasurementModel):
@@ -195,32 +203,55 @@ class HybridBPConv(MessagePassing):
                      ) -> Tensor:
         r"""The log-message :math:`(M, K)` of every message edge of
         :obj:`factors` at its target's particles."""
-        pairs = pairs or _pairs(factors)
+        blocks = [self._block_log_messages(particles, *block, edge_index,
+                                           edge_attr)
+                  for block in self._blocks(sources, factors, pairs)]
+        return torch.cat(blocks) if len(blocks) > 1 else blocks[0]
+
+    def _block_log_messages(self, particles: Tensor, sources: SourceBeliefs,
+                            index: Tensor, pairs: Tuple[Tensor, Tensor],
+                            edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        # the log-messages of one block of message edges (their sources,
+        # (source, target) index and pairs)
         if self.rank_one:
             value, score, weight, unit = self._range_terms(
-                particles, sources, factors, edge_attr, pairs)
+                particles, sources, index[1], edge_attr, pairs)
             spread = ((unit.unsqueeze(-2) @ sources.cov.unsqueeze(1)) @
                       unit.unsqueeze(-1)).view(unit.shape[:2])
             grows = 1 + weight * spread
             return (value + 0.5 * score.square() * spread / grows -
                     0.5 * torch.log(grows))
-        count, num = factors.index.size(1), particles.size(1)
+        count, num = index.size(1), particles.size(1)
         width = sources.info.size(-1)
-        out_l = particles.new_zeros(count, num)
-        out_g = particles.new_zeros(count, num, width)
-        out_w = particles.new_zeros(count, num, width, width)
-        pair_edge, pair_link = pairs
-        chunk = self.chunk_size or max(pair_link.numel(), 1)
-        for start in range(0, pair_link.numel(), chunk):
-            edge = pair_edge[start:start + chunk]
-            link = pair_link[start:start + chunk]
-            value, grad, curv = self._linearized(
-                particles, sources, factors, edge, link, edge_index,
-                edge_attr, width, 'source')
-            out_l = out_l.index_add(0, edge, value)
-            out_g = out_g.index_add(0, edge, grad)
-            out_w = out_w.index_add(0, edge, curv)
-        return _integrated(out_l, out_g, out_w, sources)
+        edge, link = pairs
+        value, grad, curv = self._linearized(
+            particles, sources, index, edge, link, edge_index, edge_attr,
+            width, 'source')
+        return _integrated(
+            particles.new_zeros(count, num).index_add(0, edge, value),
+            particles.new_zeros(count, num, width).index_add(0, edge, grad),
+            particles.new_zeros(count, num, width, width).index_add(
+                0, edge, curv), sources)
+
+    def _blocks(self, sources: SourceBeliefs, factors: Factors,
+                pairs: Optional[Tuple[Tensor, Tensor]]):
+        # the message edges in blocks of chunk_size: each block's sources,
+        # (source, target) index and pairs (their edges counted from the
+        # block's first)
+        edge, link = pairs or _pairs(factors)
+        count = factors.index.size(1)
+        size = self.chunk_size or max(count, 1)
+        order = torch.argsort(edge, stable=True)
+        edge, link = edge[order], link[order]
+        starts = list(range(0, max(count, 1), size))
+        bounds = torch.searchsorted(edge, torch.tensor(
+            starts + [count], device=edge.device)).tolist()
+        for block, start in enumerate(starts):
+            end = min(start + size, count)
+            low, high = bounds[block], bounds[block + 1]
+            yield (SourceBeliefs(*(part[start:end] for part in sources)),
+                   factors.index[:, start:end],
+                   (edge[low:high] - start, link[low:high]))
 
     def target_linearization(self, particles: Tensor,
                              sources: SourceBeliefs, factors: Factors,
@@ -237,64 +268,53 @@ class HybridBPConv(MessagePassing):
         width = sources.info.size(-1)
         grad = particles.new_zeros(num_nodes, num, width)
         curv = particles.new_zeros(num_nodes, num, width, width)
-        target = factors.index[1]
-        pairs = pairs or _pairs(factors)
-        if self.rank_one:
-            _, score, weight, unit = self._range_terms(
-                particles, sources, factors, edge_attr, pairs, value=False)
-            # d grows with the target's position against u (u: to the
-            # source)
-            grad = grad.index_add(0, target, -score.unsqueeze(-1) * unit)
-            return grad, curv.index_add(
-                0, target, weight.view(weight.shape + (1, 1)) *
-                unit.unsqueeze(-1) * unit.unsqueeze(-2))
-        pair_edge, pair_link = pairs
-        chunk = self.chunk_size or max(pair_link.numel(), 1)
-        for start in range(0, pair_link.numel(), chunk):
-            edge = pair_edge[start:start + chunk]
-            _, g, w = self._linearized(
-                particles, sources, factors, edge,
-                pair_link[start:start + chunk], edge_index, edge_attr, width,
-                'target')
-            target = factors.index[1, edge]
-            grad = grad.index_add(0, target, g)
-            curv = curv.index_add(0, target, w)
+        for block, index, (edge, link) in self._blocks(sources, factors,
+                                                       pairs):
+            target = index[1]
+            if self.rank_one:
+                _, score, weight, unit = self._range_terms(
+                    particles, block, target, edge_attr, (edge, link),
+                    value=False)
+                # d grows with the target's position against u (u: to the
+                # source)
+                grad = grad.index_add(0, target, -score.unsqueeze(-1) * unit)
+                curv = curv.index_add(
+                    0, target, weight.view(weight.shape + (1, 1)) *
+                    unit.unsqueeze(-1) * unit.unsqueeze(-2))
+                continue
+            _, g, w = self._linearized(particles, block, index, edge, link,
+                                       edge_index, edge_attr, width,
+                                       'target')
+            grad = grad.index_add(0, target[edge], g)
+            curv = curv.index_add(0, target[edge], w)
         return grad, curv
 
     def _range_terms(self, particles: Tensor, sources: SourceBeliefs,
-                     factors: Factors, edge_attr: Tensor,
+                     target: Tensor, edge_attr: Tensor,
                      pairs: Tuple[Tensor, Tensor], value: bool = True):
-        # a range model's terms per message edge at its target's particles
-        # (M, K): the log-likelihood (zero without 'value'), score and
-        # robust weight of its links at the distance to the source's
-        # extrinsic mean (summed over the factor's links), and the unit
-        # vectors (M, K, R) to the source
+        # a range model's terms per message edge (its target node) at its
+        # target's particles (M, K): the log-likelihood (zero without
+        # 'value'), score and robust weight of its links at the distance
+        # to the source's extrinsic mean (summed over the factor's links),
+        # and the unit vectors (M, K, R) to the source
         width = sources.info.size(-1)
         offset = (sources.state[:, :width].unsqueeze(1) -
-                  particles[factors.index[1], :, :width])
+                  particles[target, :, :width])
         distance = offset.norm(dim=-1)
         unit = offset / distance.clamp_min(
             torch.finfo(offset.dtype).tiny).unsqueeze(-1)
-        count, num = distance.shape
-        total = distance.new_zeros(count, num)
-        score, weight = torch.zeros_like(total), torch.zeros_like(total)
-        pair_edge, pair_link = pairs
-        chunk = self.chunk_size or max(pair_link.numel(), 1)
-        for start in range(0, pair_link.numel(), chunk):
-            edge = pair_edge[start:start + chunk]
-            z = edge_attr[pair_link[start:start + chunk]]
-            at = distance[edge]
-            if value:
-                total = total.index_add(
-                    0, edge, self.measurement.log_likelihood_of_distance(
-                        z, at))
-            s, w = self.measurement.robust_weights(z, at)
-            score = score.index_add(0, edge, s)
-            weight = weight.index_add(0, edge, w)
-        return total, score, weight, unit
+        edge, link = pairs
+        z, at = edge_attr[link], distance[edge]
+        total = torch.zeros_like(distance)
+        if value:
+            total = total.index_add(
+                0, edge, self.measurement.log_likelihood_of_distance(z, at))
+        s, w = self.measurement.robust_weights(z, at)
+        return (total, torch.zeros_like(distance).index_add(0, edge, s),
+                torch.zeros_like(distance).index_add(0, edge, w), unit)
 
     def _linearized(self, particles: Tensor, sources: SourceBeliefs,
-                    factors: Factors, edge: Tensor, link: Tensor,
+                    index: Tensor, edge: Tensor, link: Tensor,
                     edge_index: Tensor, edge_attr: Tensor, width: int,
                     side: str):
         # the log-likelihood (P, K) of every (message edge, link) pair at
@@ -302,10 +322,10 @@ class HybridBPConv(MessagePassing):
         # (P, K, R) and curvature (P, K, R, R) on the scope of the source's
         # or the target's side
         num, size = particles.size(1), particles.size(-1)
-        target = particles[factors.index[1, edge]]  # (P, K, S)
+        target = particles[index[1, edge]]  # (P, K, S)
         source = sources.state[edge].unsqueeze(1).expand(-1, num, -1)
         # the source measured it or was measured: its role in the link
-        is_sender = (edge_index[0, link] == factors.index[0, edge]).view(
+        is_sender = (edge_index[0, link] == index[0, edge]).view(
             -1, 1, 1)
         sender = torch.where(is_sender, source, target)
         receiver = torch.where(is_sender, target, source)
