@@ -358,7 +358,11 @@ def simulate_robots(motion, measurement, true_control, anchors, start,
     anchor = torch.arange(count + anchors.size(0)) >= count
     state = start.double()
     states, edge_index, edge_attr, edge_time = [], [], [], []
+    # the links' own state (NLOS or not), for the models that have one
+    links = measurement.sample_links(count + anchors.size(0), g)
     for t in range(steps):
+        if t:
+            links = measurement.step_links(links, g)
         state = motion.sample(state, g, control=true_control[:, t].double())
         # the truth stored with its angles wrapped, as a report is
         every = motion.layout(size).wrap(torch.cat([state, anchor_states]))
@@ -366,7 +370,7 @@ def simulate_robots(motion, measurement, true_control, anchors, start,
         states.append(every)
         edge_index.append(edges)
         edge_attr.append(measurement.sample_features(
-            every[edges[0]], every[edges[1]], None, edges, g))
+            every[edges[0]], every[edges[1]], links, edges, g))
         edge_time.append(torch.full((edges.size(1), ), t))
     prior_cov = torch.diag_embed(torch.tensor(prior_var).double().expand(
         count + anchors.size(0), size)).clone()

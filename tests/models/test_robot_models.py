@@ -42,6 +42,26 @@ def test_the_default_layout_is_position_then_velocity():
         4.0 - 2 * math.pi)
 
 
+def test_nearest_puts_an_angle_on_the_lift_of_a_reference():
+    # a wrapped heading moved by whole turns to within pi of the
+    # reference's lift; positions untouched; no angle: the same tensor
+    layout = UnicycleOdometry().layout(3)
+    reference = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.0, -9.0],
+                              [0.0, 0.0, 20.0]], dtype=torch.float64)
+    states = torch.tensor([[1.0, 2.0, -3.1], [3.0, 4.0, 3.0],
+                           [5.0, 6.0, 0.5]], dtype=torch.float64)
+    near = layout.nearest(states, reference)
+    assert torch.equal(near[:, :2], states[:, :2])
+    for row in range(3):
+        turns = (float(near[row, 2]) - float(states[row, 2])) / (2 * math.pi)
+        assert turns == pytest.approx(round(turns), abs=1e-12)
+        assert abs(float(near[row, 2]) - float(reference[row, 2])) <= math.pi
+    assert float(near[0, 2]) == pytest.approx(2 * math.pi - 3.1)
+    plain = torch.randn(2, 4, dtype=torch.float64)
+    from tg_nebp.models import ConstantVelocityDrag
+    assert ConstantVelocityDrag().layout(4).nearest(plain, plain + 9) is plain
+
+
 def _unicycle_loop(state, control):
     # the odometry step written out for one state, float64 math
     x, y, theta = state

@@ -673,9 +673,11 @@ class FixedLagGaussianBP(GaussianBP):
         agents = ~anchor
         cov[agents] = _inverse(first.info[agents])
         there = state.start == 0
-        mean = torch.where(there.view(-1, 1),
-                           self.motion.layout(size).wrap(first.mean),
-                           state.mean)
+        # on the lift of the window's means, not wrapped: the next window's
+        # prior (from this mean) and the means carried over as its points
+        # must not differ by a turn (a wrapped heading there pulled the
+        # robots of the Gaussian range-bearing likelihood a turn away)
+        mean = torch.where(there.view(-1, 1), first.mean, state.mean)
         cov = torch.where(there.view(-1, 1, 1), cov, state.cov)
         predicted = torch.where(there.view(-1, 1, 1), window.prior_cov,
                                 state.predicted)

@@ -470,7 +470,13 @@ class HybridBP(Tracker):
             self.spread * gaussian.cov.to(prior.kernel))
         usable = (failed == 0) & ~anchor
         lower = torch.where(usable.view(-1, 1, 1), lower, eye)
-        mean = gaussian.mean.to(prior.centers)
+        # the Gaussian's reported (wrapped) angles, and its search's, on
+        # the lift of each agent's cloud: the particles of one belief
+        # never differ by a turn
+        layout = self.motion.layout(size)
+        center = torch.einsum('nk,nks->ns', prior.log_weights.exp(),
+                              prior.centers)
+        mean = layout.nearest(gaussian.mean.to(prior.centers), center)
         if search is None:  # no search: no modes, nobody moved
             search = SearchResult(mean.unsqueeze(1), mean.new_zeros(
                 mean.size(0), 1), torch.zeros_like(anchor),
@@ -478,8 +484,8 @@ class HybridBP(Tracker):
         moved = search.moved
         count = min(SEARCH_MODES, search.candidates.size(1))
         best = search.scores.topk(count, -1).indices
-        modes = search.candidates.gather(1, best.unsqueeze(-1).expand(
-            -1, -1, size))
+        modes = layout.nearest(search.candidates.gather(
+            1, best.unsqueeze(-1).expand(-1, -1, size)), center.unsqueeze(1))
         mode_share = torch.where(search.searched & usable & ~moved,
                                  self.modes, 0.0)
         gaussian_share = torch.where(moved, 1.0, self.proposal + self.modes
@@ -531,6 +537,13 @@ class HybridBP(Tracker):
         drawn = torch.where(anchor.view(-1, 1, 1), prior.centers, drawn)
         log_weights = torch.where(anchor.view(-1, 1), 0.0, log_weights)
         return drawn, log_normalize(log_weights)
+
+    @property
+    def lag(self) -> Optional[int]:
+        r"""The Gaussian tracker's window :math:`L` (:obj:`None` without
+        one): its steps carry the window, which
+        :class:`~tg_nebp.filters.Smoothed` reads."""
+        return getattr(self.gaussian, 'lag', None)
 
     def settings(self) -> dict:
         return dict(self.gaussian.settings(), gaussian=type(

@@ -97,6 +97,20 @@ class StateLayout(NamedTuple):
         out[..., index] = wrap_angle(states[..., index])
         return out
 
+    def nearest(self, states: Tensor, reference: Tensor) -> Tensor:
+        r"""The :obj:`states` :math:`(*, S)` with their angles moved by
+        whole turns to within :math:`\pi` of those of :obj:`reference`
+        (broadcast against them): a wrapped report put back on the lift
+        of a belief, so that the two never differ by a turn (the same
+        tensor where there is no angle)."""
+        if not self.angles:
+            return states
+        out = states.clone()
+        index = list(self.angles)
+        near = reference[..., index]
+        out[..., index] = near + wrap_angle(states[..., index] - near)
+        return out
+
 
 def _definer(cls: type, attribute: str) -> Optional[type]:
     # the class in the MRO that defines the attribute (a few dict lookups;
