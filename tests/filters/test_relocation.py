@@ -87,3 +87,29 @@ def test_the_directions_are_unit_vectors_spread_evenly(dim):
     assert float(out.sum(0).norm()) < (1e-9 if dim < 3 else 0.5)
     with pytest.raises(ValueError, match='1 to 3 dimensions'):
         directions(4, 4, out)
+
+
+def test_the_search_weighs_the_links_as_the_correction_does():
+    # a correction that discounts every link to its lowest weight (0.02)
+    # is not moved by the third anchor: its search raises every link's
+    # likelihood to that power, which leaves the decisive margin out of
+    # reach; the same tracker searching the untempered likelihood is
+    data, models = mirror((-4.0, 4.0))
+    truth = data.states[0, 0, :2].double()
+
+    class Untempered(GaussianNEBP):
+        def link_weights(self, solved, edge_index, edge_attr, anchor):
+            return None
+
+    errors = {}
+    for kind in (GaussianNEBP, Untempered):
+        tracker = kind.recommended(**models)
+        with torch.no_grad():
+            tracker.conv.weight_head.weight.zero_()
+            tracker.conv.weight_head.bias.fill_(-1e3)
+        tracker.relocate_with(LinkSearch())
+        with torch.no_grad():
+            out = tracker(data)
+        errors[kind] = (out.mean[0, -1, :2] - truth).norm()
+    assert float(errors[GaussianNEBP]) > 5
+    assert float(errors[Untempered]) < 1

@@ -373,6 +373,15 @@ class GaussianBP(Tracker):
         return relocation_step(self, solved, edge_index, edge_attr, anchor,
                                state.fresh, graph_of, t)
 
+    def link_weights(self, solved: SolvedStep, edge_index: Tensor,
+                     edge_attr: Tensor, anchor: Tensor) -> Optional[Tensor]:
+        r"""The power :math:`(M)` to which a method that scores the exact
+        likelihood of the step's links (the relocation's search, hybrid
+        BP's particles) raises each message edge's of :obj:`solved`, so
+        that it weighs the links as this tracker's messages do:
+        :obj:`None` (the likelihood itself) for Gaussian BP."""
+        return None
+
     def reinitialized(self, state: GaussianState, nodes: Tensor,
                       mean: Tensor, cov: Tensor) -> GaussianState:
         r"""The :obj:`state` with the beliefs of the :obj:`nodes` (a mask

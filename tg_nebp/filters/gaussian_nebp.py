@@ -105,6 +105,22 @@ class GaussianNEBP(GaussianBP):
                          memory, messages, generator, factors, iteration,
                          validate=False)
 
+    def link_weights(self, solved, edge_index: Tensor, edge_attr: Tensor,
+                     anchor: Tensor) -> Tensor:
+        r"""The weights the correction gives the step's message edges at
+        its final beliefs, memory and messages, as in its last iteration
+        (:meth:`GaussianNEBPConv.weights
+        <tg_nebp.nn.conv.GaussianNEBPConv.weights>`): the likelihood its
+        tempered messages stand for, to which a search or hybrid BP's
+        particles raise each link's (a link it discounts, an NLOS range,
+        moves no agent)."""
+        if solved.messages is None:  # no link
+            return solved.belief.mean.new_zeros(0)
+        return self.conv.weights(
+            solved.belief, edge_index.long(), edge_attr.double(), anchor,
+            solved.state.memory, solved.messages, solved.factors,
+            self.num_iterations - 1).detach()
+
     def carry(self, mean: Tensor, cov: Tensor, memory: Tensor,
               predicted: Tensor):
         r"""The beliefs, memory and prediction detached (training is

@@ -392,8 +392,13 @@ class HybridBP(Tracker):
                             counts, motion, control, t)
         drawn, log_weights = self._proposed(solved.output, prior, search,
                                             anchor, generator, counts)
+        # the links weighed as the Gaussian tracker's messages weigh them
+        tempering = (self.gaussian.link_weights(solved, edge_index,
+                                                edge_attr, anchor)
+                     if search is None else search.tempering)
         log_weights, _ = self.conv(drawn, log_weights, sources,
-                                   solved.factors, edge_index, edge_attr)
+                                   solved.factors, edge_index, edge_attr,
+                                   tempering)
         # the estimates (and a window's revisions of the past) are the
         # Gaussian tracker's
         output = solved.output._replace(particles=drawn,

@@ -36,13 +36,18 @@ class SearchResult(NamedTuple):
     agents :obj:`moved` :math:`(N)`, the sources of the step's message
     edges (:class:`~tg_nebp.nn.conv.SourceBeliefs`, one per message edge)
     and the curvature :math:`(N, R, R)` of every agent's links at its best
-    candidate (what they alone know of it there)."""
+    candidate (what they alone know of it there); the power :obj:`tempering`
+    :math:`(M)` each message edge's likelihood was raised to
+    (:meth:`GaussianBP.link_weights
+    <tg_nebp.filters.GaussianBP.link_weights>`; :obj:`None`: the
+    likelihood itself)."""
     candidates: Tensor
     scores: Tensor
     searched: Tensor
     moved: Tensor
     sources: SourceBeliefs
     curvature: Tensor
+    tempering: Optional[Tensor] = None
 
 
 def directions(count: int, dim: int, like: Tensor) -> Tensor:
@@ -152,13 +157,15 @@ class LinkSearch:
 
     def search(self, conv: HybridBPConv, mean: Tensor,
                sources: SourceBeliefs, factors: Factors, edge_index: Tensor,
-               edge_attr: Tensor, position_dim: int,
-               due: Tensor) -> SearchResult:
+               edge_attr: Tensor, position_dim: int, due: Tensor,
+               tempering: Optional[Tensor] = None) -> SearchResult:
         r"""The candidates of the agents :obj:`due` :math:`(N)` and their
         scores, and the agents to relocate, from the Gaussian posterior
         :obj:`mean` :math:`(N, S)` and the step's links (their
         :obj:`factors` and :obj:`sources`, the
-        :class:`~tg_nebp.nn.conv.SourceBeliefs` of :obj:`conv`)."""
+        :class:`~tg_nebp.nn.conv.SourceBeliefs` of :obj:`conv`), each message
+        edge's likelihood raised to its :obj:`tempering` :math:`(M)` where
+        given."""
         mean = mean.to(sources.state)
         num, size = mean.shape
         width = sources.info.size(-1)
@@ -170,6 +177,7 @@ class LinkSearch:
                                 end=factors.end[kept],
                                 reverse=factors.reverse[kept])
         sourced = SourceBeliefs(*(part[kept] for part in sources))
+        power = None if tempering is None else tempering[kept]
         target = into.index[1]
         degree = torch.bincount(target, minlength=num)
         searched = degree > 0
@@ -178,7 +186,7 @@ class LinkSearch:
         if not target.numel():
             return SearchResult(mean.unsqueeze(1), mean.new_zeros(num, 1),
                                 none, none, sources,
-                                eye.expand(num, width, width))
+                                eye.expand(num, width, width), tempering)
         pairs = conv.pairs(into)
         first = torch.cumsum(degree, 0) - degree
         ranges = conv.ranges(into, edge_attr, pairs)
@@ -197,7 +205,8 @@ class LinkSearch:
         candidates[:, 1:, :position_dim] = ring
         linearized = (sourced, into, edge_index, edge_attr, pairs)
         for _ in range(self.steps):
-            grad, curv = conv.target_linearization(candidates, *linearized)
+            grad, curv = conv.target_linearization(candidates, *linearized,
+                                                   tempering=power)
             damping = 1e-3 * curv.diagonal(dim1=-2, dim2=-1).mean(
                 -1, keepdim=True).unsqueeze(-1) + 1e-9
             step = torch.linalg.solve(curv + damping * eye,
@@ -205,8 +214,11 @@ class LinkSearch:
             candidates = candidates.clone()
             candidates[:, 1:, :width] = candidates[:, 1:, :width] + \
                 step[:, 1:]
+        log_messages = conv.log_messages(candidates, *linearized)
+        if power is not None:
+            log_messages = log_messages * power.view(-1, 1)
         scores = candidates.new_zeros(num, candidates.size(1)).index_add(
-            0, target, conv.log_messages(candidates, *linearized))
+            0, target, log_messages)
         best = scores.argmax(-1)
         found = candidates.gather(1, best.view(-1, 1, 1).expand(
             -1, 1, size))
@@ -214,7 +226,8 @@ class LinkSearch:
         # them to single out one place (no other mode close in score, and
         # every direction measured; a ring, a line of links or a mirror
         # left open is a hypothesis the particles keep, not a relocation)
-        _, curvature = conv.target_linearization(found, *linearized)
+        _, curvature = conv.target_linearization(found, *linearized,
+                                                 tempering=power)
         curvature = curvature.squeeze(1)
         offset = (candidates[..., :width] - found[..., :width])
         distance = (offset.unsqueeze(-2) @ curvature.unsqueeze(1) @
@@ -228,7 +241,7 @@ class LinkSearch:
         moved = (searched & (top - scores[:, 0] > self.margin) &
                  (top - other > self.margin) & measured)
         return SearchResult(candidates, scores, searched, moved, sources,
-                            curvature)
+                            curvature, tempering)
 
     def relocated(self, search: SearchResult, mean: Tensor, cov: Tensor
                   ) -> Tuple[Tensor, Tensor]:
@@ -269,7 +282,8 @@ def relocation_step(tracker, solved, edge_index: Tensor, edge_attr: Tensor,
     relocation = tracker.relocation
     search = relocation.search(
         conv, solved.output.mean, sources, solved.factors, edge_index,
-        edge_attr, dim, relocation.due(fresh, anchor, graph_of, t))
+        edge_attr, dim, relocation.due(fresh, anchor, graph_of, t),
+        tracker.link_weights(solved, edge_index, edge_attr, anchor))
     if not bool(search.moved.any()):
         return solved._replace(search=search)
     mean, cov = relocation.relocated(search, solved.output.mean,

@@ -13,7 +13,7 @@ from tg_nebp.nn.conv import GaussianBPConv, GaussianNEBPConv
 from tg_nebp.nn.conv.gaussian_nebp_conv import (EDGE_FEATURES, bounded_log,
                                                 position_covariance)
 
-from helpers import embed_in_3d, first_step, gen, tiny_scenario
+from helpers import embed_in_3d, first_step, gen, randomize, tiny_scenario
 
 
 @pytest.mark.parametrize('three_d', [False, True])
@@ -105,3 +105,32 @@ def test_options_and_memory_are_checked():
         GaussianNEBPConv(weight_range=(0.5, ))
     with pytest.raises(ValueError, match='built for 2-D positions'):
         GaussianNEBP()(embed_in_3d(data))
+
+
+def test_the_weights_are_those_its_messages_are_tempered_by():
+    # weights() at an iteration's inputs is the ratio of the tempered
+    # messages that forward returns to Gaussian BP's at the same inputs
+    data = tiny_scenario(steps=1).replace(num_agents=6).generate(gen(21))
+    scenario = tiny_scenario()
+    prior, edge_index, edge_attr = first_step(data, scenario.motion_model)
+    conv = randomize(GaussianNEBPConv(), seed=4, scale=0.3)
+    memory = conv.initial_memory(data.num_nodes)
+    belief, messages = prior, None
+    factors = conv.factors(edge_index, data.anchor, prior.mean.size(-1))
+    for iteration in range(3):
+        weights = conv.weights(belief, edge_index, edge_attr, data.anchor,
+                               memory, messages, factors, iteration)
+        plain = conv.bp.messages(
+            belief, data.anchor, factors, conv.bp.linearize(
+                belief, edge_index, edge_attr, factors), messages)
+        belief, messages, memory = conv(prior, belief, edge_index,
+                                        edge_attr, data.anchor, memory,
+                                        messages, iteration=iteration)
+        assert weights.shape == (factors.index.size(1), )
+        assert float(weights.std()) > 0
+        torch.testing.assert_close(messages.eta, plain.eta *
+                                   weights.view(-1, 1), rtol=1e-12,
+                                   atol=1e-12)
+        torch.testing.assert_close(messages.info, plain.info *
+                                   weights.view(-1, 1, 1), rtol=1e-12,
+                                   atol=1e-12)

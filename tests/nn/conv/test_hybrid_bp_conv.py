@@ -195,29 +195,42 @@ def test_the_sources_are_the_beliefs_without_the_factors_message():
             expected), rtol=1e-9, atol=1e-9)
 
 
+def _general(model):
+    # the same range model through a linearize of its own: the general
+    # path of the messages
+    class General(type(model)):
+        def linearize(self, *args, **kwargs):
+            return super().linearize(*args, **kwargs)
+
+    return General(**model.params())
+
+
+def _step_messages(model, particles_per_node):
+    # the arguments of the messages on the first step of a tiny network
+    # solved by Gaussian BP: particles about its posterior, the sources'
+    # extrinsic beliefs, its factors and links
+    data = tiny_scenario(steps=2).generate(gen(7))
+    tracker = GaussianBP(measurement=model)
+    edge_index, edge_attr = next(iter(data.edges_by_step()))
+    solved = tracker.solve_step(tracker.initial_state(data), edge_index,
+                                edge_attr.double(), data.anchor, 0)
+    sources = HybridBPConv(model).sources(solved.belief, solved.factors,
+                                          solved.messages, data.anchor)
+    particles = solved.output.mean.unsqueeze(1) + 0.7 * torch.randn(
+        data.num_nodes, particles_per_node, 4, generator=gen(8), **DOUBLE)
+    return (particles, sources, solved.factors, edge_index.long(),
+            edge_attr.double())
+
+
 @pytest.mark.parametrize('model', [GaussianRange(), StudentTRange(),
                                    NLOSRange()])
 def test_the_range_closed_form_equals_the_general_messages(model):
     # the rank-one arithmetic of a range model against the general path
     # (the same model through a linearize of its own): messages and the
     # target side's linearization, to rounding
-    class General(type(model)):
-        def linearize(self, *args, **kwargs):
-            return super().linearize(*args, **kwargs)
-
-    general = General(**model.params())
-    data = tiny_scenario(steps=2).generate(gen(7))
-    tracker = GaussianBP(measurement=model)
-    edge_index, edge_attr = next(iter(data.edges_by_step()))
-    solved = tracker.solve_step(tracker.initial_state(data), edge_index,
-                                edge_attr.double(), data.anchor, 0)
+    general = _general(model)
     conv = HybridBPConv(model)
-    sources = conv.sources(solved.belief, solved.factors, solved.messages,
-                           data.anchor)
-    particles = solved.output.mean.unsqueeze(1) + 0.7 * torch.randn(
-        data.num_nodes, 8, 4, generator=gen(8), **DOUBLE)
-    args = (particles, sources, solved.factors, edge_index.long(),
-            edge_attr.double())
+    args = _step_messages(model, 8)
     assert conv.rank_one and not HybridBPConv(general).rank_one
     torch.testing.assert_close(conv.log_messages(*args),
                                HybridBPConv(general).log_messages(*args),
@@ -263,3 +276,33 @@ def test_the_belief_is_the_prior_plus_the_messages_normalized():
         HybridBPConv(chunk_size=0)
     with pytest.raises(TypeError, match="'measurement'"):
         HybridBPConv(measurement='gaussian')
+
+
+@pytest.mark.parametrize('general', [False, True])
+def test_tempered_messages_are_each_edges_power(general):
+    # a message edge's log-message, gradient and curvature multiplied by
+    # its power: against the sum over the message edges one at a time
+    model = _general(GaussianRange()) if general else GaussianRange()
+    conv = HybridBPConv(model, chunk_size=3)
+    args = _step_messages(model, 6)
+    particles, sources, factors, edge_index, edge_attr = args
+    count = factors.index.size(1)
+    power = torch.rand(count, generator=gen(9), **DOUBLE) * 2
+    prior = torch.zeros(particles.shape[:2], **DOUBLE)
+    _, messages = conv(*args[:1], prior, *args[1:], tempering=power)
+    torch.testing.assert_close(messages, conv.log_messages(*args) *
+                               power.view(-1, 1), rtol=0, atol=1e-12)
+    grad, curv = conv.target_linearization(*args, tempering=power)
+    expected_grad, expected_curv = torch.zeros_like(grad), torch.zeros_like(
+        curv)
+    for m in range(count):
+        one = factors._replace(index=factors.index[:, [m]],
+                               link=factors.link[[m]], end=factors.end[[m]],
+                               reverse=factors.reverse[[m]])
+        g, w = conv.target_linearization(
+            particles, SourceBeliefs(*(part[[m]] for part in sources)), one,
+            edge_index, edge_attr)
+        expected_grad += power[m] * g
+        expected_curv += power[m] * w
+    torch.testing.assert_close(grad, expected_grad, rtol=0, atol=1e-10)
+    torch.testing.assert_close(curv, expected_curv, rtol=0, atol=1e-10)

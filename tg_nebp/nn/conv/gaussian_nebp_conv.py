@@ -322,6 +322,43 @@ class GaussianNEBPConv(MessagePassing):
         out = torch.stack([size, elongation], -1)
         return out.masked_fill(anchor.view(-1, 1), 0.0)
 
+    def _corrected(self, belief: GaussianBelief, edge_index: Tensor,
+                   edge_attr: Tensor, anchor: Tensor, memory: Tensor,
+                   messages, generator, factors: Factors, iteration: int):
+        # Gaussian BP's messages at the beliefs, the correction's features
+        # and its edge embeddings (what the weights are read from)
+        linearization = self.bp.linearize(belief, edge_index, edge_attr,
+                                          factors, generator)
+        new = self.bp.messages(belief, anchor, factors, linearization,
+                               messages)
+        features = self.features(belief, anchor, factors, linearization,
+                                 new, iteration, memory)
+        source, target = factors.index
+        hidden = memory[:, :self.hidden_dim]
+        edge = self.edge_mlp(torch.cat([
+            features.edge.to(self.weight_head.weight.dtype),
+            hidden[source], hidden[target]], -1))
+        return new, features, edge
+
+    def weights(self, belief: GaussianBelief, edge_index: Tensor,
+                edge_attr: Tensor, anchor: Tensor, memory: Tensor,
+                messages, factors: Factors, iteration: int,
+                generator: Optional[torch.Generator] = None) -> Tensor:
+        r"""The weight :math:`(M)` the correction gives every message edge
+        of :obj:`factors` in an iteration :obj:`iteration` from the
+        beliefs :obj:`belief`, the nodes' :obj:`memory` and the last
+        :obj:`messages` (the arguments of :meth:`forward`): the power of
+        the likelihood its tempered messages stand for, which a method
+        that scores the exact likelihood of the links (a relocation's
+        search, hybrid BP's particles) raises each link's to."""
+        inputs = self.bp.prepare(belief, belief, edge_index, edge_attr,
+                                 anchor, messages, factors, True)
+        _, belief, edge_index, edge_attr, messages, factors = inputs
+        _, _, edge = self._corrected(belief, edge_index, edge_attr, anchor,
+                                     memory, messages, generator, factors,
+                                     iteration)
+        return self.message_weights(edge).to(belief.mean).view(-1)
+
     def forward(self, prior: GaussianBelief, belief: GaussianBelief,
                 edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
                 memory: Tensor, messages: Optional[FactorMessages] = None,
@@ -349,25 +386,18 @@ class GaussianNEBPConv(MessagePassing):
         prior, belief, edge_index, edge_attr, messages, factors = inputs
         if validate:
             self._check_memory(memory, belief.mean.size(0))
-        linearization = self.bp.linearize(belief, edge_index, edge_attr,
-                                          factors, generator)
-        new = self.bp.messages(belief, anchor, factors, linearization,
-                               messages)
-        features = self.features(belief, anchor, factors, linearization,
-                                 new, iteration, memory)
-        dtype = self.weight_head.weight.dtype
-        source, target = factors.index
+        new, features, edge = self._corrected(
+            belief, edge_index, edge_attr, anchor, memory, messages,
+            generator, factors, iteration)
         hidden = memory[:, :self.hidden_dim]
-        edge = self.edge_mlp(torch.cat([features.edge.to(dtype),
-                                        hidden[source], hidden[target]], -1))
-        node = features.node.to(dtype)
+        node = features.node.to(edge)
         gathered = self.propagate(factors.index, edge=edge,
                                   size=(node.size(0), node.size(0)))
         hidden = self.node_update(torch.cat([gathered, node], -1), hidden)
         weight = self.message_weights(edge).to(new.eta)
         tempered = FactorMessages(new.info * weight.view(-1, 1, 1),
                                   new.eta * weight)
-        memory = torch.cat([hidden, features.consistency.to(dtype).view(
+        memory = torch.cat([hidden, features.consistency.to(edge).view(
             -1, 1), memory[:, _HISTORY:]], -1)
         return (self.bp.beliefs(prior, belief, tempered, factors, anchor),
                 tempered, memory)

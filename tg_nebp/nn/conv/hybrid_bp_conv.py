@@ -169,12 +169,18 @@ class HybridBPConv(MessagePassing):
 
     def forward(self, particles: Tensor, log_weights: Tensor,
                 sources: SourceBeliefs, factors: Factors, edge_index: Tensor,
-                edge_attr: Tensor) -> Tuple[Tensor, Tensor]:
+                edge_attr: Tensor, tempering: Optional[Tensor] = None
+                ) -> Tuple[Tensor, Tensor]:
         r"""The agents' belief log-weights and every message edge's
-        log-message at its target's particles (see the class)."""
+        log-message at its target's particles (see the class), each
+        raised to its message edge's power :obj:`tempering` :math:`(M)`
+        where given (a learned correction's weights: the likelihood that
+        its tempered Gaussian messages stand for)."""
         num_nodes = particles.size(0)
         messages = self.log_messages(particles, sources, factors,
                                      edge_index, edge_attr)
+        if tempering is not None:
+            messages = messages * tempering.to(messages).view(-1, 1)
         summed = self.propagate(factors.index, log_message=messages,
                                 size=(num_nodes, num_nodes))
         return log_normalize(log_weights + summed), messages
@@ -203,8 +209,8 @@ class HybridBPConv(MessagePassing):
                      ) -> Tensor:
         r"""The log-message :math:`(M, K)` of every message edge of
         :obj:`factors` at its target's particles."""
-        blocks = [self._block_log_messages(particles, *block, edge_index,
-                                           edge_attr)
+        blocks = [self._block_log_messages(particles, *block[:3],
+                                           edge_index, edge_attr)
                   for block in self._blocks(sources, factors, pairs)]
         return torch.cat(blocks) if len(blocks) > 1 else blocks[0]
 
@@ -236,8 +242,8 @@ class HybridBPConv(MessagePassing):
     def _blocks(self, sources: SourceBeliefs, factors: Factors,
                 pairs: Optional[Tuple[Tensor, Tensor]]):
         # the message edges in blocks of chunk_size: each block's sources,
-        # (source, target) index and pairs (their edges counted from the
-        # block's first)
+        # (source, target) index, pairs (their edges counted from the
+        # block's first) and its rows among the message edges
         edge, link = pairs or _pairs(factors)
         count = factors.index.size(1)
         size = self.chunk_size or max(count, 1)
@@ -251,30 +257,39 @@ class HybridBPConv(MessagePassing):
             low, high = bounds[block], bounds[block + 1]
             yield (SourceBeliefs(*(part[start:end] for part in sources)),
                    factors.index[:, start:end],
-                   (edge[low:high] - start, link[low:high]))
+                   (edge[low:high] - start, link[low:high]),
+                   slice(start, end))
 
     def target_linearization(self, particles: Tensor,
                              sources: SourceBeliefs, factors: Factors,
                              edge_index: Tensor, edge_attr: Tensor,
-                             pairs: Optional[Tuple[Tensor, Tensor]] = None
+                             pairs: Optional[Tuple[Tensor, Tensor]] = None,
+                             tempering: Optional[Tensor] = None
                              ) -> Tuple[Tensor, Tensor]:
         r"""The gradient :math:`(N, K, R)` and curvature :math:`(N, K, R,
         R)` of every agent's links' log-likelihood with respect to its own
         scope at each of its :obj:`particles`, the sources at their
         extrinsic means (the measurement model's
         :meth:`~tg_nebp.models.MeasurementModel.linearize`): a Gauss-Newton
-        step of each particle towards what its links alone say."""
+        step of each particle towards what its links alone say. Each
+        message edge's terms are multiplied by its :obj:`tempering`
+        :math:`(M)` where given (see :meth:`forward`)."""
         num_nodes, num = particles.shape[:2]
         width = sources.info.size(-1)
         grad = particles.new_zeros(num_nodes, num, width)
         curv = particles.new_zeros(num_nodes, num, width, width)
-        for block, index, (edge, link) in self._blocks(sources, factors,
-                                                       pairs):
+        for block, index, (edge, link), rows in self._blocks(
+                sources, factors, pairs):
             target = index[1]
+            power = (None if tempering is None else
+                     tempering[rows].to(particles))
             if self.rank_one:
                 _, score, weight, unit = self._range_terms(
                     particles, block, target, edge_attr, (edge, link),
                     value=False)
+                if power is not None:
+                    score = score * power.view(-1, 1)
+                    weight = weight * power.view(-1, 1)
                 # d grows with the target's position against u (u: to the
                 # source)
                 grad = grad.index_add(0, target, -score.unsqueeze(-1) * unit)
@@ -285,6 +300,9 @@ class HybridBPConv(MessagePassing):
             _, g, w = self._linearized(particles, block, index, edge, link,
                                        edge_index, edge_attr, width,
                                        'target')
+            if power is not None:
+                g = g * power[edge].view(-1, 1, 1)
+                w = w * power[edge].view(-1, 1, 1, 1)
             grad = grad.index_add(0, target[edge], g)
             curv = curv.index_add(0, target[edge], w)
         return grad, curv
