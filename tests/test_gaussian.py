@@ -104,20 +104,25 @@ def test_dense_joint_check_names_the_sizes():
         check_dense_joint(10_000, 4, 'the test', free=2**30)
 
 
+def _belief_and_prediction(seed, count, size=4):
+    # random belief covariances (count, size, size) and their predictions,
+    # wider in a 2-D subspace only: the links measured two directions, the
+    # others not at all
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(count, size, size, generator=g, dtype=torch.float64)
+    cov = a @ a.transpose(-1, -2) + 0.1 * torch.eye(size)
+    b = torch.randn(count, size, 2, generator=g, dtype=torch.float64)
+    return cov, cov + 3.0 * b @ b.transpose(-1, -2)
+
+
 def test_bounded_inflation_against_the_generalized_eigenproblem():
     # a slow reference: scipy's generalized eigenvectors V of (P, C)
     # (V^T C V = I, V^T P V = diag(lambda)); the inflated covariance is
     # V^-T diag(min(kappa, max(lambda, 1))) V^-1, one matrix at a time
     import scipy.linalg
     from tg_nebp.gaussian import bounded_inflation
-    g = torch.Generator().manual_seed(3)
-    count, size = 6, 4
-    a = torch.randn(count, size, size, generator=g, dtype=torch.float64)
-    cov = a @ a.transpose(-1, -2) + 0.1 * torch.eye(size)
-    b = torch.randn(count, size, 2, generator=g, dtype=torch.float64)
-    # the prediction is wider in a 2-D subspace only: the links measured
-    # two directions, the others not at all
-    predicted = cov + 3.0 * b @ b.transpose(-1, -2)
+    count = 6
+    cov, predicted = _belief_and_prediction(3, count)
     kappa = torch.linspace(0.9, 4.0, count, dtype=torch.float64)
     out = bounded_inflation(cov, predicted, kappa)
     for n in range(count):
@@ -146,12 +151,8 @@ def test_the_inflation_map_moves_a_cloud_as_the_covariance_is_inflated():
     # particle: a covariance of subnormal entries, whose factor whitens
     # the prediction beyond float64's range) stays where it is
     from tg_nebp.gaussian import bounded_inflation, bounded_inflation_map
-    g = torch.Generator().manual_seed(4)
     count, size = 5, 4
-    a = torch.randn(count, size, size, generator=g, dtype=torch.float64)
-    cov = a @ a.transpose(-1, -2) + 0.1 * torch.eye(size)
-    b = torch.randn(count, size, 2, generator=g, dtype=torch.float64)
-    predicted = cov + 3.0 * b @ b.transpose(-1, -2)
+    cov, predicted = _belief_and_prediction(4, count, size)
     kappa = torch.linspace(1.2, 4.0, count, dtype=torch.float64)
     cov[3] = 0.0
     cov[4] = torch.diag(torch.tensor([1.5e-318, 3e-317, 2e-319, 4.5e-320],
