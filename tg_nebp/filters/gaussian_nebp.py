@@ -119,7 +119,7 @@ class GaussianNEBP(GaussianBP):
         return self.conv.weights(
             solved.belief, edge_index.long(), edge_attr.double(), anchor,
             solved.state.memory, solved.messages, solved.factors,
-            self.num_iterations - 1).detach()
+            self.num_iterations - 1, validate=False).detach()
 
     def carry(self, mean: Tensor, cov: Tensor, memory: Tensor,
               predicted: Tensor):

@@ -343,16 +343,18 @@ class GaussianNEBPConv(MessagePassing):
     def weights(self, belief: GaussianBelief, edge_index: Tensor,
                 edge_attr: Tensor, anchor: Tensor, memory: Tensor,
                 messages, factors: Factors, iteration: int,
-                generator: Optional[torch.Generator] = None) -> Tensor:
+                generator: Optional[torch.Generator] = None,
+                validate: bool = True) -> Tensor:
         r"""The weight :math:`(M)` the correction gives every message edge
         of :obj:`factors` in an iteration :obj:`iteration` from the
         beliefs :obj:`belief`, the nodes' :obj:`memory` and the last
         :obj:`messages` (the arguments of :meth:`forward`): the power of
         the likelihood its tempered messages stand for, which a method
         that scores the exact likelihood of the links (a relocation's
-        search, hybrid BP's particles) raises each link's to."""
+        search, hybrid BP's particles) raises each link's to;
+        :obj:`validate` as in :meth:`forward`."""
         inputs = self.bp.prepare(belief, belief, edge_index, edge_attr,
-                                 anchor, messages, factors, True)
+                                 anchor, messages, factors, validate)
         _, belief, edge_index, edge_attr, messages, factors = inputs
         _, _, edge = self._corrected(belief, edge_index, edge_attr, anchor,
                                      memory, messages, generator, factors,

@@ -149,8 +149,8 @@ class HybridBPConv(MessagePassing):
     @staticmethod
     def pairs(factors: Factors) -> Tuple[Tensor, Tensor]:
         r"""Every (message edge, link) pair of the same factor, as two index
-        vectors: a message edge reads each of its factor's links (the two
-        ranges of a pair). The methods below compute them unless given
+        vectors sorted by message edge: a message edge reads each of its
+        factor's links (the two ranges of a pair). The methods below compute them unless given
         (:obj:`pairs`), as a caller that evaluates many candidates on one
         step's factors passes them once."""
         return _pairs(factors)
@@ -247,8 +247,6 @@ class HybridBPConv(MessagePassing):
         edge, link = pairs or _pairs(factors)
         count = factors.index.size(1)
         size = self.chunk_size or max(count, 1)
-        order = torch.argsort(edge, stable=True)
-        edge, link = edge[order], link[order]
         starts = list(range(0, max(count, 1), size))
         bounds = torch.searchsorted(edge, torch.tensor(
             starts + [count], device=edge.device)).tolist()
@@ -370,8 +368,9 @@ class HybridBPConv(MessagePassing):
 
 
 def _pairs(factors: Factors) -> Tuple[Tensor, Tensor]:
-    # every (message edge, link) pair of the same factor: the message edge
-    # reads each of its factor's links (the two ranges of a pair)
+    # every (message edge, link) pair of the same factor, sorted by message
+    # edge: the message edge reads each of its factor's links (the two
+    # ranges of a pair)
     links = torch.arange(factors.factor.numel(),
                          device=factors.factor.device)
     order = torch.argsort(factors.link, stable=True)
@@ -385,7 +384,11 @@ def _pairs(factors: Factors) -> Tuple[Tensor, Tensor]:
     if not pairs:
         empty = factors.factor.new_zeros(0)
         return empty, empty
-    return torch.cat(edges), torch.cat(pairs)
+    # sorted by message edge: the blocks of message edges take theirs as
+    # one slice
+    edges, pairs = torch.cat(edges), torch.cat(pairs)
+    order = torch.argsort(edges, stable=True)
+    return edges[order], pairs[order]
 
 
 def _integrated(value: Tensor, grad: Tensor, curv: Tensor,
