@@ -2,7 +2,7 @@ r"""Small tensor helpers shared by the layers and the trackers."""
 import contextlib
 import os
 import re
-from typing import Dict, Iterator, NamedTuple, Optional, Tuple
+from typing import Callable, Dict, Iterator, NamedTuple, Optional, Tuple
 
 import torch
 import torch.distributed as dist
@@ -13,6 +13,7 @@ __all__ = [
     'inputs',
     'weighted_moments',
     'symmetrize',
+    'row_jacobian',
     'rounding_tolerance',
     'symmetric_psd_defects',
     'log_normalize',
@@ -71,6 +72,41 @@ def weighted_moments(particles: Tensor, log_weights: Tensor):
     # BLAS at hand: symmetric only to rounding, unless symmetrized
     return mean, symmetrize(
         (centered * weights.unsqueeze(-1)).transpose(1, 2) @ centered)
+
+
+def row_jacobian(function: Callable[[Tensor], Tensor], point: Tensor,
+                 create_graph: Optional[bool] = None) -> Tensor:
+    r"""The Jacobian :math:`(*, O, I)` of a :obj:`function` that maps every
+    row of :obj:`point` :math:`(*, I)` to its own output row :math:`(*,
+    O)` (a motion model's move of each state, a measurement model's
+    expectation of each link), by reverse-mode automatic differentiation
+    of the function itself: one backward pass, batched over the :math:`O`
+    output directions. (Forward mode would take one pass per input
+    direction, and PyTorch's forward-mode products run through slow
+    decompositions.) Differentiable where gradients are enabled and
+    :obj:`create_graph` holds (by default: where :obj:`point` requires
+    them; pass :obj:`True` where the function reads another tensor that
+    does), as training through a tracker needs."""
+    if create_graph is None:
+        create_graph = point.requires_grad
+    create = create_graph and torch.is_grad_enabled()
+    with torch.enable_grad():
+        leaf = point if create and point.requires_grad else \
+            point.detach().requires_grad_()
+        out = function(leaf)
+        size = out.size(-1)
+        if out.numel() == 0:
+            return out.new_zeros(out.shape + point.shape[-1:])
+        eye = torch.eye(size, dtype=out.dtype, device=out.device)
+        directions = eye.view((size, ) + (1, ) * (out.dim() - 1) +
+                              (size, )).expand((size, ) + out.shape)
+        rows, = torch.autograd.grad(out, leaf, directions,
+                                    is_grads_batched=True,
+                                    create_graph=create, allow_unused=True)
+    if rows is None:  # the output does not depend on the point
+        return out.new_zeros(out.shape + point.shape[-1:]).detach()
+    # rows[k] holds output k's gradient: (O, *, I) to (*, O, I)
+    return rows.movedim(0, -2)
 
 
 def symmetrize(matrices: Tensor) -> Tensor:

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from tg_nebp.data.validation import check_number
 from tg_nebp.gaussian import range_blocks, unit_vectors
-from tg_nebp.utils import inputs
+from tg_nebp.utils import inputs, row_jacobian
 
 __all__ = [
     'Model',
@@ -300,27 +300,14 @@ class MotionModel(Model):
                  control: Optional[Tensor] = None) -> Tensor:
         r"""The Jacobian :math:`\partial f / \partial \mathbf{x}`
         :math:`(*, S, S)` of :meth:`mean` at :obj:`states` :math:`(*, S)`
-        (and :obj:`control`), by forward-mode automatic differentiation of
-        the model's own :meth:`mean` (one pass over :math:`S` copies of the
-        states, each with one unit tangent: every state moves on its
-        own)."""
-        import torch.autograd.forward_ad as forward_ad
-        size = states.size(-1)
-        flat = states.reshape(-1, size)
-        tangents = torch.eye(size, dtype=flat.dtype,
-                             device=flat.device).repeat(flat.size(0), 1)
-        if control is not None:
-            control = torch.broadcast_to(
-                control, states.shape[:-1] + control.shape[-1:]).reshape(
-                    flat.size(0), -1).repeat_interleave(size, 0)
-        with forward_ad.dual_level():
-            moved = self.mean(forward_ad.make_dual(
-                flat.repeat_interleave(size, 0), tangents),
-                **inputs(control))
-            columns = forward_ad.unpack_dual(moved).tangent
-        # row (state b, tangent k) holds column k of state b's Jacobian
-        jac = columns.view(flat.size(0), size, size).transpose(1, 2)
-        return jac.reshape(states.shape + (size, ))
+        (and :obj:`control`), by automatic differentiation of the model's
+        own :meth:`mean` (:func:`~tg_nebp.utils.row_jacobian`: every state
+        moves on its own)."""
+        given = inputs(control)
+        return row_jacobian(
+            lambda point: self.mean(point, **given), states,
+            states.requires_grad or control is not None and
+            control.requires_grad)
 
     def noise_covariance(self, states: Tensor,
                          control: Optional[Tensor] = None) -> Tensor:

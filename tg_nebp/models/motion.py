@@ -5,7 +5,7 @@ from torch import Tensor
 
 from tg_nebp.data.validation import check_number
 from tg_nebp.models.base import MotionModel, StateLayout
-from tg_nebp.utils import symmetrize
+from tg_nebp.utils import row_jacobian, symmetrize
 
 __all__ = ['ConstantVelocityDrag', 'ConstantVelocity', 'UnicycleOdometry']
 
@@ -282,20 +282,13 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
     def noise_covariance(self, states: Tensor,
                          control: Optional[Tensor] = None) -> Tensor:
         r""":math:`\mathbf{G} \mathbf{M} \mathbf{G}^\top` :math:`(*, 3,
-        3)`, with :math:`\mathbf{G}` by forward-mode differentiation of
+        3)`, with :math:`\mathbf{G}` by automatic differentiation of
         :meth:`propagate` in the inputs; the random walk's diagonal where
         there is no input."""
-        import torch.autograd.forward_ad as forward_ad
         control, missing = self._inputs(states, control)
-        columns = []
-        for k in range(2):
-            tangent = torch.zeros_like(control)
-            tangent[..., k] = 1.0
-            with forward_ad.dual_level():
-                moved = self.propagate(
-                    states, forward_ad.make_dual(control, tangent))
-                columns.append(forward_ad.unpack_dual(moved).tangent)
-        gain = torch.stack(columns, -1)  # G, (*, 3, 2)
+        gain = row_jacobian(lambda given: self.propagate(states, given),
+                            control, states.requires_grad or
+                            control.requires_grad)  # G, (*, 3, 2)
         cov = (gain * self.input_variances(control).unsqueeze(-2)) @ \
             gain.transpose(-1, -2)
         idle = torch.diag_embed(self._idle_variances(states).expand(

@@ -18,6 +18,7 @@ from tg_nebp.models.base import (LOG_SQRT_2PI, MeasurementModel, StateLayout,
                                  links_within_range, redraw_negative,
                                  wrap_angle)
 from tg_nebp.models.measurement import NU_RANGE, SIGMA_RANGE
+from tg_nebp.utils import row_jacobian
 
 __all__ = ['RangeBearingModel', 'GaussianRangeBearing',
            'StudentTRangeBearing']
@@ -154,19 +155,12 @@ class RangeBearingModel(MeasurementModel):
     def measurement_jacobian(self, sender: Tensor,
                              receiver: Tensor) -> Tensor:
         r"""The Jacobian :math:`(E, 2, 6)` of :meth:`expected` with respect
-        to :math:`[x_j, y_j, \theta_j, x_i, y_i, \theta_i]`, by forward-mode
-        differentiation of the model's own formula."""
-        import torch.autograd.forward_ad as forward_ad
+        to :math:`[x_j, y_j, \theta_j, x_i, y_i, \theta_i]`, by automatic
+        differentiation of the model's own formula
+        (:func:`~tg_nebp.utils.row_jacobian`)."""
         ends = torch.cat([sender[:, :3], receiver[:, :3]], -1)
-        count = ends.size(0)
-        tangents = torch.eye(6, dtype=ends.dtype,
-                             device=ends.device).repeat(count, 1)
-        with forward_ad.dual_level():
-            dual = forward_ad.make_dual(ends.repeat_interleave(6, 0),
-                                        tangents)
-            out = self.expected(dual[:, :3], dual[:, 3:])
-            columns = forward_ad.unpack_dual(out).tangent
-        return columns.view(count, 6, 2).transpose(1, 2)
+        return row_jacobian(lambda both: self.expected(both[:, :3],
+                                                       both[:, 3:]), ends)
 
     def _ends(self, sender: Tensor, receiver: Tensor):
         # the Jacobian placed on the full states' entries of both ends
