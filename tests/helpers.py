@@ -28,6 +28,14 @@ def tiny_scenario(steps=5):
                     num_steps=steps)
 
 
+def assert_symmetric_positive_definite(cov, atol=0.0):
+    r"""Covariances :math:`(*, S, S)` symmetric (to :obj:`atol`) with every
+    eigenvalue above zero."""
+    torch.testing.assert_close(cov, cov.transpose(-1, -2), rtol=0,
+                               atol=atol)
+    assert bool((torch.linalg.eigvalsh(cov) > 0).all())
+
+
 def assert_batch_equals_alone(method, fields=('mean', 'cov'), rtol=1e-10,
                               atol=1e-12):
     r"""A deterministic :obj:`method` (a tracker, or the bound) on a batch
@@ -445,11 +453,11 @@ def live_trackers():
     session tests: Gaussian BP plain and recommended, the IEKF joint and
     marginal, particle BP plain and recommended (M-sample messages,
     regularized), NEBP, the Gaussian NEBP, fixed-lag Gaussian BP (a
-    window of 3 steps) and hybrid BP (over Gaussian BP and over that
-    window)."""
+    window of 3 steps), hybrid BP (over Gaussian BP and over that window)
+    and the incremental smoother (relinearizing every other step)."""
     from tg_nebp.filters import (NEBP, CentralizedIEKF, FixedLagGaussianBP,
                                  GaussianBP, GaussianNEBP, HybridBP,
-                                 ParticleBP)
+                                 IncrementalSmoother, ParticleBP)
     return {
         'gbp': lambda: GaussianBP(),
         'gbp-recommended': lambda: GaussianBP.recommended(),
@@ -464,6 +472,7 @@ def live_trackers():
                                    seed=5, scale=0.1),
         'hybrid': lambda: HybridBP.recommended(num_particles=20),
         'hybrid-lag3': lambda: HybridBP.recommended(lag=3, num_particles=20),
+        'iekf-incremental': lambda: IncrementalSmoother(relinearize_skip=2),
     }
 
 

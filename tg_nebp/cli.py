@@ -379,6 +379,11 @@ def _add_method_options(parser: argparse.ArgumentParser):
         'smoothing bound at lag L), or over the whole sequence with '
         "'all' (iekf, pcrb); a smoother writes its filtered entry and its "
         "smoothed one (KEY-smoothed)")
+    add('--incremental', action='store_true',
+        help="iekf with --lag all: the incremental smoother of the whole "
+        "sequence (as iSAM2: each step relinearizes only the past states "
+        "that moved; its filtered entry is each step's newest states with "
+        "the past relinearized, iekf-incremental)")
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '
         'ideal of a distributed filter)')

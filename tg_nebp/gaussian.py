@@ -24,7 +24,7 @@ __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'add_link_information', 'marginal_blocks', 'block_diagonal',
            'unit_vectors', 'scope_index', 'WoodburyPrior', 'WoodburyUpdate',
            'JOINT_COPIES', 'bounded_inflation', 'bounded_inflation_map',
-           'joint_cross',
+           'joint_cross', 'joined_joint',
            'rts_backward']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
@@ -214,6 +214,22 @@ def _inflation_factors(cov: Tensor, predicted: Tensor, kappa: Tensor):
     whitened = torch.where(ok.view(-1, 1, 1), whitened, predicted)
     eigvals, eigvecs = torch.linalg.eigh(symmetrize(whitened))
     return ok, safe, eigvecs, torch.minimum(kappa, eigvals.clamp_min(1.0))
+
+
+def joined_joint(joint: Tensor, new: Tensor, state_dim: int,
+                 what: str) -> Tensor:
+    r"""The joint covariance of the agents of :obj:`joint` :math:`(AS,
+    AS)` followed by those of :obj:`new` :math:`(BS, BS)` (agents joining
+    a live session), with no correlation between them; a joint too large
+    for the free memory of its device is refused for :obj:`what`
+    (:func:`check_dense_joint`)."""
+    check_dense_joint((joint.size(0) + new.size(0)) // state_dim, state_dim,
+                      what, joint.device)
+    extended = joint.new_zeros(joint.size(0) + new.size(0),
+                               joint.size(1) + new.size(1))
+    extended[:joint.size(0), :joint.size(1)] = joint
+    extended[joint.size(0):, joint.size(1):] = new
+    return extended
 
 
 def block_diagonal(blocks: Tensor) -> Tensor:

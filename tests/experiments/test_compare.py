@@ -293,7 +293,7 @@ def test_smoother_rows_each_beside_its_bound(tmp_path, capsys):
     # by the smoothing bound of the same realizations and lag
     from tg_nebp.experiments.compare import floor_row
     from tg_nebp.filters import (CentralizedSmoother, FixedLagGaussianBP,
-                                 Smoothed)
+                                 IncrementalSmoother, Smoothed)
     rows = list(compare_methods(tiny_scenario(), lag=3))
     assert rows[:3] == ['pcrb', 'pcrb-lag3', 'pcrb-smoother']
     for key in ('iekf-lag3 gaussian', 'iekf-lag3-smoothed gaussian',
@@ -307,13 +307,18 @@ def test_smoother_rows_each_beside_its_bound(tmp_path, capsys):
     assert isinstance(smoothed, Smoothed) and isinstance(
         smoothed.tracker, CentralizedSmoother)
     assert 'pcrb-lag3' not in compare_methods(tiny_scenario())
+    incremental = built['iekf-incremental-smoothed gaussian'][1]()
+    assert isinstance(incremental, Smoothed) and isinstance(
+        incremental.tracker, IncrementalSmoother)
     assert [floor_row(k) for k in (
         'pcrb', 'pcrb-lag3', 'pcrb-smoother', 'pcrb-range-only',
         'gbp-lag3 gaussian', 'gbp-lag3-smoothed gaussian',
         'iekf-lag3-smoothed student-t', 'iekf-smoother gaussian',
-        'gbp-plain gaussian')] == [
+        'gbp-plain gaussian', 'iekf-incremental gaussian',
+        'iekf-incremental-smoothed gaussian')] == [
             'pcrb', 'pcrb-lag3', 'pcrb-smoother', 'pcrb', 'pcrb',
-            'pcrb-lag3', 'pcrb-lag3', 'pcrb-smoother', 'pcrb']
+            'pcrb-lag3', 'pcrb-lag3', 'pcrb-smoother', 'pcrb', 'pcrb',
+            'pcrb-smoother']
     scenarios = scenario_files(tmp_path)[:1]
     assert main(['compare', '--scenario', *scenarios, '--realizations',
                  '2', '--lag', '3', '--methods', 'pcrb', 'gbp-lag3 gaussian',

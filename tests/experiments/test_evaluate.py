@@ -68,7 +68,7 @@ GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
              resampler='systematic', regularize=0.2, ess_threshold=0.5,
              measurement='student-t', iterations=2, ends='both',
              marginal=True, inflation=1.2, tolerance=0.0, no_control=True,
-             lag=3)
+             lag=3, incremental=True)
 
 
 def test_an_option_is_refused_by_the_methods_that_do_not_take_it(scenario):
@@ -256,6 +256,36 @@ def test_method_tracker_builds_the_smoothers(scenario):
         method_tracker('bp', scenario, lag=3)
     with pytest.raises(ValueError, match="'lag' must be positive"):
         method_tracker('gbp', scenario, lag=0)
+    from tg_nebp.filters import IncrementalSmoother
+    incremental, key = method_tracker('iekf', scenario, lag='all',
+                                      incremental=True, iterations=3)
+    assert isinstance(incremental, IncrementalSmoother)
+    assert key == 'iekf-incremental' and incremental.num_iterations == 3
+    for lag in (None, 4):
+        with pytest.raises(ValueError, match="'incremental' is the smoother "
+                           "of the whole sequence: give 'lag' 'all'"):
+            method_tracker('iekf', scenario, lag=lag, incremental=True)
+    with pytest.raises(ValueError, match=r"'incremental' \(--incremental\) "
+                       r"is for method iekf, not gbp"):
+        method_tracker('gbp', scenario, lag=3, incremental=True)
+
+
+def test_cli_evaluates_the_incremental_smoother(tmp_path, capsys):
+    # two entries: each step's newest states (the past relinearized) and
+    # every step's smoothed estimate, which is closer to the truth
+    out = tmp_path / 'out'
+    assert main(['evaluate', '--scenario', 'paper_test', '--realizations',
+                 '1', '--root', str(tmp_path / 'data'), '--out', str(out),
+                 '--quiet', '--threads', '1', '--method', 'iekf', '--lag',
+                 'all', '--incremental']) == 0
+    printed = capsys.readouterr().out
+    assert 'iekf-incremental: RMSE' in printed
+    assert 'iekf-incremental-smoothed: RMSE' in printed
+    metrics = json.loads((out / "metrics.json").read_text())
+    filtered = metrics['iekf-incremental']
+    smoothed = metrics['iekf-incremental-smoothed']
+    assert filtered['incremental'] is True and smoothed['smoothed'] is True
+    assert smoothed['rmse'] < filtered['rmse']
 
 
 def test_cli_evaluates_a_smoother_filtered_and_smoothed(tmp_path, capsys):

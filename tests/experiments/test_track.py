@@ -333,3 +333,32 @@ def test_hybrid_tracks_live(recorded, tmp_path):
                              out.read_text().split('\n')[:-1]]
         assert len(lines['hybrid']) == len(recorded['lines'])
         assert lines['hybrid'] == lines['gbp']
+
+
+def test_the_incremental_smoother_tracks_live_and_resumes(recorded,
+                                                          tmp_path):
+    # the incremental smoother through the live path: a line out per line
+    # in; saved after every line, a run stopped half-way and resumed ends
+    # as the uninterrupted one; the batch smoother is refused by name
+    measurements = tmp_path / 'm.jsonl'
+    lines = recorded['lines']
+    measurements.write_text('\n'.join(lines) + '\n')
+    command = ['track', '--method', 'iekf', '--lag', 'all', '--incremental',
+               '--scenario', str(recorded['scenario'])]
+    whole = tmp_path / 'whole.jsonl'
+    assert main(command + ['--input', str(measurements), '--output',
+                           str(whole)]) == 0
+    expected = whole.read_text().split('\n')[:-1]
+    assert len(expected) == len(lines)
+    half = tmp_path / 'half.jsonl'
+    half.write_text('\n'.join(lines[:len(lines) // 2]) + '\n')
+    resumed, state = tmp_path / 'resumed.jsonl', tmp_path / 'state.pt'
+    assert main(command + ['--input', str(half), '--output', str(resumed),
+                           '--save-state', str(state)]) == 0
+    assert main(command + ['--input', str(measurements), '--output',
+                           str(resumed), '--resume', str(state)]) == 0
+    assert resumed.read_text().split('\n')[:-1] == expected
+    assert main(['track', '--method', 'iekf', '--lag', 'all', '--scenario',
+                 str(recorded['scenario']), '--input', str(measurements),
+                 '--output', str(tmp_path / 'refused.jsonl')]) == 2
+    assert not (tmp_path / 'refused.jsonl').exists()

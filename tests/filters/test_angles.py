@@ -9,7 +9,8 @@ import torch
 
 from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
                              FixedLagGaussianBP, GaussianBP, GaussianNEBP,
-                             HybridBP, ParticleBP, Smoothed)
+                             HybridBP, IncrementalSmoother, ParticleBP,
+                             Smoothed)
 from tg_nebp.metrics import angle_errors
 from tg_nebp.models import (GaussianRange, GaussianRangeBearing, NLOSRange,
                             StudentTRange, StudentTRangeBearing,
@@ -50,8 +51,10 @@ TRACKERS = {
                                                   measurement=z),
     'hybrid-lag3': lambda m, z: HybridBP.recommended(lag=3, motion=m,
                                                      measurement=z),
+    'iekf-incremental': lambda m, z: IncrementalSmoother(motion=m,
+                                                         measurement=z),
 }
-SMOOTHERS = ('gbp-lag5', 'iekf-lag5', 'hybrid-lag3')
+SMOOTHERS = ('gbp-lag5', 'iekf-lag5', 'hybrid-lag3', 'iekf-incremental')
 
 
 @pytest.mark.parametrize('name, smoothed', [
@@ -87,7 +90,8 @@ MODELS = {
 
 
 @pytest.mark.parametrize('model', list(MODELS))
-@pytest.mark.parametrize('name', ['gbp-lag5', 'iekf-lag5'])
+@pytest.mark.parametrize('name', ['gbp-lag5', 'iekf-lag5',
+                                  'iekf-incremental'])
 def test_every_likelihood_on_every_smoother(name, model):
     # the circling robots measured by each likelihood of the library (the
     # data drawn from it): the smoothed estimates at most the filtered

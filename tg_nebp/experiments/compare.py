@@ -26,8 +26,8 @@ from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, WHOLE_SEQUENCE,
                                           realizations_of, scenario_of)
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
-                             GaussianBP, HybridBP, LinkSearch, ParticleBP,
-                             Smoothed, Tracker)
+                             GaussianBP, HybridBP, IncrementalSmoother,
+                             LinkSearch, ParticleBP, Smoothed, Tracker)
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
@@ -89,8 +89,9 @@ def compare_methods(scenario: Scenario,
     first word ending in :obj:`"-smoothed"`): the smoothing bounds at lag
     :math:`L` (:obj:`"pcrb-lagL"`) and of the whole sequence
     (:obj:`"pcrb-smoother"`), the centralized fixed-lag smoother with the
-    scenario's likelihood (:obj:`"iekf-lagL ..."`) and the full one
-    (:obj:`"iekf-smoother ..."`), and fixed-lag Gaussian BP with every
+    scenario's likelihood (:obj:`"iekf-lagL ..."`), the full one
+    (:obj:`"iekf-smoother ..."`) and the incremental one
+    (:obj:`"iekf-incremental ..."`, filtered and smoothed), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
     :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
     hybrid BP over it (:obj:`"hybrid-lagL ..."`, filtered)."""
@@ -155,6 +156,14 @@ def compare_methods(scenario: Scenario,
         methods[f'iekf{suffix}{SMOOTHED} {own.name}'] = (
             f'centralized fixed-lag smoother (window {lag}), smoothed',
             lambda: Smoothed(CentralizedSmoother(lag, motion=motion,
+                                                 measurement=own)))
+        methods[f'iekf-incremental {own.name}'] = (
+            'centralized incremental smoother (iSAM2-like), filtered: each '
+            "step's newest states, the past relinearized",
+            lambda: IncrementalSmoother(motion=motion, measurement=own))
+        methods[f'iekf-incremental{SMOOTHED} {own.name}'] = (
+            'centralized incremental smoother (iSAM2-like), smoothed',
+            lambda: Smoothed(IncrementalSmoother(motion=motion,
                                                  measurement=own)))
         methods[f'iekf{lag_key(WHOLE_SEQUENCE)} {own.name}'] = (
             'centralized full smoother (Gauss-Newton over all steps)',
@@ -493,8 +502,9 @@ def floor_row(key: str) -> str:
     r"""The key of the bound row that a row's RMSE is divided by: a
     smoother's smoothed estimates (:obj:`"...-lagL-smoothed ..."`) by the
     smoothing bound at its lag (:obj:`"pcrb-lagL"`), the full smoother
-    (:obj:`"iekf-smoother ..."`) by that of the whole sequence
-    (:obj:`"pcrb-smoother"`), a smoothing bound by itself, every other row
+    (:obj:`"iekf-smoother ..."`) and the incremental smoother's smoothed
+    row (:obj:`"iekf-incremental-smoothed ..."`) by that of the whole
+    sequence (:obj:`"pcrb-smoother"`), a smoothing bound by itself, every other row
     (filters, and the smoothers' filtered estimates) by the filtering
     bound (:data:`BOUND`)."""
     first = key.split(' ')[0]
@@ -505,6 +515,8 @@ def floor_row(key: str) -> str:
         return BOUND + whole
     if first.endswith(SMOOTHED):
         window = first[:-len(SMOOTHED)]
+        if '-lag' not in window:  # the incremental smoother's: every step
+            return BOUND + whole
         return BOUND + window[window.rindex('-lag'):]
     return BOUND
 

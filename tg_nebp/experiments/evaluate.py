@@ -16,8 +16,8 @@ from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
-                             GaussianBP, HybridBP, LinkSearch, ParticleBP,
-                             Smoothed, Tracker)
+                             GaussianBP, HybridBP, IncrementalSmoother,
+                             LinkSearch, ParticleBP, Smoothed, Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -49,6 +49,7 @@ METHOD_OPTIONS = {
     'iterations': ('bp', 'iekf', 'gbp', 'gnebp', 'hybrid'),
     'ends': ('bp', 'gbp'),
     'marginal': ('iekf', ),
+    'incremental': ('iekf', ),
     'inflation': ('gbp', 'hybrid'),
     'tolerance': ('gbp', 'gnebp', 'hybrid'),
     'lag': ('gbp', 'hybrid', 'iekf', 'pcrb'),
@@ -173,7 +174,8 @@ def method_tracker(method: str, scenario: Scenario,
                    tolerance: Optional[float] = None,
                    checkpoint: Optional[str] = None,
                    compile: bool = False, no_control: bool = False,
-                   lag: Union[int, str, None] = None
+                   lag: Union[int, str, None] = None,
+                   incremental: bool = False
                    ) -> Tuple[Union[Tracker, PosteriorCRB], str]:
     r"""The tracker of :obj:`method` (one of :data:`METHODS`) for the data
     of :obj:`scenario`, and its :obj:`metrics.json` key. The options left
@@ -218,7 +220,7 @@ def method_tracker(method: str, scenario: Scenario,
                                   iterations, samples, resampler,
                                   regularize, ess_threshold, ends, marginal,
                                   inflation, tolerance, checkpoint, compile,
-                                  no_control, lag)
+                                  no_control, lag, incremental)
     method.use_control = not no_control
     # its own metrics.json entry: the run with the inputs stays
     return method, key + ('-no-control' if no_control else '')
@@ -227,7 +229,7 @@ def method_tracker(method: str, scenario: Scenario,
 def _method_tracker(method, scenario, measurement, particles, iterations,
                     samples, resampler, regularize, ess_threshold, ends,
                     marginal, inflation, tolerance, checkpoint, compile,
-                    no_control, lag):
+                    no_control, lag, incremental):
     # every option by name (all the arguments but the first two), before
     # any other local exists
     options = {name: value for name, value in locals().items()
@@ -257,6 +259,9 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
                          f"of L steps")
     if lag is not None and lag != WHOLE_SEQUENCE:
         check_positive_int(lag, 'lag')
+    if incremental and lag != WHOLE_SEQUENCE:
+        raise ValueError(f"'incremental' is the smoother of the whole "
+                         f"sequence: give 'lag' {WHOLE_SEQUENCE!r}")
     if lag is not None and marginal:
         raise ValueError("'lag' and 'marginal': the smoother keeps the "
                          "joint of its window")
@@ -268,6 +273,10 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
             return PosteriorCRB(**models), 'pcrb'
         return PosteriorCRB(**models, lag=window), 'pcrb' + lag_key(lag)
     if method == 'iekf':
+        if incremental:
+            return IncrementalSmoother(
+                **_given(num_iterations=iterations),
+                **models), 'iekf-incremental'
         if lag is not None:
             return CentralizedSmoother(
                 window, **_given(num_iterations=iterations),
@@ -401,8 +410,9 @@ def evaluate_scenario(method: str,
     dataset, = load_datasets(root, (scenario, realizations, seed))
     share = len(range(rank, len(dataset), world_size))
     runs = [(key, tracker)]
-    if getattr(tracker, 'lag', None) is not None and \
-            isinstance(tracker, Tracker) and tracker.lag > 1:
+    if isinstance(tracker, IncrementalSmoother) or getattr(
+            tracker, 'lag', None) is not None and isinstance(
+                tracker, Tracker) and tracker.lag > 1:
         runs.append((key + '-smoothed', Smoothed(tracker)))
     particles = getattr(tracker, 'num_particles', None)
     bar = (progress_factory(share * dataset.scenario.num_steps * len(runs),

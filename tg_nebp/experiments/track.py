@@ -72,10 +72,13 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     if method not in LIVE_METHODS:
         raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
                          f"(the bound does not track), got {method!r}")
-    if options.get('lag') is not None and method not in ('gbp', 'hybrid'):
+    if options.get('lag') is not None and method not in ('gbp', 'hybrid') \
+            and not options.get('incremental'):
         raise ValueError(f"'lag' (--lag) tracks live with method gbp "
-                         f"(fixed-lag Gaussian BP) or hybrid (over it); the "
-                         f"{method} smoother is an offline reference")
+                         f"(fixed-lag Gaussian BP), hybrid (over it) or iekf "
+                         f"--lag all --incremental (the incremental "
+                         f"smoother); the batch {method} smoother is an "
+                         f"offline reference")
     tracker, _ = method_tracker(method, scenario_of(scenario), **options)
     tracker = tracker.to(device).eval()
     done = written = 0

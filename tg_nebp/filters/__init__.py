@@ -8,6 +8,7 @@ from .particle_bp import ParticleBP, ParticleState
 from .nebp import NEBP
 from .centralized_iekf import CentralizedIEKF, JointState
 from .centralized_smoother import CentralizedSmoother
+from .incremental_smoother import IncrementalSmoother, SmootherState
 from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
                           SolvedStep)
 from .gaussian_nebp import GaussianNEBP
@@ -15,8 +16,9 @@ from .fixed_lag_gbp import FixedLagGaussianBP, WindowState
 from .relocation import LinkSearch, SearchResult
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import AgentPrior, AnchorAt, TrackingSession
-from .partitioned_gbp import (Partition, PartitionedGaussianBP, partition,
-                              strips)
+from .partitioned_gbp import (Partition, PartitionedFixedLagGaussianBP,
+                              PartitionedGaussianBP, PartitionedTracker,
+                              partition, strips)
 from tg_nebp.data.validation import check_state_dim
 from tg_nebp.utils import weighted_moments
 
@@ -26,6 +28,8 @@ __all__ = [
     'NEBP',
     'CentralizedIEKF',
     'CentralizedSmoother',
+    'IncrementalSmoother',
+    'SmootherState',
     'Smoothed',
     'GaussianBP',
     'GaussianNEBP',
@@ -37,6 +41,8 @@ __all__ = [
     'SearchResult',
     'SolvedStep',
     'PartitionedGaussianBP',
+    'PartitionedFixedLagGaussianBP',
+    'PartitionedTracker',
     'TrackingSession',
     'GaussianState',
     'JointState',

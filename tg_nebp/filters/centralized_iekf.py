@@ -10,7 +10,8 @@ from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior,
                               add_link_information, block_diagonal,
                               check_dense_joint, check_predicted_prior,
-                              marginal_blocks, predict_joint, scope_index)
+                              joined_joint, marginal_blocks, predict_joint,
+                              scope_index)
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.utils import symmetrize
 
@@ -227,15 +228,9 @@ class CentralizedIEKF(Tracker):
         (an :meth:`initial_state`): the joint extended by theirs, with no
         correlation between them."""
         (joint, ), (new, ) = state.joints, joined.joints
-        size = state.mean.size(1)
-        check_dense_joint((joint.size(0) + new.size(0)) // size, size,
-                          'the centralized IEKF', joint.device)
-        extended = joint.new_zeros(joint.size(0) + new.size(0),
-                                   joint.size(1) + new.size(1))
-        extended[:joint.size(0), :joint.size(1)] = joint
-        extended[joint.size(0):, joint.size(1):] = new
-        return JointState(torch.cat([state.mean, joined.mean]),
-                          (extended, ))
+        return JointState(torch.cat([state.mean, joined.mean]), (
+            joined_joint(joint, new, state.mean.size(1),
+                         'the centralized IEKF'), ))
 
     def predict(self, mean: Tensor, cov: Tensor,
                 motion: Optional[MotionModel] = None,
@@ -274,31 +269,46 @@ class CentralizedIEKF(Tracker):
         return 0.5 * (offset * torch.cholesky_solve(offset, factor)).sum() - \
             self._log_likelihood(state, z, *links)
 
-    def _linearized(self, state: Tensor, woodbury: WoodburyPrior,
-                    factor: Tensor, prior: Tensor, z: Tensor, sender: Tensor,
-                    receiver: Tensor, known: Tensor):
-        # the Gauss-Newton system of the log-posterior at 'state': its
-        # inverse as a Woodbury update of the prior covariance with the
-        # links' curvature on the entries the likelihood reads, and the
-        # gradient
-        count, size = state.shape
-        scope = self.measurement.scope(size)
-        width = len(scope)
+    def _link_system(self, state: Tensor, z: Tensor, sender: Tensor,
+                     receiver: Tensor, known: Tensor) -> Tuple[Tensor, Tensor]:
+        # the links' Gauss-Newton terms at 'state' [A, S], from the
+        # measurement model's own linearization: their curvature on the
+        # entries the likelihood reads [A R, A R] and the gradient of
+        # their log-likelihood there [A, R]
         grads, blocks = self.measurement.linearize(
             z, *self._ends(state, sender, receiver, known))
+        return self._link_terms(state, grads, blocks, sender, receiver)
+
+    def _link_terms(self, state: Tensor, grads: Tensor, blocks: Tensor,
+                    sender: Tensor, receiver: Tensor) -> Tuple[Tensor, Tensor]:
+        # the links' linearization (the measurement model's gradients and
+        # information blocks per link) gathered on the agents of 'state'
+        count, size = state.shape
+        width = len(self.measurement.scope(size))
         info = add_link_information(
             state.new_zeros(count * width, count * width), blocks, sender,
             receiver)
-        update = woodbury.updated(info)
-        offset = (state - prior).view(-1, 1)
-        grad = -torch.cholesky_solve(offset, factor).view(count, size)
         grads = grads.view(-1, 2, width)
         links = grads.new_zeros(count, width).index_add_(0, receiver,
                                                          grads[:, 1])
         agent = sender >= 0
         links.index_add_(0, sender[agent], grads[agent, 0])
-        grad[:, list(scope)] += links
-        return update, grad
+        return info, links
+
+    def _linearized(self, state: Tensor, woodbury: WoodburyPrior,
+                    factor: Tensor, prior: Tensor, z: Tensor, sender: Tensor,
+                    receiver: Tensor, known: Tensor):
+        # the Gauss-Newton system of the log-posterior at 'state': its
+        # inverse as a Woodbury update of the prior covariance with the
+        # links' curvature on the entries the likelihood reads, the
+        # gradient, and the links' own terms (_link_system)
+        count, size = state.shape
+        system = self._link_system(state, z, sender, receiver, known)
+        update = woodbury.updated(system[0])
+        offset = (state - prior).view(-1, 1)
+        grad = -torch.cholesky_solve(offset, factor).view(count, size)
+        grad[:, list(self.measurement.scope(size))] += system[1]
+        return update, grad, system
 
     def update(self, mean: Tensor, cov: Tensor, z: Tensor, sender: Tensor,
                receiver: Tensor, known: Tensor):
@@ -313,6 +323,14 @@ class CentralizedIEKF(Tracker):
         update of the prior covariance on those entries
         (:class:`~tg_nebp.gaussian.WoodburyUpdate`): one Cholesky
         factorization of the prior per step, no inverse of the joint."""
+        state, update, _ = self._map_update(mean, cov, z, sender, receiver,
+                                            known)
+        return state, update.covariance()
+
+    def _map_update(self, mean: Tensor, cov: Tensor, z: Tensor,
+                    sender: Tensor, receiver: Tensor, known: Tensor):
+        # update()'s Gauss-Newton iterations: the solution, the system
+        # at it (WoodburyUpdate) and the links' own terms there
         factor, failed = torch.linalg.cholesky_ex(cov)
         if bool(failed.any()):
             raise ValueError(f"a joint covariance of size {cov.size(-1)} is "
@@ -327,8 +345,8 @@ class CentralizedIEKF(Tracker):
         state = mean
         cost = self._cost(state, mean, factor, *links)
         for _ in range(self.num_iterations):
-            update, grad = self._linearized(state, woodbury, factor, mean,
-                                            *links)
+            update, grad, _ = self._linearized(state, woodbury, factor,
+                                               mean, *links)
             step = update.solve(grad.view(-1)).view_as(state)
             for _ in range(self.max_halvings + 1):
                 trial = state + step
@@ -341,8 +359,9 @@ class CentralizedIEKF(Tracker):
             state, cost = trial, trial_cost
             if bool(step.abs().amax() <= self.tolerance):
                 break
-        update, _ = self._linearized(state, woodbury, factor, mean, *links)
-        return state, update.covariance()
+        update, _, system = self._linearized(state, woodbury, factor, mean,
+                                             *links)
+        return state, update, system
 
     def settings(self) -> dict:
         return dict(iterations=self.num_iterations,

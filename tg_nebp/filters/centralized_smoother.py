@@ -246,17 +246,20 @@ class CentralizedSmoother(CentralizedIEKF):
         return StepOutput(t, window_mean[:, -1], window_cov[:, -1],
                           window_mean=window_mean, window_cov=window_cov)
 
-    def _predicted(self, base: _Base, control: Optional[Tensor]):
-        # the prediction out of a Gaussian linearized at its point: the
-        # mean, covariance, Jacobian and cross covariance
+    def _predicted(self, base: _Base, control: Optional[Tensor],
+                   motion: Optional[MotionModel] = None):
+        # the prediction out of a Gaussian linearized at its point by
+        # 'motion' (the tracker's by default): the mean, covariance,
+        # Jacobian and cross covariance
+        motion = self.motion if motion is None else motion
         given = inputs(control)
-        jacobian = self.motion.jacobian(base.point, **given)
+        jacobian = motion.jacobian(base.point, **given)
         # the mean's offset from the point carried through the Jacobian (a
         # zero offset adds zeros: the IEKF's prediction exactly)
-        mean = self.motion.mean(base.point, **given) + (
+        mean = motion.mean(base.point, **given) + (
             jacobian @ (base.mean - base.point).unsqueeze(-1)).squeeze(-1)
         cov = predict_joint(base.cov, jacobian,
-                            self.motion.noise_covariance(base.point, **given))
+                            motion.noise_covariance(base.point, **given))
         return mean, cov, joint_cross(base.cov, jacobian)
 
     def _forward_backward(self, base: _Base, slots: List[_Slot],
@@ -271,7 +274,7 @@ class CentralizedSmoother(CentralizedIEKF):
         predicted, filtered = [], []
         for slot, here in zip(slots, points):
             mean, prior_cov, cross = self._predicted(base, slot.control)
-            update, grad = self._linearized(
+            update, grad, _ = self._linearized(
                 here, WoodburyPrior.of(prior_cov, scope),
                 torch.linalg.cholesky(prior_cov), mean, slot.z, slot.sender,
                 slot.receiver, slot.known)
