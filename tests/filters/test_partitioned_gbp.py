@@ -1,7 +1,7 @@
-r"""Gaussian BP with one network's agents spread over the ranks of a
-:obj:`torchrun` job (gloo): every rank's agents get what one process gives
-them, bit for bit, with 2 and 4 ranks. Run as a script by :obj:`torchrun`,
-this file is the worker."""
+r"""Gaussian BP and fixed-lag Gaussian BP with one network's agents spread
+over the ranks of a :obj:`torchrun` job (gloo): every rank's agents get
+what one process gives them, bit for bit, with 2 and 4 ranks. Run as a
+script by :obj:`torchrun`, this file is the worker."""
 import sys
 from pathlib import Path
 
@@ -10,7 +10,9 @@ import torch
 import torch.distributed as dist
 from torch_geometric.data import Batch
 
-from tg_nebp.filters import (GaussianBP, PartitionedGaussianBP, partition,
+from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP,
+                             PartitionedFixedLagGaussianBP,
+                             PartitionedGaussianBP, Smoothed, partition,
                              strips)
 
 from helpers import gen, tiny_scenario, torchrun
@@ -25,6 +27,11 @@ def network():
 
 #: A tolerance that takes many iterations
 OPTIONS = dict(num_iterations=40, tolerance=1e-4)
+#: The window of the fixed-lag runs, and the runs: name, wrapper, schedule
+LAG = 3
+WINDOWED = (('lag', lambda tracker: tracker, 'sweep'),
+            ('smoothed', Smoothed, 'sweep'),
+            ('residual', lambda tracker: tracker, 'residual'))
 
 
 def tracked(path: Path, rank: int) -> None:
@@ -39,9 +46,20 @@ def tracked(path: Path, rank: int) -> None:
     # any (here every rank's own move is its number)
     moves = tracker.largest_moves(torch.tensor([float(rank)]),
                                   torch.zeros(1, dtype=torch.long), 1)
+    # with a window: its filtered and its smoothed estimates, and the
+    # residual schedule's
+    windowed = {}
+    for name, wrap, schedule in WINDOWED:
+        smoother = wrap(PartitionedFixedLagGaussianBP.recommended(
+            plan=plan, lag=LAG, motion=scenario.motion_model,
+            measurement=scenario.measurement_model, schedule=schedule,
+            **OPTIONS))
+        tracked = smoother(part)
+        windowed[name] = (tracked.mean[plan.owned], tracked.cov[plan.owned])
     torch.save(dict(nodes=plan.nodes[plan.owned], moves=moves,
                     halo=int((~plan.owned).sum()),
-                    mean=out.mean[plan.owned], cov=out.cov[plan.owned]),
+                    mean=out.mean[plan.owned], cov=out.cov[plan.owned],
+                    windowed=windowed),
                path / f'rank{rank}.pt')
 
 
@@ -49,9 +67,12 @@ def tracked(path: Path, rank: int) -> None:
 def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
     torchrun(__file__, tmp_path, processes=ranks, timeout=120)
     scenario, data = network()
-    expected = GaussianBP.recommended(
-        motion=scenario.motion_model,
-        measurement=scenario.measurement_model, **OPTIONS)(data)
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    expected = GaussianBP.recommended(**models, **OPTIONS)(data)
+    windowed = {name: wrap(FixedLagGaussianBP.recommended(
+        lag=LAG, schedule=schedule, **models, **OPTIONS))(data)
+        for name, wrap, schedule in WINDOWED}
     seen = []
     for rank in range(ranks):
         part = torch.load(tmp_path / f'rank{rank}.pt')
@@ -60,6 +81,9 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
         nodes = part['nodes']
         assert torch.equal(part['mean'], expected.mean[nodes])
         assert torch.equal(part['cov'], expected.cov[nodes])
+        for name, (mean, cov) in part['windowed'].items():
+            assert torch.equal(mean, windowed[name].mean[nodes]), name
+            assert torch.equal(cov, windowed[name].cov[nodes]), name
         seen.append(nodes)
     # every node is owned once
     assert torch.equal(torch.cat(seen).sort().values,

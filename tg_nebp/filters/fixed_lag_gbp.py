@@ -289,7 +289,7 @@ class FixedLagGaussianBP(GaussianBP):
             points = self._points(state, window, anchor)
             solved = self._solve(window, points, messages,
                                  (~anchor).nonzero().view(-1))
-            belief, covs = solved.belief, solved.cov
+            belief, covs = self.share(solved.belief, solved.cov)
         belief, messages, covs = self._iterate_window(
             window, belief, messages, fresh, covs, anchor, graph_of,
             num_graphs, generator)
@@ -607,6 +607,7 @@ class FixedLagGaussianBP(GaussianBP):
                     torch.where(edges.view((-1, ) + (1, ) * (n.dim() - 1)),
                                 n, o)
                     for n, o in zip(new_messages, messages)))
+            solved = _Solved(*self.share(*solved))
             fresh = torch.zeros_like(fresh)
             move = (solved.belief.mean - belief.mean).abs().amax(-1).view(
                 width, num).amax(0)
@@ -621,6 +622,16 @@ class FixedLagGaussianBP(GaussianBP):
             if bool(done.all()):
                 break
         return belief, messages, covs
+
+    def share(self, belief: GaussianBelief,
+              covs: Tensor) -> Tuple[GaussianBelief, Tensor]:
+        r"""The window's beliefs (space-time rows, step-major) and
+        covariances :math:`(N, W, S, S)` after a solve of the agents'
+        chains (a step's first, and every iteration's), as the next
+        iteration reads them: unchanged here; a rank of a partitioned run
+        (:class:`~tg_nebp.filters.PartitionedFixedLagGaussianBP`) takes its
+        halo's from their owners."""
+        return belief, covs
 
     def _residual_messages(self, window: _Window, belief: GaussianBelief,
                            messages, fresh: Tensor, moving: Tensor,

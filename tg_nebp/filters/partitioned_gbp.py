@@ -1,6 +1,7 @@
 r"""One network's agents spread over the ranks of a :obj:`torchrun` job:
-Gaussian BP partitioned in space, every rank iterating its own agents and
-exchanging the beliefs on the partition borders after every iteration.
+Gaussian BP (and fixed-lag Gaussian BP) partitioned in space, every rank
+iterating its own agents and exchanging the beliefs on the partition
+borders after every iteration (a window's: every step of it).
 
 Each rank holds the agents it owns (a strip of the area, :func:`strips`)
 and a halo: the other ends of every link that touches its agents, with
@@ -19,10 +20,12 @@ import torch.distributed as dist
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization, position_dim_of
+from tg_nebp.filters.fixed_lag_gbp import FixedLagGaussianBP
 from tg_nebp.filters.gaussian_bp import GaussianBP
 from tg_nebp.nn.conv.gaussian_bp_conv import GaussianBelief
 
-__all__ = ['Partition', 'strips', 'partition', 'PartitionedGaussianBP']
+__all__ = ['Partition', 'strips', 'partition', 'PartitionedTracker',
+           'PartitionedGaussianBP', 'PartitionedFixedLagGaussianBP']
 
 
 class Partition(NamedTuple):
@@ -119,19 +122,17 @@ def partition(data: Realization, owner: Tensor, rank: int,
     return part, Partition(nodes, mine[nodes], send, receive)
 
 
-class PartitionedGaussianBP(GaussianBP):
-    r"""Gaussian BP on one rank's part of a network (:func:`partition`),
-    in a :obj:`torch.distributed` process group (gloo on CPU, nccl on a
-    GPU): after every iteration the halo nodes' beliefs are replaced by
-    their owners' (point-to-point), and a step's iterations stop when the
-    largest move over all ranks is within the tolerance (an all-reduce).
-    The other arguments are :class:`GaussianBP`'s. One network at a time
-    (no batch).
+class PartitionedTracker:
+    r"""The base of the partitioned trackers (put before the tracker it
+    partitions, :class:`PartitionedGaussianBP`,
+    :class:`PartitionedFixedLagGaussianBP`): what a rank adds to a Gaussian
+    BP tracker, its :obj:`plan` (:class:`Partition`) and process
+    :obj:`group`, the check that a realization is its part of one network,
+    the exchange of its halo's rows with their owners and the stop decided
+    over all ranks
+    (:meth:`~tg_nebp.filters.PartitionedTracker.largest_moves`). The other
+    arguments are the tracker's."""
 
-    Args:
-        plan (Partition): This rank's part.
-        group (optional): The process group. (default: the default group)
-    """
     def __init__(self, plan: Partition, group=None, **options):
         super().__init__(**options)
         if dist.is_initialized():
@@ -156,6 +157,48 @@ class PartitionedGaussianBP(GaussianBP):
                              f"{self.plan.nodes.numel()}: track the "
                              f"realization that partition() gave with it")
 
+    def _exchange_rows(self, rows: Tensor) -> Tensor:
+        # every node's row with the halo's replaced by their owners'
+        # (point-to-point)
+        requests, received = [], []
+        for q, (send, receive) in enumerate(zip(self.plan.send,
+                                                self.plan.receive)):
+            if send.numel():
+                requests.append(dist.isend(rows[send].contiguous(), q,
+                                           group=self.group))
+            if receive.numel():
+                buffer = rows.new_empty(receive.numel(), rows.size(1))
+                requests.append(dist.irecv(buffer, q, group=self.group))
+                received.append((receive, buffer))
+        for request in requests:
+            request.wait()
+        rows = rows.clone()
+        for receive, buffer in received:
+            rows[receive] = buffer
+        return rows
+
+    def largest_moves(self, step: Tensor, graph_of: Tensor,
+                      num_graphs: int) -> Tensor:
+        r"""The largest move of a belief mean over all ranks (an
+        all-reduce), so that every rank stops its iterations together."""
+        largest = super().largest_moves(step, graph_of, num_graphs)
+        dist.all_reduce(largest, dist.ReduceOp.MAX, group=self.group)
+        return largest
+
+
+class PartitionedGaussianBP(PartitionedTracker, GaussianBP):
+    r"""Gaussian BP on one rank's part of a network (:func:`partition`),
+    in a :obj:`torch.distributed` process group (gloo on CPU, nccl on a
+    GPU): after every iteration the halo nodes' beliefs are replaced by
+    their owners' (point-to-point), and a step's iterations stop when the
+    largest move over all ranks is within the tolerance (an all-reduce).
+    The other arguments are :class:`GaussianBP`'s. One network at a time
+    (no batch).
+
+    Args:
+        plan (Partition): This rank's part.
+        group (optional): The process group. (default: the default group)
+    """
     def exchanged_bytes(self, state_dim: int, dtype=torch.float64) -> int:
         r"""The bytes this rank sends in one iteration: the mean and
         information of each of its agents in another rank's halo."""
@@ -172,29 +215,54 @@ class PartitionedGaussianBP(GaussianBP):
     def exchange(self, belief: GaussianBelief) -> GaussianBelief:
         r"""The beliefs with the halo's replaced by their owners'."""
         size = belief.mean.size(-1)
-        rows = torch.cat([belief.mean, belief.info.flatten(1)], -1)
-        requests, received = [], []
-        for q, (send, receive) in enumerate(zip(self.plan.send,
-                                                self.plan.receive)):
-            if send.numel():
-                requests.append(dist.isend(rows[send].contiguous(), q,
-                                           group=self.group))
-            if receive.numel():
-                buffer = rows.new_empty(receive.numel(), rows.size(1))
-                requests.append(dist.irecv(buffer, q, group=self.group))
-                received.append((receive, buffer))
-        for request in requests:
-            request.wait()
-        rows = rows.clone()
-        for receive, buffer in received:
-            rows[receive] = buffer
+        rows = self._exchange_rows(torch.cat([belief.mean,
+                                              belief.info.flatten(1)], -1))
         return GaussianBelief(rows[:, :size],
                               rows[:, size:].view(-1, size, size))
 
-    def largest_moves(self, step: Tensor, graph_of: Tensor,
-                      num_graphs: int) -> Tensor:
-        r"""The largest move of a belief mean over all ranks (an
-        all-reduce), so that every rank stops its iterations together."""
-        largest = super().largest_moves(step, graph_of, num_graphs)
-        dist.all_reduce(largest, dist.ReduceOp.MAX, group=self.group)
-        return largest
+
+class PartitionedFixedLagGaussianBP(PartitionedTracker,
+                                    FixedLagGaussianBP):
+    r"""Fixed-lag Gaussian BP (:class:`FixedLagGaussianBP`) on one rank's
+    part of a network (:func:`partition`), in a :obj:`torch.distributed`
+    process group: after every solve of the agents' chains (a step's
+    first and every iteration's) the halo nodes' windows (their beliefs
+    and covariances at every step of the window) are replaced by their
+    owners' (:meth:`~tg_nebp.filters.PartitionedFixedLagGaussianBP.share`),
+    and a step's iterations stop when the largest move over all ranks is
+    within the tolerance. Each rank slides its own window; the halo's
+    marginalized priors follow from the windows it received, so that every
+    rank's agents get what one process gives them, bit for bit. The other
+    arguments are :class:`FixedLagGaussianBP`'s. One network at a time (no
+    batch).
+
+    Args:
+        plan (Partition): This rank's part.
+        group (optional): The process group. (default: the default group)
+    """
+    def exchanged_bytes(self, state_dim: int, width: int,
+                        dtype=torch.float64) -> int:
+        r"""The bytes this rank sends in one iteration with a window of
+        :obj:`width` steps: for each of its agents in another rank's halo,
+        its mean, information and covariance at every step."""
+        rows = sum(int(send.numel()) for send in self.plan.send)
+        size = torch.finfo(dtype).bits // 8
+        return rows * width * (state_dim + 2 * state_dim * state_dim) * size
+
+    def share(self, belief: GaussianBelief, covs: Tensor):
+        r"""The window's beliefs (step-major rows) and covariances
+        :math:`(N, W, S, S)` with the halo nodes' replaced by their
+        owners': every step of a node's window in one row."""
+        num, width, size = covs.shape[:3]
+        parts = [belief.mean.view(width, num, size).transpose(0, 1),
+                 belief.info.view(width, num, size, size).transpose(0, 1),
+                 covs]
+        rows = self._exchange_rows(torch.cat(
+            [part.reshape(num, -1) for part in parts], -1))
+        mean, info, cov = rows.split(
+            [width * size, width * size * size, width * size * size], -1)
+        return (GaussianBelief(
+            mean.reshape(num, width, size).transpose(0, 1).reshape(-1, size),
+            info.reshape(num, width, size, size).transpose(0, 1).reshape(
+                -1, size, size)),
+            cov.reshape(num, width, size, size))
