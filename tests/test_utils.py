@@ -323,3 +323,36 @@ def test_check_device_names_what_this_machine_lacks():
                          ('cuda:99', "'device' is 'cuda:99', but")):
         with pytest.raises(ValueError, match=message):
             check_device(bad)
+
+
+def test_row_jacobian_is_the_closed_form_and_differentiable():
+    # f(x) = [x0 x1, sin x2, 3 x0] row by row: its Jacobian in closed form,
+    # whatever the leading dimensions; the output that does not depend on
+    # the point gives zeros; and where the point requires gradients (a
+    # tracker trained through) the Jacobian is differentiable: d/dx0 of
+    # the sum of its entries is 1 (from d(x0 x1)/dx1) and d/dx2 is -sin x2
+    from tg_nebp.utils import row_jacobian
+
+    def f(x):
+        return torch.stack([x[..., 0] * x[..., 1], torch.sin(x[..., 2]),
+                            3 * x[..., 0]], -1)
+
+    x = torch.randn(4, 5, 3, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(0))
+    jac = row_jacobian(f, x)
+    expected = torch.zeros(4, 5, 3, 3, dtype=torch.float64)
+    expected[..., 0, 0], expected[..., 0, 1] = x[..., 1], x[..., 0]
+    expected[..., 1, 2] = torch.cos(x[..., 2])
+    expected[..., 2, 0] = 3
+    torch.testing.assert_close(jac, expected, rtol=0, atol=1e-15)
+    assert not jac.requires_grad
+    constant = row_jacobian(lambda p: torch.ones_like(p), x)
+    assert torch.equal(constant, torch.zeros(4, 5, 3, 3, dtype=torch.float64))
+    assert row_jacobian(f, x[:0]).shape == (0, 5, 3, 3)
+    leaf = x.clone().requires_grad_()
+    grad, = torch.autograd.grad(row_jacobian(f, leaf).sum(), leaf)
+    torch.testing.assert_close(grad[..., 0], torch.ones_like(x[..., 0]))
+    torch.testing.assert_close(grad[..., 1], torch.ones_like(x[..., 1]))
+    torch.testing.assert_close(grad[..., 2], -torch.sin(x[..., 2]))
+    with torch.no_grad():  # no graph where gradients are off
+        assert not row_jacobian(f, leaf).requires_grad

@@ -95,8 +95,9 @@ def row_jacobian(function: Callable[[Tensor], Tensor], point: Tensor,
             point.detach().requires_grad_()
         out = function(leaf)
         size = out.size(-1)
-        if out.numel() == 0:
-            return out.new_zeros(out.shape + point.shape[-1:])
+        if out.numel() == 0 or not out.requires_grad:
+            # no row, or an output that does not depend on the point
+            return out.new_zeros(out.shape + point.shape[-1:]).detach()
         eye = torch.eye(size, dtype=out.dtype, device=out.device)
         directions = eye.view((size, ) + (1, ) * (out.dim() - 1) +
                               (size, )).expand((size, ) + out.shape)
