@@ -222,19 +222,12 @@ class IncrementalSmoother(CentralizedSmoother):
                               self.use_control)
         layout = GraphLayout.of(data)
         known = data.prior_mean.double()
-        count, size = known.shape
-        check_dense_joint(max(a.numel() for a in layout.agents), size,
-                          'the incremental smoother', known.device)
+        check_dense_joint(max(a.numel() for a in layout.agents),
+                          known.size(1), 'the incremental smoother',
+                          known.device)
         prior_cov = symmetrize(data.prior_cov.double())
-        joints = tuple(block_diagonal(prior_cov[nodes])
-                       for nodes in layout.agents)
-        empty = known.new_zeros(count, 0, size)
-        return SmootherState(
-            known, known, joints, empty, empty,
-            torch.zeros(2, 0, dtype=torch.long, device=known.device),
-            torch.zeros(0, dtype=torch.long, device=known.device),
-            known.new_zeros(0, len(self.measurement.features)),
-            known.new_zeros(0), None, joints)
+        return self._fresh(known, tuple(block_diagonal(prior_cov[nodes])
+                                        for nodes in layout.agents))
 
     def step(self, state: SmootherState, edge_index: Tensor,
              edge_attr: Tensor, anchor: Tensor, t: int, generator=None,
@@ -378,7 +371,7 @@ class IncrementalSmoother(CentralizedSmoother):
         size = state.mean.size(1)
         stays = keep[~anchor].repeat_interleave(size)
         joint, = state.newest
-        return self._fresh(state.mean[keep], joint[stays][:, stays])
+        return self._fresh(state.mean[keep], (joint[stays][:, stays], ))
 
     def join_state(self, state: SmootherState,
                    joined: SmootherState) -> SmootherState:
@@ -387,19 +380,22 @@ class IncrementalSmoother(CentralizedSmoother):
         starts again, from the newest joint extended by theirs, with no
         correlation between them."""
         (joint, ), (new, ) = state.newest, joined.joints
-        return self._fresh(torch.cat([state.mean, joined.mean]), joined_joint(
-            joint, new, state.mean.size(1), 'the incremental smoother'))
+        return self._fresh(torch.cat([state.mean, joined.mean]), (
+            joined_joint(joint, new, state.mean.size(1),
+                         'the incremental smoother'), ))
 
-    def _fresh(self, mean: Tensor, joint: Tensor) -> SmootherState:
-        # a state without history: the Gaussian of 'mean' and 'joint'
+    def _fresh(self, mean: Tensor,
+               joints: Tuple[Tensor, ...]) -> SmootherState:
+        # a state without history: the Gaussian of 'mean' and the joints
+        # of its graphs' agents
         count, size = mean.shape
         empty = mean.new_zeros(count, 0, size)
         return SmootherState(
-            mean, mean, (joint, ), empty, empty,
+            mean, mean, joints, empty, empty,
             torch.zeros(2, 0, dtype=torch.long, device=mean.device),
             torch.zeros(0, dtype=torch.long, device=mean.device),
             mean.new_zeros(0, len(self.measurement.features)),
-            mean.new_zeros(0), None, (joint, ))
+            mean.new_zeros(0), None, joints)
 
     def steps(self, data: Realization,
               generator=None) -> Iterator[StepOutput]:
@@ -458,7 +454,8 @@ class IncrementalSmoother(CentralizedSmoother):
                 chain.points[-1], slot.control, motion))
         else:
             chain.motion.append(None)
-        mean, cov, _ = self._prediction(chain, len(chain))
+        prediction = self._prediction(chain, len(chain))
+        mean, cov, _ = prediction
         point, _, system = self._map_update(mean.view_as(chain.base.mean),
                                             cov, *slot[:4])
         chain.points.append(point)
@@ -468,7 +465,7 @@ class IncrementalSmoother(CentralizedSmoother):
         chain.gains.append(None)
         chain.deltas.append(torch.zeros_like(point).view(-1))
         newest = len(chain) - 1
-        self._eliminate(chain, newest)
+        self._eliminate(chain, newest, prediction)
         moved = self._back_substitute(chain, newest)
         if newest % self.relinearize_skip:
             return moved
@@ -517,12 +514,14 @@ class IncrementalSmoother(CentralizedSmoother):
         blocks[index, :, index, :] += noise
         return mean.view(-1), symmetrize(predicted), cross
 
-    def _eliminate(self, chain: _Chain, k: int):
+    def _eliminate(self, chain: _Chain, k: int, prediction=None):
         # the Kalman filter's step k of the system linearized at the
-        # points: the prediction, the update with the links' factor (the
-        # IEKF's Woodbury form) and the backward gain of step k - 1
+        # points: the prediction (given where already made), the update
+        # with the links' factor (the IEKF's Woodbury form) and the
+        # backward gain of step k - 1
         here = chain.points[k]
-        mean, cov, cross = self._prediction(chain, k)
+        mean, cov, cross = self._prediction(chain, k) if prediction is None \
+            else prediction
         offset = mean - here.view(-1)
         factor = torch.linalg.cholesky(cov)
         info, links = chain.links[k]
