@@ -453,7 +453,7 @@ def live_trackers():
     session tests: Gaussian BP plain and recommended, the IEKF joint and
     marginal, particle BP plain and recommended (M-sample messages,
     regularized), NEBP, the Gaussian NEBP, fixed-lag Gaussian BP (a
-    window of 3 steps), hybrid BP (over Gaussian BP and over that window)
+    window of 3 steps, and one of 4 whose 2 oldest are settled), hybrid BP (over Gaussian BP and over that window)
     and the incremental smoother (relinearizing every other step)."""
     from tg_nebp.filters import (NEBP, CentralizedIEKF, FixedLagGaussianBP,
                                  GaussianBP, GaussianNEBP, HybridBP,
@@ -462,6 +462,8 @@ def live_trackers():
         'gbp': lambda: GaussianBP(),
         'gbp-recommended': lambda: GaussianBP.recommended(),
         'gbp-lag3': lambda: FixedLagGaussianBP.recommended(lag=3),
+        'gbp-lag4-settled': lambda: FixedLagGaussianBP.recommended(
+            lag=4, iterated=2),
         'iekf': lambda: CentralizedIEKF(),
         'iekf-marginal': lambda: CentralizedIEKF(marginal=True),
         'bp': lambda: ParticleBP(num_particles=40),

@@ -5,7 +5,8 @@ import torch
 from tg_nebp.gaussian import (WoodburyPrior, add_link_information,
                               block_diagonal, check_dense_joint, joint_cross,
                               marginal_blocks, predict_joint, range_blocks,
-                              rts_backward, scope_index, unit_vectors)
+                              rts_backward, rts_backward_chain, scope_index,
+                              unit_vectors)
 
 from helpers import gen
 
@@ -209,3 +210,41 @@ def test_rts_step_is_the_conditional_of_the_joint_gaussian():
                               predicted.expand(2, -1, -1),
                               updated.expand(2, -1, -1))
     torch.testing.assert_close(batched[1], cov)
+
+
+@pytest.mark.parametrize('count', [1, 2, 7, 8])
+def test_the_backward_pass_of_a_chain_at_once_is_step_by_step(count):
+    # a random linear chain (two chains side by side, singular driving
+    # noise): the parallel prefix equals K steps of rts_backward
+    g = torch.Generator().manual_seed(count)
+    size = 3
+
+    def spd(*shape):
+        a = torch.randn(*shape, size, size, dtype=torch.float64, generator=g)
+        return a @ a.transpose(-1, -2) + 0.1 * torch.eye(size,
+                                                         dtype=torch.float64)
+
+    filtered_mean = torch.randn(2, count, size, dtype=torch.float64,
+                                generator=g)
+    filtered_cov = spd(2, count)
+    jacobian = torch.randn(2, count, size, size, dtype=torch.float64,
+                           generator=g)
+    root = torch.randn(2, count, size, 1, dtype=torch.float64, generator=g)
+    cross = filtered_cov @ jacobian.transpose(-1, -2)
+    predicted_cov = jacobian @ cross + root @ root.transpose(-1, -2)
+    predicted_mean = (jacobian @ filtered_mean.unsqueeze(-1)).squeeze(-1)
+    smoothed_mean = torch.randn(2, size, dtype=torch.float64, generator=g)
+    smoothed_cov = spd(2)
+    mean, cov = rts_backward_chain(filtered_mean, filtered_cov,
+                                   predicted_mean, predicted_cov, cross,
+                                   smoothed_mean, smoothed_cov)
+    after_mean, after_cov = smoothed_mean, smoothed_cov
+    for k in range(count - 1, -1, -1):
+        after_mean, after_cov = rts_backward(
+            filtered_cov[:, k], cross[:, k], predicted_cov[:, k], after_cov,
+            filtered_mean[:, k], predicted_mean[:, k], after_mean)
+        torch.testing.assert_close(mean[:, k], after_mean, rtol=1e-9,
+                                   atol=1e-10)
+        torch.testing.assert_close(cov[:, k], after_cov, rtol=1e-9,
+                                   atol=1e-10)
+    assert torch.equal(cov, cov.transpose(-1, -2))

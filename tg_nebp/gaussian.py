@@ -25,7 +25,7 @@ __all__ = ['GraphLayout', 'graph_index', 'check_dense_joint',
            'unit_vectors', 'scope_index', 'WoodburyPrior', 'WoodburyUpdate',
            'JOINT_COPIES', 'bounded_inflation', 'bounded_inflation_map',
            'joint_cross', 'joined_joint',
-           'rts_backward']
+           'rts_backward', 'rts_backward_chain']
 
 #: Dense :math:`(AS, AS)` float64 matrices alive at once in a joint
 #: recursion (covariance, information, factor, temporaries), for the
@@ -320,6 +320,60 @@ def rts_backward(filtered_cov: Tensor, cross: Tensor, predicted_cov: Tensor,
     mean = filtered_mean + (gain @ (smoothed_mean - predicted_mean)
                             .unsqueeze(-1)).squeeze(-1)
     return mean, cov
+
+
+def rts_backward_chain(filtered_mean: Tensor, filtered_cov: Tensor,
+                       predicted_mean: Tensor, predicted_cov: Tensor,
+                       cross: Tensor, smoothed_mean: Tensor,
+                       smoothed_cov: Tensor) -> Tuple[Tensor, Tensor]:
+    r"""The Rauch-Tung-Striebel backward pass (:func:`rts_backward`) over
+    a whole chain of :math:`K` steps at once, from the smoothed Gaussian of
+    the step after its last (:obj:`smoothed_mean` :math:`(*, n)`,
+    :obj:`smoothed_cov` :math:`(*, n, n)`): every step's filtered Gaussian
+    (:obj:`filtered_mean` :math:`(*, K, n)`, :obj:`filtered_cov`
+    :math:`(*, K, n, n)`), the prediction of the step after it from it
+    (:obj:`predicted_mean`, :obj:`predicted_cov`) and their covariance
+    :obj:`cross` (:math:`\mathbf{P}_k \mathbf{F}^\top`). Each step is an
+    affine map of the next step's smoothed Gaussian,
+
+    .. math::
+        \boldsymbol{\mu}^s_k = \mathbf{a}_k + \mathbf{G}_k
+        \boldsymbol{\mu}^s_{k+1}, \quad \mathbf{P}^s_k = \mathbf{B}_k +
+        \mathbf{G}_k \mathbf{P}^s_{k+1} \mathbf{G}_k^\top,
+
+    with :math:`\mathbf{a}_k = \boldsymbol{\mu}_k - \mathbf{G}_k
+    \boldsymbol{\mu}^-_{k+1}` and :math:`\mathbf{B}_k = \mathbf{P}_k -
+    \mathbf{G}_k \mathbf{P}^-_{k+1} \mathbf{G}_k^\top`; the maps compose
+    associatively, so every step's composition with all after it takes
+    :math:`\lceil \log_2 K \rceil` batched rounds (a parallel prefix, as
+    the temporal parallelization of `"Temporal Parallelization of Bayesian
+    Smoothers" <https://arxiv.org/abs/1905.13002>`_, Särkkä and
+    García-Fernández, IEEE TAC 2021) instead of :math:`K` sequential
+    steps. Returns the smoothed means :math:`(*, K, n)` and covariances
+    :math:`(*, K, n, n)`, symmetrized."""
+    gain = torch.cholesky_solve(cross.transpose(-1, -2),
+                                torch.linalg.cholesky(predicted_cov)
+                                ).transpose(-1, -2)
+    offset = filtered_mean - (gain @ predicted_mean.unsqueeze(-1)).squeeze(-1)
+    spread = filtered_cov - gain @ predicted_cov @ gain.transpose(-1, -2)
+    count, reach = gain.size(-3), 1
+    while reach < count:
+        # step k composed with the maps of steps k + 1, ..., k + 2 reach - 1
+        first, then = slice(None, count - reach), slice(reach, None)
+        head = gain[..., first, :, :]
+        offset = torch.cat([offset[..., first, :] + (
+            head @ offset[..., then, :].unsqueeze(-1)).squeeze(-1),
+            offset[..., count - reach:, :]], -2)
+        spread = torch.cat([spread[..., first, :, :] + head @ spread[
+            ..., then, :, :] @ head.transpose(-1, -2),
+            spread[..., count - reach:, :, :]], -3)
+        gain = torch.cat([head @ gain[..., then, :, :],
+                          gain[..., count - reach:, :, :]], -3)
+        reach *= 2
+    mean = offset + (gain @ smoothed_mean.unsqueeze(-2).unsqueeze(
+        -1)).squeeze(-1)
+    cov = spread + gain @ smoothed_cov.unsqueeze(-3) @ gain.transpose(-1, -2)
+    return mean, symmetrize(cov)
 
 
 def unit_vectors(diff: Tensor) -> Tuple[Tensor, Tensor]:

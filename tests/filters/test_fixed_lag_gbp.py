@@ -1,14 +1,17 @@
 r"""Fixed-lag Gaussian BP: a window of one step is Gaussian BP; on a network
 whose space-time graph is a tree it is exact (the Kalman filter and the
-Rauch-Tung-Striebel smoother, written in the test); each graph of a batch
-converges on its own; streaming and save/resume are in
+Rauch-Tung-Striebel smoother, written in the test); settled steps are exact
+where their messages cannot change and, relinearized, bring a wrong mode
+back; each graph of a batch converges on its own; streaming and save/resume are in
 tests/filters/test_session.py (live_trackers)."""
 import numpy as np
 import pytest
 import torch
 
-from tg_nebp.filters import (AgentPrior, FixedLagGaussianBP, GaussianBP,
-                             Smoothed, TrackingSession)
+from tg_nebp.datasets import Scenario
+from tg_nebp.filters import (AgentPrior, CentralizedSmoother,
+                             FixedLagGaussianBP, GaussianBP, Smoothed,
+                             TrackingSession)
 from tg_nebp.models import ConstantVelocity, StudentTRange
 
 from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
@@ -168,6 +171,133 @@ def test_settings_and_errors():
         FixedLagGaussianBP(3, schedule='random')
     with pytest.raises(ValueError, match="needs a 'tolerance'"):
         FixedLagGaussianBP(3, schedule='residual', tolerance=None)
+    assert ('iterated=None, relinearize_threshold=0.1, relinearize_skip=10, '
+            'settled_inflation=1.0' in repr(tracker))
+    assert FixedLagGaussianBP(3, iterated=2).settings()['iterated'] == 2
+    with pytest.raises(ValueError, match="'iterated' must be positive"):
+        FixedLagGaussianBP(3, iterated=0)
+    with pytest.raises(ValueError, match="'relinearize_threshold' must be"):
+        FixedLagGaussianBP(3, relinearize_threshold=-1.0)
+    with pytest.raises(ValueError, match="'relinearize_skip' must be"):
+        FixedLagGaussianBP(3, relinearize_skip=0)
+    with pytest.raises(ValueError, match="'settled_inflation' must be"):
+        FixedLagGaussianBP(3, settled_inflation=0.5)
+
+
+def _anchor_links_only(data):
+    # the realization without its links between agents
+    keep = data.anchor[data.edge_index[0]]
+    out = data.clone()
+    out.edge_index = data.edge_index[:, keep]
+    out.edge_attr = data.edge_attr[keep]
+    out.edge_time = data.edge_time[keep]
+    return out
+
+
+@pytest.mark.parametrize('iterated', [1, 2, 3])
+def test_settled_steps_are_exact_where_their_messages_cannot_change(
+        iterated):
+    # linear links from anchors only: no message depends on a belief, so
+    # the settled steps (their messages held, their forward pass the prior
+    # of the iterated ones, one backward pass into them) give every
+    # window of the full iteration, which is the Kalman smoother's (above)
+    scenario, data = tree_realization(steps=6)
+    data = _anchor_links_only(data)
+    options = dict(num_iterations=60, tolerance=1e-12,
+                   motion=scenario.motion_model,
+                   measurement=scenario.measurement_model)
+    full = list(FixedLagGaussianBP(4, **options).steps(data))
+    split = list(FixedLagGaussianBP(4, iterated=iterated,
+                                    **options).steps(data))
+    for ours, theirs in zip(split, full):
+        torch.testing.assert_close(ours.window_mean, theirs.window_mean,
+                                   rtol=0, atol=1e-12)
+        torch.testing.assert_close(ours.window_cov, theirs.window_cov,
+                                   rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize('options', [
+    dict(relinearize_threshold=None),
+    dict(relinearize_threshold=None, settled_inflation=1.5),
+    dict(relinearize_threshold=0.5, relinearize_skip=1),
+    dict(relinearize_threshold=0.5, relinearize_skip=3)])
+def test_the_settled_forward_pass_kept_is_the_one_computed_afresh(options):
+    # the state keeps the settled steps' filtered means and covariances
+    # from one time step to the next (the window slides, and a
+    # relinearized step and those after it are filtered again): each step
+    # gives what it gives when the state holds none and every settled
+    # step is filtered again
+    data = tiny_scenario(steps=14).generate(gen(20))
+    tracker = FixedLagGaussianBP.recommended(lag=6, iterated=2, **options)
+
+    def windows(drop):
+        state, out, kept = tracker.initial_state(data), [], 0
+        for t, ((edge_index, edge_attr), control) in enumerate(zip(
+                data.edges_by_step(), tracker.controls_of(data))):
+            if drop:
+                state = state._replace(settled_mean=None, settled_cov=None)
+            elif state.settled_mean is not None:
+                kept += state.settled_mean.size(1)
+            step, state = tracker.step(state, edge_index, edge_attr,
+                                       data.anchor, t, control=control)
+            out.append(step.window_mean)
+        return out, kept
+
+    kept, count = windows(False)
+    afresh, _ = windows(True)
+    assert count >= (10 if options["relinearize_threshold"] is None else 5)
+    for ours, theirs in zip(kept, afresh):
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-12)
+
+
+def _mirrored_start():
+    # one agent between two anchors on the x axis for its first four
+    # steps, its prior's mean mirrored across them (a range-only wrong
+    # mode the first steps converge to); from step 4 a third anchor above
+    # tells the modes apart
+    scenario = Scenario(name='mirror', num_agents=1,
+                        anchor_positions=((-6.0, 0.0), (6.0, 0.0),
+                                          (0.0, 9.0)),
+                        agent_start_low=3.0, agent_start_high=5.0,
+                        num_steps=12)
+    data = scenario.generate(gen(7))
+    data.prior_mean[0, 1] = -data.states[0, 0, 1]
+    data.prior_mean[0, 0] = data.states[0, 0, 0]
+    late = (data.edge_index == 3).any(0) & (data.edge_time < 4)
+    out = data.clone()
+    out.edge_index = data.edge_index[:, ~late]
+    out.edge_attr = data.edge_attr[~late]
+    out.edge_time = data.edge_time[~late]
+    return out
+
+
+def test_relinearized_settled_steps_recover_a_wrong_linearization():
+    # the first steps converge to the mirrored mode; the window of 8 steps
+    # learns the truth from step 4. Iterating every step of it (and the
+    # batch smoother) brings the first steps back; with only the newest 2
+    # iterated, the settled steps' messages must be relinearized where the
+    # backward pass moves them: held as they were linearized (the
+    # marginal prior of a fixed-lag smoother), the first steps stay in the
+    # wrong mode, and so does a window of 2 steps
+    data = _mirrored_start()
+    options = dict(num_iterations=50, tolerance=1e-6, relinearize_skip=1)
+
+    def errors(tracker):
+        out = tracker(data)
+        return (out.mean[0, :, :2] - data.states[0, :, :2]).norm(dim=-1)
+
+    batch = errors(CentralizedSmoother(None))
+    full = errors(Smoothed(FixedLagGaussianBP(8, **options)))
+    settled = errors(Smoothed(FixedLagGaussianBP(8, iterated=2, **options)))
+    held = errors(Smoothed(FixedLagGaussianBP(
+        8, iterated=2, relinearize_threshold=None, **options)))
+    short = errors(Smoothed(FixedLagGaussianBP(2, **options)))
+    assert float(batch.max()) < 1.0 and float(full.max()) < 1.0
+    # step 0 leaves the window one step after the relinearization reached
+    # it; every later step is within 0.15 m of the batch smoother's error
+    assert float(settled[0]) < 1.5
+    assert float((settled[1:] - batch[1:]).abs().max()) < 0.15
+    assert bool((held[:6] > 2.5).all()) and bool((short[:6] > 2.5).all())
 
 
 def _without_links(data, node, steps):

@@ -27,11 +27,13 @@ def network():
 
 #: A tolerance that takes many iterations
 OPTIONS = dict(num_iterations=40, tolerance=1e-4)
-#: The window of the fixed-lag runs, and the runs: name, wrapper, schedule
+#: The window of the fixed-lag runs, and the runs: name, wrapper, options
+#: (the residual schedule's, and a window whose oldest step is settled)
 LAG = 3
-WINDOWED = (('lag', lambda tracker: tracker, 'sweep'),
-            ('smoothed', Smoothed, 'sweep'),
-            ('residual', lambda tracker: tracker, 'residual'))
+WINDOWED = (('lag', lambda tracker: tracker, {}),
+            ('smoothed', Smoothed, {}),
+            ('residual', lambda tracker: tracker, dict(schedule='residual')),
+            ('settled', Smoothed, dict(iterated=2)))
 
 
 def tracked(path: Path, rank: int) -> None:
@@ -49,11 +51,10 @@ def tracked(path: Path, rank: int) -> None:
     # with a window: its filtered and its smoothed estimates, and the
     # residual schedule's
     windowed = {}
-    for name, wrap, schedule in WINDOWED:
+    for name, wrap, options in WINDOWED:
         smoother = wrap(PartitionedFixedLagGaussianBP.recommended(
             plan=plan, lag=LAG, motion=scenario.motion_model,
-            measurement=scenario.measurement_model, schedule=schedule,
-            **OPTIONS))
+            measurement=scenario.measurement_model, **options, **OPTIONS))
         tracked = smoother(part)
         windowed[name] = (tracked.mean[plan.owned], tracked.cov[plan.owned])
     torch.save(dict(nodes=plan.nodes[plan.owned], moves=moves,
@@ -71,8 +72,8 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
                   measurement=scenario.measurement_model)
     expected = GaussianBP.recommended(**models, **OPTIONS)(data)
     windowed = {name: wrap(FixedLagGaussianBP.recommended(
-        lag=LAG, schedule=schedule, **models, **OPTIONS))(data)
-        for name, wrap, schedule in WINDOWED}
+        lag=LAG, **options, **models, **OPTIONS))(data)
+        for name, wrap, options in WINDOWED}
     seen = []
     for rank in range(ranks):
         part = torch.load(tmp_path / f'rank{rank}.pt')

@@ -12,7 +12,8 @@ from .incremental_smoother import IncrementalSmoother, SmootherState
 from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
                           SolvedStep)
 from .gaussian_nebp import GaussianNEBP
-from .fixed_lag_gbp import FixedLagGaussianBP, WindowState
+from .fixed_lag_gbp import (FIXED_LAG_RECOMMENDED, FixedLagGaussianBP,
+                            WindowState)
 from .relocation import LinkSearch, SearchResult
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import AgentPrior, AnchorAt, TrackingSession
@@ -34,6 +35,7 @@ __all__ = [
     'GaussianBP',
     'GaussianNEBP',
     'FixedLagGaussianBP',
+    'FIXED_LAG_RECOMMENDED',
     'WindowState',
     'HybridBP',
     'HYBRID_RECOMMENDED',
