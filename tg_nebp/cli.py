@@ -308,6 +308,9 @@ def _record(args) -> int:
 
 
 def _fit(args) -> int:
+    # the output checked before the fit's work (and its own refusals)
+    if Path(args.output).is_dir():
+        raise ValueError(f"--output '{args.output}' is a folder, not a file")
     source = sequence_source(args.root, args.sequence)
     scenario, report = fitted_scenario(source, args.sequence,
                                        horizon=args.horizon)

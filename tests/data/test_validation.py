@@ -651,6 +651,29 @@ def test_control_for_a_model_without_inputs_is_refused():
         check_realization(data)
 
 
+@pytest.mark.parametrize('method', ['gbp', 'iekf', 'bp'])
+def test_a_motion_layout_outside_the_state_is_named_before_any_step(method):
+    # a user's robot model whose layout names angle index 5 of a state of
+    # 3 entries: refused by name where the model meets the data, not an
+    # IndexError inside a step
+    from tg_nebp.filters import CentralizedIEKF, GaussianBP, ParticleBP
+    from tg_nebp.models import GaussianRange, StateLayout, UnicycleOdometry
+
+    class Misnumbered(UnicycleOdometry):
+        def layout(self, size):
+            return StateLayout(size, 2, (5, ))
+
+    _, data = _robots()
+    # a range model (a range-bearing one refuses the layout itself)
+    models = dict(motion=Misnumbered(), measurement=GaussianRange())
+    tracker = {'gbp': GaussianBP, 'iekf': CentralizedIEKF,
+               'bp': lambda **m: ParticleBP(num_particles=20, **m)}[method](
+        **models)
+    with pytest.raises(ValueError, match=r"names angle index 5 of a state "
+                       r"of size 3 \(its entries are 0 to 2\)"):
+        tracker(data)
+
+
 def test_a_tracker_told_to_ignore_inputs_runs_data_that_has_them():
     from tg_nebp.filters import CentralizedIEKF, GaussianBP
     scenario = Scenario.load('paper_train').replace(num_steps=3)

@@ -160,3 +160,28 @@ def test_fitted_noise_recovers_a_simulation():
     true = scenario.motion_model.input_variances(
         typical.values.double().view(1, 2))
     assert torch.allclose(fitted.sqrt(), true.sqrt(), rtol=0.15)
+
+
+def test_a_sequence_that_cannot_be_fitted_says_what_it_lacks():
+    # each lack named as it is (not a NaN model parameter or a raw
+    # numpy error)
+    from tg_nebp.datasets import Scenario, fit_models
+    scenario = Scenario.load('robots_test').replace(num_steps=30)
+    data = scenario.generate(torch.Generator().manual_seed(5))
+    with pytest.raises(ValueError, match=r"has 30 steps, fewer moves \(29\) "
+                       r"than the horizon of 40 steps.*at most 29"):
+        fit_models(data, horizon=40)
+    few = data.clone()
+    few.edge_index, few.edge_attr = data.edge_index[:, :2], data.edge_attr[:2]
+    few.edge_time = data.edge_time[:2]
+    with pytest.raises(ValueError, match="has 2 usable links.*at least 3"):
+        fit_models(few, horizon=5)
+    still = data.clone()
+    still.states = data.states[:, :1].expand_as(data.states).clone()
+    with pytest.raises(ValueError, match="no robot moves"):
+        fit_models(still, horizon=5)
+    blind = data.clone()
+    blind.control = torch.full_like(data.control, float('nan'))
+    with pytest.raises(ValueError, match="has no odometry"):
+        fit_models(blind, horizon=5)
+    fit_models(data, horizon=5)  # the sequence itself fits

@@ -53,6 +53,18 @@ def test_names_and_their_options():
         load_scenario('mrclam-6-fast')
     with pytest.raises(ValueError, match=r"unknown scenario 'mrclam-0'"):
         load_scenario('mrclam-0')
+    # options that set the same field contradict each other: the last
+    # would win silently
+    for name, first, last, field in (
+            ('mrclam-6-landmarks-robots', 'landmarks', 'robots', 'links'),
+            ('mrclam-6-first-half-range-second-half', 'first-half',
+             'second-half', 'part')):
+        with pytest.raises(ValueError, match=(
+                f"scenario '{name}': the options '{first}' and '{last}' "
+                f"contradict each other \\(both set '{field}'\\)")):
+            load_scenario(name)
+    with pytest.raises(ValueError, match="gives the option 'range' twice"):
+        load_scenario('mrclam-6-range-range')
 
 
 def test_scenario_file_round_trip_and_bad_fields(tmp_path):
@@ -151,6 +163,11 @@ def test_zip_folder_and_download(root, tmp_path, monkeypatch):
                        r"'.*nowhere' \(neither MRCLAM_Dataset9.zip nor "
                        r"MRCLAM_Dataset9/\) and could not be downloaded"):
         MRCLAM(str(tmp_path / 'nowhere'), scenario)
+    # the failed download leaves none of the folders it made
+    with pytest.raises(ValueError, match="could not be downloaded"):
+        MRCLAM(str(tmp_path / 'new' / 'deeper'), scenario)
+    assert not (tmp_path / 'new').exists()
+    assert not (tmp_path / 'nowhere').exists()
 
 
 def test_load_datasets_reads_a_sequence(root):

@@ -14,8 +14,9 @@ from helpers import (PACKAGE_ROOT, NonNegativeRange, gen, live_trackers,
 
 from tg_nebp.gaussian import bounded_inflation
 from tg_nebp.filters import (AgentPrior, AnchorAt, CentralizedIEKF,
-                             FixedLagGaussianBP, GaussianBP, ParticleBP,
-                             StateField, TrackingSession, check_state)
+                             CentralizedSmoother, FixedLagGaussianBP,
+                             GaussianBP, ParticleBP, Smoothed, StateField,
+                             TrackingSession, check_state)
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange, MotionModel
 
 STEPS = 6
@@ -633,6 +634,7 @@ def _robot_session():
     ({'r1': [0.1]}, r"'control\['r1'\]' must have shape \[2\]"),
     ({'r1': [0.1, float('nan')]}, "must be finite"),
     ([[0.1, 0.0]], "must map identifiers"),
+    ({'r1': [True, False]}, r"'control\['r1'\]' must be numbers, not true"),
 ])
 def test_bad_control_is_named_and_changes_nothing(control, match):
     session = _robot_session()
@@ -642,6 +644,17 @@ def test_bad_control_is_named_and_changes_nothing(control, match):
     after = session.state_dict()
     assert torch.equal(before['state']['mean'], after['state']['mean'])
     assert session.num_steps == 1
+
+
+@pytest.mark.parametrize('make', [
+    lambda: CentralizedSmoother(3), lambda: CentralizedSmoother(None),
+    lambda: Smoothed(FixedLagGaussianBP(3))])
+def test_a_tracker_without_live_state_is_refused_when_the_session_starts(
+        make):
+    # the offline smoothers and the reader of finished windows keep no
+    # state between lines: refused at once, not at the first update
+    with pytest.raises(ValueError, match='does not run live'):
+        TrackingSession(make())
 
 
 def test_control_moves_the_robot_and_a_missing_one_is_input_free():

@@ -320,3 +320,73 @@ def test_a_layout_with_a_heading_binds_at_any_size():
     # heading must be known to the model
     bound = GaussianRangeBearing().bind(StateLayout(4, 2, (2, )))
     assert bound.scope(4) == (0, 1, 2)
+
+
+def _robots_at_one_point():
+    # robots 0 and 1 together (the same truth, prior and odometry) with
+    # range-bearing links between them, and robot 2 on a landmark with a
+    # link from it, at every step: links at zero distance for every
+    # method's linearization point
+    from tg_nebp.datasets import Scenario
+    scenario = Scenario.load('robots_train').replace(num_steps=4)
+    data = scenario.generate(gen(0))
+    landmark = int(data.anchor.nonzero()[0])
+    data.states[1] = data.states[0]
+    data.prior_mean[1] = data.prior_mean[0]
+    data.control[1] = data.control[0]
+    data.states[2, :, :2] = data.states[landmark, :, :2]
+    data.prior_mean[2, :2] = data.states[landmark, 0, :2]
+    added = [(t, j, i) for t in range(4)
+             for j, i in ((0, 1), (1, 0), (landmark, 2))]
+    edge_index = torch.cat([data.edge_index, torch.tensor(
+        [(j, i) for _, j, i in added]).t()], 1)
+    edge_attr = torch.cat([data.edge_attr, data.edge_attr.new_tensor(
+        [[0.05, 0.0]] * len(added))])
+    edge_time = torch.cat([data.edge_time, torch.tensor(
+        [t for t, _, _ in added])])
+    order = torch.argsort(edge_time * data.num_nodes + edge_index[1],
+                          stable=True)
+    data.edge_index, data.edge_attr = edge_index[:, order], edge_attr[order]
+    data.edge_time = edge_time[order]
+    return scenario, data
+
+
+def test_a_range_bearing_link_at_zero_distance_carries_no_information():
+    # the Jacobian there is zero, not 0/0
+    model = GaussianRangeBearing()
+    state = torch.tensor([[1.0, 2.0, 0.3]], dtype=torch.float64)
+    jacobian = model.measurement_jacobian(state, state.clone())
+    assert torch.equal(jacobian, torch.zeros_like(jacobian))
+    assert model.expected(state, state).tolist() == [[0.0, -0.3]]
+
+
+@pytest.mark.parametrize('method', [
+    'gbp', 'gbp-lag3', 'gbp-lag4-settled', 'iekf', 'iekf-lag3',
+    'iekf-smoother', 'iekf-incremental', 'pcrb', 'pcrb-lag3', 'bp',
+    'hybrid'])
+def test_every_method_stays_finite_at_zero_distance(method):
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
+                                 FixedLagGaussianBP, GaussianBP, HybridBP,
+                                 IncrementalSmoother, ParticleBP)
+    scenario, data = _robots_at_one_point()
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    tracker = {
+        'gbp': lambda: GaussianBP.recommended(**models),
+        'gbp-lag3': lambda: FixedLagGaussianBP.recommended(lag=3, **models),
+        'gbp-lag4-settled': lambda: FixedLagGaussianBP.recommended(
+            lag=4, iterated=2, **models),
+        'iekf': lambda: CentralizedIEKF(**models),
+        'iekf-lag3': lambda: CentralizedSmoother(3, **models),
+        'iekf-smoother': lambda: CentralizedSmoother(None, **models),
+        'iekf-incremental': lambda: IncrementalSmoother(**models),
+        'pcrb': lambda: PosteriorCRB(**models),
+        'pcrb-lag3': lambda: PosteriorCRB(lag=3, **models),
+        'bp': lambda: ParticleBP(num_particles=50, **models),
+        'hybrid': lambda: HybridBP.recommended(num_particles=20, **models),
+    }[method]()
+    out = tracker(data, gen(1)) if method in ('bp', 'hybrid') else \
+        tracker(data)
+    for value in (out, ) if torch.is_tensor(out) else (out.mean, out.cov):
+        assert bool(torch.isfinite(value).all())

@@ -318,18 +318,30 @@ def check_state_dim(size: int, motion,
     :attr:`~tg_nebp.models.MotionModel.state_dim`), or, with
     :obj:`position_dim` (a realization's,
     :func:`~tg_nebp.data.position_dim_of`), if the model's
-    layout puts another number of position entries first. The model is
+    layout puts another number of position entries first; and if the
+    layout (:meth:`~tg_nebp.models.MotionModel.layout`) is not one of a
+    state of that size (an angle index outside it). The model is
     read by its role's attributes only: the models import this module,
     which imports none of them."""
     if motion.state_dim is not None and size != motion.state_dim:
         raise ValueError(f"'prior_mean' holds states of size {size} but the "
                          f"motion model {motion} has state dimension "
                          f"{motion.state_dim}")
-    if position_dim is not None and \
-            motion.layout(size).position_dim != position_dim:
+    layout = motion.layout(size)
+    if layout.size != size or not 0 < layout.position_dim <= size:
+        raise ValueError(f"the motion model {motion} lays out a state of "
+                         f"size {size} as {layout.size} entries with "
+                         f"{layout.position_dim} of position")
+    for index in layout.angles:
+        if isinstance(index, bool) or not isinstance(index, int) or \
+                not 0 <= index < size:
+            raise ValueError(f"the motion model {motion} names angle index "
+                             f"{index!r} of a state of size {size} (its "
+                             f"entries are 0 to {size - 1})")
+    if position_dim is not None and layout.position_dim != position_dim:
         raise ValueError(f"the realization's positions have "
                          f"{position_dim} entries but the motion model "
-                         f"{motion} reads {motion.layout(size).position_dim}"
+                         f"{motion} reads {layout.position_dim}"
                          f" of a state of size {size}")
 
 

@@ -39,7 +39,8 @@ from tg_nebp.data.validation import check_positive_int
 
 __all__ = ['MRCLAMSequence', 'read_mrclam', 'mrclam_realization',
            'integrate_odometry', 'interpolate_pose', 'fit_models',
-           'long_run_factor', 'NUM_ROBOTS', 'LINKS', 'FIT_HORIZON']
+           'long_run_factor', 'NUM_ROBOTS', 'LINKS', 'FIT_HORIZON',
+           'FIT_MIN_LINKS']
 
 #: The robots of every sequence (subjects 1 to 5).
 NUM_ROBOTS = 5
@@ -323,6 +324,40 @@ def _block_sums(values: np.ndarray, horizon: int) -> np.ndarray:
         values.shape[0], blocks, horizon).sum(-1).reshape(-1)
 
 
+#: The fewest links that :func:`fit_models` fits the measurement noise on
+#: (a spread, and a range bias's line that is not through every point).
+FIT_MIN_LINKS = 3
+
+
+def _check_fittable(data: Realization, horizon: int) -> None:
+    # what fit_models needs of a sequence, each lack said as it is: enough
+    # links, at least one block of the horizon's steps, robots that move
+    # and odometry to compare their moves with
+    links = int(data.edge_index.size(1))
+    if links < FIT_MIN_LINKS:
+        raise ValueError(f"the sequence has {links} usable links (a range "
+                         f"and bearing to a known barcode); fitting the "
+                         f"measurement noise needs at least {FIT_MIN_LINKS}")
+    moves = int(data.num_steps) - 1
+    if moves < horizon:
+        raise ValueError(f"the sequence has {moves + 1} steps, fewer moves "
+                         f"({moves}) than the horizon of {horizon} steps "
+                         f"that the long-run variances sum over: give a "
+                         f"horizon of at most {max(moves, 1)} or a longer "
+                         f"sequence")
+    agents = ~data.anchor
+    states = data.states[agents].double()
+    moved = (states[:, 1:] - states[:, :-1]).abs().amax()
+    if not bool(moved > 0):
+        raise ValueError("no robot moves in the sequence's ground truth: "
+                         "the odometry's noise has nothing to be fitted on")
+    control = data.control[agents, 1:]
+    if not bool(torch.isfinite(control).all(-1).any()):
+        raise ValueError("the sequence has no odometry (no robot step with "
+                         "both inputs): the odometry's noise cannot be "
+                         "fitted")
+
+
 def fit_models(data: Realization, max_range: float = 10.0,
                field_of_view: float = 2 * math.pi,
                horizon: int = FIT_HORIZON
@@ -367,11 +402,16 @@ def fit_models(data: Realization, max_range: float = 10.0,
 
     Returns the :class:`~tg_nebp.models.UnicycleOdometry`, the
     :class:`~tg_nebp.models.StudentTRangeBearing` (with :obj:`max_range`
-    and :obj:`field_of_view`) and a report of the figures."""
+    and :obj:`field_of_view`) and a report of the figures. A sequence it
+    cannot fit (fewer than ``FIT_MIN_LINKS`` links, fewer moves than
+    the horizon, no robot that moves, no odometry) is a
+    :class:`ValueError` that says which."""
     from tg_nebp.models import (StudentTRangeBearing, UnicycleOdometry,
                                 wrap_angle)
     from tg_nebp.models.range_bearing import RangeBearingModel
     states = data.states.double()
+    horizon = check_positive_int(horizon, 'horizon')
+    _check_fittable(data, horizon)
     src, dst = data.edge_index
     t = data.edge_time
     expected = RangeBearingModel.expected(states[src, t], states[dst, t])
@@ -379,7 +419,6 @@ def fit_models(data: Realization, max_range: float = 10.0,
     range_res = (z[:, 0] - expected[:, 0]).numpy()
     bearing_res = wrap_angle(z[:, 1] - expected[:, 1]).numpy()
     distance = expected[:, 0].numpy()
-    horizon = check_positive_int(horizon, 'horizon')
     sigma, sigma_bearing = _scale(range_res), _scale(bearing_res)
     slope, intercept = np.polyfit(distance, range_res, 1)
     centred = np.stack([range_res - np.median(range_res),

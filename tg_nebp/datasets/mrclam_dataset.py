@@ -192,6 +192,7 @@ class MRCLAMScenario:
             fitted = _shipped()
             changes = dict(name=text, sequence=int(match.group(1)))
             rest = match.group(2)
+            set_by: dict = {}  # each field by the option that set it
             while rest:
                 token = next((t for t in sorted(_NAME_OPTIONS, key=len,
                                                 reverse=True)
@@ -203,6 +204,17 @@ class MRCLAMScenario:
                         f"scenario '{text}': unknown option "
                         f"'{rest[1:].split('-')[0]}'; the options of "
                         f"mrclam-N are {sorted(_NAME_OPTIONS)}")
+                for field in _NAME_OPTIONS[token]:
+                    if set_by.get(field) == token:
+                        raise ValueError(f"scenario '{text}' gives the "
+                                         f"option '{token}' twice")
+                    if field in set_by:
+                        # the last would win silently
+                        raise ValueError(
+                            f"scenario '{text}': the options "
+                            f"'{set_by[field]}' and '{token}' contradict "
+                            f"each other (both set '{field}'); give one")
+                    set_by[field] = token
                 changes.update(_NAME_OPTIONS[token])
                 rest = rest[len(token) + 1:]
             if changes.get('features') == ('range', ):
@@ -342,7 +354,7 @@ def sequence_source(root: Union[str, os.PathLike], sequence: int,
     folder :obj:`MRCLAM_DatasetN/`; where neither is there, the official
     zip (:data:`~tg_nebp.datasets.mrclam_dataset.MRCLAM_URL`) is downloaded into :obj:`root` first (with
     :obj:`download`; a :class:`ValueError` saying where it looked
-    otherwise, or when the download fails)."""
+    otherwise, or when the download fails, leaving no folder it made)."""
     zipped = Path(root) / f'MRCLAM_Dataset{sequence}.zip'
     folder = Path(root) / f'MRCLAM_Dataset{sequence}'
     if zipped.exists():
@@ -355,10 +367,17 @@ def sequence_source(root: Union[str, os.PathLike], sequence: int,
                          f"(neither {zipped.name} nor {folder.name}/); it is "
                          f"at {url}")
     from torch_geometric.data import download_url
+    # the folders the download makes, removed again if it fails
+    made = [p for p in [Path(root), *Path(root).parents] if not p.exists()]
     try:
         os.makedirs(root, exist_ok=True)
         return Path(download_url(url, str(root), log=log))
     except OSError as e:
+        for path in made:  # the deepest first; only what stayed empty
+            try:
+                path.rmdir()
+            except OSError:
+                break
         raise ValueError(
             f"MRCLAM sequence {sequence} is not in '{root}' (neither "
             f"{zipped.name} nor {folder.name}/) and could not be "

@@ -119,6 +119,10 @@ class CentralizedSmoother(CentralizedIEKF):
           :math:`(N, T, S)` and covariance :math:`(N, T, S, S)` (the
           filtered estimates; the full smoother's smoothed ones)
     """
+    #: The offline reference keeps no state between steps and does not run
+    #: live (:class:`~tg_nebp.filters.TrackingSession` refuses it).
+    state_type = None
+
     def __init__(self, lag: Optional[int] = 5, num_iterations: int = 5,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,

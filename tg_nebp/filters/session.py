@@ -72,10 +72,23 @@ def _identifier(value, where: str) -> Identifier:
                      f"got {value!r}")
 
 
+def _holds_truth_values(value) -> bool:
+    # whether a value (nested lists, an array, a tensor) holds a bool
+    if isinstance(value, bool):
+        return True
+    if isinstance(value, (list, tuple)):
+        return any(_holds_truth_values(item) for item in value)
+    return str(getattr(value, 'dtype', '')) in ('bool', 'torch.bool')
+
+
 def _numbers(value, shape: Tuple[Optional[int], ...],
              where: str) -> Tensor:
     # numbers (a list, an array, a tensor) of the given shape (None: any
-    # size), in float64
+    # size), in float64; true and false are not numbers here (as a time
+    # step's are not)
+    if _holds_truth_values(value):
+        raise ValueError(f"{where} must be numbers, not true or false: got "
+                         f"{value!r}"[:200])
     try:
         tensor = torch.as_tensor(value, dtype=torch.float64).cpu()
     except OverflowError:  # an integer beyond any float
@@ -181,6 +194,12 @@ class TrackingSession:
         if not isinstance(tracker, Tracker):
             raise TypeError(f"'tracker' must be a Tracker, got "
                             f"{type(tracker).__name__}")
+        if tracker.state_type is None:
+            raise ValueError(
+                f"'tracker' {type(tracker).__name__} does not run live: it "
+                f"keeps no state from one line to the next (an offline "
+                f"smoother, or Smoothed: a live smoother's estimate lines "
+                f"carry their window, the oldest step final)")
         if dtype not in _DTYPES.values():
             raise ValueError(f"'dtype' must be one of "
                              f"{sorted(_DTYPES)}, got {dtype}")

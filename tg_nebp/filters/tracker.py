@@ -211,7 +211,16 @@ class Smoothed(Tracker):
     def __init__(self, tracker: Tracker):
         super().__init__(tracker.motion, tracker.measurement)
         self.tracker = tracker
-        self.use_control = tracker.use_control
+
+    @property
+    def use_control(self) -> bool:
+        r"""The smoother's :attr:`Tracker.use_control` (set, it sets the
+        smoother's: the steps are its)."""
+        return self.tracker.use_control
+
+    @use_control.setter
+    def use_control(self, value: bool) -> None:
+        self.tracker.use_control = value
 
     def steps(self, data: Realization,
               generator=None) -> Iterator[StepOutput]:

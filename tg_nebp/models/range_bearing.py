@@ -118,11 +118,23 @@ class RangeBearingModel(MeasurementModel):
     def expected(sender: Tensor, receiver: Tensor) -> Tensor:
         r"""The noise-free measurement :math:`\mathbf{h}` :math:`(*, 2)`
         (range, bearing; the bearing not wrapped) of states
-        :obj:`sender` and :obj:`receiver` :math:`(*, S \geq 3)`."""
+        :obj:`sender` and :obj:`receiver` :math:`(*, S \geq 3)`. At zero
+        distance it is :math:`(0, -\theta_i)` with no gradient: a bearing
+        there, and a range's direction, carry no information."""
         dx = sender[..., 0] - receiver[..., 0]
         dy = sender[..., 1] - receiver[..., 1]
-        return torch.stack([torch.sqrt(dx * dx + dy * dy),
-                            torch.atan2(dy, dx) - receiver[..., 2]], -1)
+        # two states at one point (robots that start together, a robot at
+        # a landmark): range 0 and the bearing of atan2(0, 0) = 0, with no
+        # gradient (a link there carries no information; the safe
+        # operands keep the other branch's gradient finite)
+        apart = dx * dx + dy * dy > 0
+        safe_dx = torch.where(apart, dx, torch.ones_like(dx))
+        safe_dy = torch.where(apart, dy, torch.zeros_like(dy))
+        distance = torch.where(apart, torch.sqrt(
+            safe_dx * safe_dx + safe_dy * safe_dy), torch.zeros_like(dx))
+        bearing = torch.where(apart, torch.atan2(safe_dy, safe_dx) -
+                              receiver[..., 2], -receiver[..., 2].detach())
+        return torch.stack([distance, bearing], -1)
 
     def residuals(self, z: Tensor, sender: Tensor,
                   receiver: Tensor) -> Tensor:
