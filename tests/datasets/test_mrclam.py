@@ -119,6 +119,68 @@ def test_bad_files_are_named(folder):
         mrclam_realization(read_mrclam(folder), duration=100.0)
 
 
+def _zipped(folder, archive, edit=None):
+    # the folder's files as a zip (members 'MRCLAM_Dataset9/NAME'), each
+    # member's bytes through 'edit' (name, bytes) -> bytes
+    with zipfile.ZipFile(archive, 'w', zipfile.ZIP_DEFLATED) as z:
+        for path in sorted(folder.iterdir()):
+            data = path.read_bytes()
+            z.writestr(f'MRCLAM_Dataset9/{path.name}',
+                       data if edit is None else edit(path.name, data))
+    return archive
+
+
+def test_resource_forks_and_other_encodings_are_read(folder, tmp_path):
+    # what macOS's archiver adds (resource forks of every file) and a
+    # Latin-1 header comment: read as the plain sequence
+    plain, _ = mrclam_realization(read_mrclam(folder), duration=10.0)
+    archive = _zipped(folder, tmp_path / 'MRCLAM_Dataset9.zip', lambda name,
+                      data: b'# \xe9t\xe9 ' + data if name == 'Barcodes.dat'
+                      else data)
+    with zipfile.ZipFile(archive, 'a') as z:
+        for path in folder.iterdir():
+            z.writestr(f'__MACOSX/MRCLAM_Dataset9/._{path.name}',
+                       b'\x00\x05\x16\x07\xff\xfe binary')
+    read, _ = mrclam_realization(read_mrclam(archive), duration=10.0)
+    assert torch.equal(read.edge_attr, plain.edge_attr)
+    (folder / '._Barcodes.dat').write_bytes(b'\x00\x05\x16\x07\xff')
+    read, _ = mrclam_realization(read_mrclam(folder), duration=10.0)
+    assert torch.equal(read.edge_attr, plain.edge_attr)
+
+
+def test_a_damaged_member_is_named(folder, tmp_path):
+    # a deflate stream cut short: the archive and the member named
+    archive = _zipped(folder, tmp_path / 'MRCLAM_Dataset9.zip')
+    raw = bytearray(archive.read_bytes())
+    with zipfile.ZipFile(archive) as z:
+        info = z.getinfo('MRCLAM_Dataset9/Robot2_Groundtruth.dat')
+    start = info.header_offset + 30 + len(info.filename.encode())
+    raw[start + 10:start + 60] = bytes(50)  # inside its compressed data
+    archive.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"its member "
+                       r"'MRCLAM_Dataset9/Robot2_Groundtruth.dat' is damaged"):
+        read_mrclam(archive)
+
+
+@pytest.mark.parametrize('name,row,match', [
+    # a barcode given to a second subject (the last row won)
+    ('Barcodes.dat', '8 16', r"'Barcodes.dat': data row 8 gives barcode 16 "
+     r"to subject 8; it is subject 6's"),
+    # a landmark under a robot's subject (it replaced the robot)
+    ('Landmark_Groundtruth.dat', '3 5.0 5.0 0.0 0.0', r"data row 3 lists "
+     r"subject 3, a robot's \(1 to 5\)"),
+    # a second log appended: its time starts again (it was sorted in)
+    ('Robot4_Groundtruth.dat', f'{T0} 3.0 1.5 0.0',
+     r"'Robot4_Groundtruth.dat': data row 3001 goes back in time"),
+])
+def test_clashing_ids_and_time_going_back_are_refused_by_row(folder, name,
+                                                             row, match):
+    path = folder / name
+    path.write_text(path.read_text() + row + '\n')
+    with pytest.raises(ValueError, match=match):
+        read_mrclam(folder)
+
+
 def test_interpolate_pose_turns_the_short_way():
     truth = np.array([[0.0, 0.0, 0.0, 3.1], [1.0, 1.0, 0.0, -3.1]])
     pose = interpolate_pose(truth, np.array([0.5]))

@@ -27,6 +27,7 @@ is not covered by the robot's odometry."""
 import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
@@ -80,7 +81,7 @@ class MRCLAMSequence:
     subject), :obj:`landmarks` (subject to surveyed :math:`[x, y]`), and per
     robot :math:`r = 1..5` its :obj:`groundtruth` (time, x, y, heading),
     :obj:`odometry` (time, forward velocity, angular velocity) and
-    :obj:`measurements` (time, barcode, range, bearing), sorted by time."""
+    :obj:`measurements` (time, barcode, range, bearing), in time order."""
     barcodes: Dict[int, int]
     landmarks: Dict[int, Tuple[float, float]]
     groundtruth: List[np.ndarray] = field(default_factory=list)
@@ -100,19 +101,40 @@ class MRCLAMSequence:
                    for g, o in zip(self.groundtruth, self.odometry))
 
 
+def _is_data_file(name: str) -> bool:
+    # a sequence's .dat file, not the resource fork that macOS's archiver
+    # writes beside it ('__MACOSX/', '._Name.dat')
+    path = Path(name)
+    return path.suffix == '.dat' and not path.name.startswith('._') and \
+        '__MACOSX' not in path.parts
+
+
+def _text(raw: bytes) -> str:
+    # the numbers are ASCII; a header comment in another encoding (Latin-1)
+    # is read with replacement characters, not refused
+    return raw.decode('utf-8', errors='replace')
+
+
 def _files(source: Union[str, os.PathLike]):
     # name -> text of a sequence's files, from its zip, its folder or a
-    # folder holding either
+    # folder holding either; a damaged member is named
     source = Path(source)
     if source.is_file() and zipfile.is_zipfile(source):
+        out = {}
         with zipfile.ZipFile(source) as archive:
-            return {Path(name).name: archive.read(name).decode('utf-8')
-                    for name in archive.namelist()
-                    if name.endswith('.dat')}
+            for name in filter(_is_data_file, archive.namelist()):
+                try:
+                    out[Path(name).name] = _text(archive.read(name))
+                except (zipfile.BadZipFile, zlib.error, EOFError,
+                        NotImplementedError) as e:
+                    raise ValueError(f"'{source}': its member '{name}' is "
+                                     f"damaged ({e})") from None
+        return out
     if source.is_dir():
-        found = {p.name: p for p in source.glob('*.dat')}
+        found = {p.name: p for p in source.glob('*.dat')
+                 if _is_data_file(p.name)}
         if found:
-            return {name: p.read_text(encoding='utf-8')
+            return {name: _text(p.read_bytes())
                     for name, p in found.items()}
     raise ValueError(f"'{source}' is neither an MRCLAM zip nor a folder "
                      f"of its .dat files")
@@ -120,21 +142,47 @@ def _files(source: Union[str, os.PathLike]):
 
 def read_mrclam(source: Union[str, os.PathLike]) -> MRCLAMSequence:
     r"""Reads a sequence from its zip (:obj:`MRCLAM_DatasetN.zip`) or the
-    folder of its files (:obj:`MRCLAM_DatasetN/`); a missing file, a row
-    of the wrong width or a value that is not a finite number is a
-    :class:`ValueError` naming the file and the row."""
+    folder of its files (:obj:`MRCLAM_DatasetN/`; macOS's resource forks
+    beside them skipped); a missing or damaged file, a row of the wrong
+    width, a value that is not a finite number, a robot's row that goes
+    back in time, a barcode given to two subjects and a landmark listed
+    under a robot's subject (or twice) are a :class:`ValueError` naming
+    the file and the row."""
     files = _files(source)
 
     def table(name, columns):
         if name not in files:
             raise ValueError(f"'{source}' has no '{name}'")
         data = _table(files[name], name, columns)
-        return data[np.argsort(data[:, 0], kind='stable')] \
-            if name.startswith('Robot') else data
+        back = np.flatnonzero(np.diff(data[:, 0]) < 0)
+        if name.startswith('Robot') and back.size:
+            row = int(back[0]) + 1  # its index; its data row is one more
+            raise ValueError(
+                f"'{name}': data row {row + 1} goes back in time "
+                f"({data[row, 0]!r} after {data[row - 1, 0]!r}): the rows "
+                f"of a robot's file are in time order (a second log "
+                f"appended?)")
+        return data
 
-    barcodes = {int(b): int(s) for s, b in table('Barcodes.dat', 2)}
-    landmarks = {int(s): (float(x), float(y))
-                 for s, x, y, _, _ in table('Landmark_Groundtruth.dat', 5)}
+    barcodes = {}
+    for row, (subject, barcode) in enumerate(table('Barcodes.dat', 2)):
+        if int(barcode) in barcodes:
+            raise ValueError(f"'Barcodes.dat': data row {row + 1} gives "
+                             f"barcode {int(barcode)} to subject "
+                             f"{int(subject)}; it is subject "
+                             f"{barcodes[int(barcode)]}'s already")
+        barcodes[int(barcode)] = int(subject)
+    landmarks = {}
+    for row, (subject, x, y, _, _) in enumerate(
+            table('Landmark_Groundtruth.dat', 5)):
+        subject = int(subject)
+        if 1 <= subject <= NUM_ROBOTS or subject in landmarks:
+            raise ValueError(
+                f"'Landmark_Groundtruth.dat': data row {row + 1} lists "
+                f"subject {subject}, "
+                + (f"a robot's (1 to {NUM_ROBOTS})" if subject <= NUM_ROBOTS
+                   else "listed already"))
+        landmarks[subject] = (float(x), float(y))
     sequence = MRCLAMSequence(barcodes, landmarks)
     for r in range(1, NUM_ROBOTS + 1):
         sequence.groundtruth.append(table(f'Robot{r}_Groundtruth.dat', 4))
