@@ -335,6 +335,33 @@ def linear_rts_smoother(data, motion, measurement, lag=None):
     return np.stack(means, 1), np.stack(covs, 1), agents
 
 
+def assert_kalman_filter_and_smoother(smoother, data, motion, measurement,
+                                      lag=None):
+    r"""A smoother on a linear-Gaussian realization: its filtered steps are
+    :func:`linear_kalman_filter`'s and its smoothed ones
+    (:class:`~tg_nebp.filters.Smoothed`, every step once, in order) are
+    :func:`linear_rts_smoother`'s at :obj:`lag`, means and covariances;
+    the anchors' smoothed covariances are zero."""
+    import numpy as np
+    from tg_nebp.filters import Smoothed
+    means, covs, agents = linear_kalman_filter(data, motion, measurement)
+    out = smoother(data)
+    np.testing.assert_allclose(out.mean[agents].numpy(), means, rtol=1e-9,
+                               atol=1e-9)
+    np.testing.assert_allclose(out.cov[agents].numpy(), covs, rtol=1e-9,
+                               atol=1e-12)
+    means, covs, _ = linear_rts_smoother(data, motion, measurement, lag)
+    steps = list(Smoothed(smoother).steps(data))
+    assert [s.t for s in steps] == list(range(out.mean.size(1)))
+    mean = torch.stack([s.mean for s in steps], 1)
+    cov = torch.stack([s.cov for s in steps], 1)
+    np.testing.assert_allclose(mean[agents].numpy(), means, rtol=1e-9,
+                               atol=1e-9)
+    np.testing.assert_allclose(cov[agents].numpy(), covs, rtol=1e-9,
+                               atol=1e-12)
+    assert cov[data.anchor].abs().max() == 0
+
+
 def linear_scenario(steps=4, num_agents=4, sigma=0.5):
     r"""A small network of :func:`linear_offset_model` measurements and
     linear (drag-free) motion."""

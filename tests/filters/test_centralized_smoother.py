@@ -5,9 +5,9 @@ import torch
 from tg_nebp.filters import CentralizedIEKF, CentralizedSmoother, Smoothed
 
 from helpers import (assert_batch_equals_alone,
+                     assert_kalman_filter_and_smoother,
                      assert_symmetric_positive_definite, gen,
-                     linear_kalman_filter, linear_rts_smoother,
-                     linear_scenario, tiny_scenario)
+                     linear_rts_smoother, linear_scenario, tiny_scenario)
 
 
 def linear_problem(steps=6):
@@ -24,23 +24,8 @@ def test_linear_gaussian_fixed_lag_smoother_is_the_rts_smoother(lag):
     scenario, data = linear_problem()
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model)
-    means, covs, agents = linear_kalman_filter(data, *models.values())
     smoother = CentralizedSmoother(lag, **models)
-    out = smoother(data)
-    np.testing.assert_allclose(out.mean[agents].numpy(), means, rtol=1e-9,
-                               atol=1e-9)
-    np.testing.assert_allclose(out.cov[agents].numpy(), covs, rtol=1e-9,
-                               atol=1e-12)
-    means, covs, _ = linear_rts_smoother(data, *models.values(), lag)
-    smoothed = Smoothed(smoother)
-    steps = list(smoothed.steps(data))
-    assert [s.t for s in steps] == list(range(6))
-    mean = torch.stack([s.mean for s in steps], 1)
-    cov = torch.stack([s.cov for s in steps], 1)
-    np.testing.assert_allclose(mean[agents].numpy(), means, rtol=1e-9,
-                               atol=1e-9)
-    np.testing.assert_allclose(cov[agents].numpy(), covs, rtol=1e-9,
-                               atol=1e-12)
+    assert_kalman_filter_and_smoother(smoother, data, *models.values(), lag)
     # every step's window: the revised estimates of the last steps
     window = list(smoother.steps(data))[3]
     assert window.window_mean.shape == (data.num_nodes, lag, 4)

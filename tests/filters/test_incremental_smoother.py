@@ -1,6 +1,5 @@
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -11,8 +10,8 @@ from tg_nebp.filters import (CentralizedSmoother, IncrementalSmoother,
 from tg_nebp.models import StudentTRangeBearing, UnicycleOdometry
 
 from helpers import (assert_batch_equals_alone,
+                     assert_kalman_filter_and_smoother,
                      assert_symmetric_positive_definite, gen,
-                     linear_kalman_filter, linear_rts_smoother,
                      linear_scenario, simulate_robots, stream_realization,
                      tiny_scenario)
 
@@ -58,22 +57,7 @@ def test_linear_gaussian_filtered_is_the_kalman_filter_smoothed_the_rts():
     data = scenario.generate(gen(3))
     models = (scenario.motion_model, scenario.measurement_model)
     smoother = IncrementalSmoother(motion=models[0], measurement=models[1])
-    means, covs, agents = linear_kalman_filter(data, *models)
-    out = smoother(data)
-    np.testing.assert_allclose(out.mean[agents].numpy(), means, rtol=1e-9,
-                               atol=1e-9)
-    np.testing.assert_allclose(out.cov[agents].numpy(), covs, rtol=1e-9,
-                               atol=1e-12)
-    means, covs, _ = linear_rts_smoother(data, *models)
-    steps = list(Smoothed(smoother).steps(data))
-    assert [s.t for s in steps] == list(range(6))
-    mean = torch.stack([s.mean for s in steps], 1)
-    cov = torch.stack([s.cov for s in steps], 1)
-    np.testing.assert_allclose(mean[agents].numpy(), means, rtol=1e-9,
-                               atol=1e-9)
-    np.testing.assert_allclose(cov[agents].numpy(), covs, rtol=1e-9,
-                               atol=1e-12)
-    assert cov[data.anchor].abs().max() == 0
+    assert_kalman_filter_and_smoother(smoother, data, *models)
 
 
 @pytest.mark.parametrize('problem', ['ranges', 'robots'])
