@@ -196,6 +196,9 @@ def test_fit_then_evaluate_record_track_and_score_a_real_sequence(
     root, fitted = str(tmp_path), str(tmp_path / 'fit9.json')
     assert main(['fit', '--sequence', '9', '--root', root, '--output',
                  fitted]) == 0
+    # every command that reads a sequence says what it kept and dropped
+    assert ("MRCLAM sequence 9 (the fit's window): 3 links in 1 window; 1 "
+            "measurement(s) of barcodes") in capsys.readouterr().err
     fields = json.loads((tmp_path / 'fit9.json').read_text())
     assert (fields['sequence'], fields['measurement']['name']) == (
         9, 'student-t-range-bearing')
@@ -205,7 +208,8 @@ def test_fit_then_evaluate_record_track_and_score_a_real_sequence(
     assert main(['evaluate', '--method', 'iekf', '--scenario', fitted,
                  '--root', root, '--out', str(out), '--quiet']) == 0
     entry = json.loads((out / 'metrics.json').read_text())['iekf']
-    capsys.readouterr()
+    assert ("MRCLAM sequence 9 ('mrclam-9'): 3 links in 1 window; "
+            in capsys.readouterr().err)
     lines, truth = tmp_path / 'm.jsonl', tmp_path / 't.jsonl'
     assert main(['record', '--scenario', fitted, '--root', root,
                  '--measurements', str(lines), '--truth', str(truth)]) == 0

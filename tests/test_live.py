@@ -259,3 +259,36 @@ def test_a_smoothers_line_holds_its_revised_window():
     plain = []
     track_lines(session, realization_lines(data), plain.append)
     assert 'window' not in json.loads(plain[-1])
+
+
+def test_the_window_line_leaves_out_an_agent_before_it_rejoined():
+    # agent 0 leaves at step 2 and rejoins at step 3 with a new prior: the
+    # window of fixed-lag Gaussian BP then holds its prior at the steps
+    # before, which are no estimate of it and stay out of the window line;
+    # the others are in every step
+    from tg_nebp.filters import FixedLagGaussianBP
+    from tg_nebp.live import estimate_line
+    data = tiny_scenario(6).generate(gen(5))
+    session = TrackingSession(FixedLagGaussianBP(4))
+    lines = [json.loads(line) for line in realization_lines(data)]
+    prior = dict(id=0, mean=data.prior_mean[0].tolist(),
+                 cov=data.prior_cov[0].tolist())
+
+    def without_0(line):
+        line['links'] = [link for link in line['links'] if 0 not in link[:2]]
+        return line
+
+    lines[2] = dict(without_0(lines[2]), leave=[0])
+    lines[3] = dict(without_0(lines[3]), join=[prior])
+    written = [json.loads(estimate_line(session, session.update(
+        *step[:2], step.dt, step.time, step.join, step.leave, step.control)))
+        for step in map(parse_step, map(json.dumps, lines))]
+    for line in written[3:]:
+        assert [e['id'] for e in line['estimates']] == [1, 2, 0]
+        for entry in line['window']:
+            ids = [e['id'] for e in entry['estimates']]
+            assert ids == ([1, 2, 0] if entry['t'] >= 3 else [1, 2])
+    assert [entry['t'] for entry in written[5]['window']] == [2, 3, 4]
+    # before it left, it was in the window as the others
+    assert [e['id'] for e in written[1]['window'][0]['estimates']] == \
+        [0, 1, 2]

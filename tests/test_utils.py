@@ -356,3 +356,33 @@ def test_row_jacobian_is_the_closed_form_and_differentiable():
     torch.testing.assert_close(grad[..., 2], -torch.sin(x[..., 2]))
     with torch.no_grad():  # no graph where gradients are off
         assert not row_jacobian(f, leaf).requires_grad
+
+
+def test_row_linearization_is_each_arguments_closed_form():
+    # g(x, u) = [x0 u1, x1 + u0^2] row by row: the output and both
+    # Jacobians from one pass; an argument the output does not read gets
+    # zeros; the output is detached unless a graph is asked for
+    from tg_nebp.utils import row_linearization
+
+    def g(x, u, unused):
+        return torch.stack([x[..., 0] * u[..., 1],
+                            x[..., 1] + u[..., 0] ** 2], -1)
+
+    generator = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 4, 2, dtype=torch.float64, generator=generator)
+    u = torch.randn(3, 4, 2, dtype=torch.float64, generator=generator)
+    unused = torch.randn(3, 4, 5, dtype=torch.float64, generator=generator)
+    out, (in_x, in_u, none) = row_linearization(g, (x, u, unused))
+    torch.testing.assert_close(out, g(x, u, unused), rtol=0, atol=0)
+    expected_x = torch.zeros(3, 4, 2, 2, dtype=torch.float64)
+    expected_x[..., 0, 0], expected_x[..., 1, 1] = u[..., 1], 1.0
+    expected_u = torch.zeros(3, 4, 2, 2, dtype=torch.float64)
+    expected_u[..., 0, 1], expected_u[..., 1, 0] = x[..., 0], 2 * u[..., 0]
+    torch.testing.assert_close(in_x, expected_x, rtol=0, atol=1e-15)
+    torch.testing.assert_close(in_u, expected_u, rtol=0, atol=1e-15)
+    assert torch.equal(none, torch.zeros(3, 4, 2, 5, dtype=torch.float64))
+    assert not out.requires_grad
+    leaf = x.clone().requires_grad_()
+    out, _ = row_linearization(g, (leaf, u, unused))
+    grad, = torch.autograd.grad(out.sum(), leaf)
+    torch.testing.assert_close(grad[..., 0], u[..., 1])

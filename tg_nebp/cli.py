@@ -3,6 +3,7 @@ r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 live path: :obj:`track`, :obj:`record` and :obj:`score`."""
 import argparse
 import contextlib
+import logging
 import math
 import sys
 from pathlib import Path
@@ -829,6 +830,42 @@ def main(argv: Optional[List[str]] = None) -> int:
     malformed file, unwritable output) prints one line starting with
     :obj:`error:` and exits with status 2, without a traceback."""
     args = build_parser().parse_args(argv)
+    with _library_reports() as reports:
+        status = _main(args)
+    if status == 0:  # a failed run prints its one error line alone
+        for line in dict.fromkeys(reports):
+            sys.stderr.write(line + '\n')
+        sys.stderr.flush()
+    return status
+
+
+class _Collected(logging.Handler):
+    # the records' messages, in order
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.lines = []
+
+    def emit(self, record):
+        self.lines.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _library_reports():
+    # what the library reports while a command runs (the reading of a real
+    # sequence: what it kept and dropped), printed on standard error once
+    # the command has succeeded
+    handler, logger = _Collected(), logging.getLogger('tg_nebp')
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield handler.lines
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def _main(args) -> int:
     if args.command == 'reproduce' and args.out is None:
         args.out = ('results/beyond' if args.preset == 'beyond' else
                     'results/reproduce')

@@ -108,10 +108,9 @@ def check_predicted_prior(data, motion, what: str,
     control = getattr(data, 'control', None)
     given = inputs(None if control is None or not use_control else
                    control[agents, 0].double())
-    jacobian = motion.jacobian(mean, **given)
+    _, jacobian, noise = motion.linearize(mean, **given)
     predicted = (jacobian @ data.prior_cov[agents].double() @
-                 jacobian.transpose(-1, -2) +
-                 motion.noise_covariance(mean, **given))
+                 jacobian.transpose(-1, -2) + noise)
     _, failed = torch.linalg.cholesky_ex(predicted)
     if bool(failed.any()):
         first = int(failed.nonzero()[0, 0])

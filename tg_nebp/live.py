@@ -132,21 +132,32 @@ def estimate_line(session: TrackingSession, output: StepOutput) -> str:
     (:class:`~tg_nebp.filters.FixedLagGaussianBP`) adds the revised
     estimates of the earlier steps of its window, oldest first,
     :obj:`"window": [{"t": ..., "estimates": [...]}, ...]` (the oldest is
-    final: it leaves the window at the next step)."""
+    final: it leaves the window at the next step; an agent that joined
+    since a step has no estimate there)."""
     agents = ~session.anchor
+    ids = session.agent_ids
 
-    def estimates(mean, cov):
-        return [dict(id=node, mean=m, cov=c) for node, m, c in zip(
-            session.agent_ids, mean[agents].tolist(), cov[agents].tolist())]
+    def estimates(means, covs, present=None):
+        return [dict(id=node, mean=m, cov=c)
+                for node, m, c, there in zip(ids, means, covs, present or
+                                             [True] * len(ids)) if there]
 
     line = dict(t=output.t, time=session.time,
-                estimates=estimates(output.mean, output.cov))
+                estimates=estimates(output.mean[agents].tolist(),
+                                    output.cov[agents].tolist()))
     if output.window_mean is not None and output.window_mean.size(1) > 1:
         width = output.window_mean.size(1)
+        # one conversion of the whole window: steps first
+        means = output.window_mean[agents, :-1].transpose(0, 1).tolist()
+        covs = output.window_cov[agents, :-1].transpose(0, 1).tolist()
+        # an agent that joined (or rejoined) within the window has no
+        # estimate of the steps before it: left out of theirs
+        start = ([0] * len(ids) if output.window_start is None else
+                 output.window_start[agents].tolist())
         line['window'] = [
             dict(t=output.t - width + 1 + k,
-                 estimates=estimates(output.window_mean[:, k],
-                                     output.window_cov[:, k]))
+                 estimates=estimates(means[k], covs[k],
+                                     [first <= k for first in start]))
             for k in range(width - 1)]
     return json.dumps(line)
 

@@ -2,7 +2,8 @@ r"""Small tensor helpers shared by the layers and the trackers."""
 import contextlib
 import os
 import re
-from typing import Callable, Dict, Iterator, NamedTuple, Optional, Tuple
+from typing import (Callable, Dict, Iterator, NamedTuple, Optional, Sequence,
+                    Tuple)
 
 import torch
 import torch.distributed as dist
@@ -14,6 +15,7 @@ __all__ = [
     'weighted_moments',
     'symmetrize',
     'row_jacobian',
+    'row_linearization',
     'rounding_tolerance',
     'symmetric_psd_defects',
     'log_normalize',
@@ -87,27 +89,44 @@ def row_jacobian(function: Callable[[Tensor], Tensor], point: Tensor,
     :obj:`create_graph` holds (by default: where :obj:`point` requires
     them; pass :obj:`True` where the function reads another tensor that
     does), as training through a tracker needs."""
+    return row_linearization(function, (point, ), create_graph)[1][0]
+
+
+def row_linearization(function: Callable[..., Tensor],
+                      points: Sequence[Tensor],
+                      create_graph: Optional[bool] = None
+                      ) -> Tuple[Tensor, Tuple[Tensor, ...]]:
+    r"""The output :math:`(*, O)` of a :obj:`function` of several
+    arguments :obj:`points` (each :math:`(*, I_k)`, rows matched) and its
+    Jacobian in each, :math:`(*, O, I_k)`, from one forward and one
+    backward pass (as :func:`row_jacobian`, of which it is the
+    several-argument form: a motion model's Jacobians in the state and in
+    the input at once). The output keeps its graph where :obj:`create_graph`
+    holds (by default: where a point requires gradients) and gradients are
+    enabled."""
     if create_graph is None:
-        create_graph = point.requires_grad
+        create_graph = any(point.requires_grad for point in points)
     create = create_graph and torch.is_grad_enabled()
     with torch.enable_grad():
-        leaf = point if create and point.requires_grad else \
-            point.detach().requires_grad_()
-        out = function(leaf)
+        leaves = tuple(point if create and point.requires_grad else
+                       point.detach().requires_grad_() for point in points)
+        out = function(*leaves)
         size = out.size(-1)
-        if out.numel() == 0 or not out.requires_grad:
-            # no row, or an output that does not depend on the point
-            return out.new_zeros(out.shape + point.shape[-1:]).detach()
-        eye = torch.eye(size, dtype=out.dtype, device=out.device)
-        directions = eye.view((size, ) + (1, ) * (out.dim() - 1) +
-                              (size, )).expand((size, ) + out.shape)
-        rows, = torch.autograd.grad(out, leaf, directions,
-                                    is_grads_batched=True,
-                                    create_graph=create, allow_unused=True)
-    if rows is None:  # the output does not depend on the point
-        return out.new_zeros(out.shape + point.shape[-1:]).detach()
-    # rows[k] holds output k's gradient: (O, *, I) to (*, O, I)
-    return rows.movedim(0, -2)
+        rows = (None, ) * len(points)
+        if out.numel() > 0 and out.requires_grad:
+            eye = torch.eye(size, dtype=out.dtype, device=out.device)
+            directions = eye.view((size, ) + (1, ) * (out.dim() - 1) +
+                                  (size, )).expand((size, ) + out.shape)
+            rows = torch.autograd.grad(out, leaves, directions,
+                                       is_grads_batched=True,
+                                       create_graph=create,
+                                       allow_unused=True)
+    # rows[k] holds output k's gradient: (O, *, I) to (*, O, I); an
+    # output that does not depend on a point (or no row) gives zeros
+    jacobians = tuple(
+        out.new_zeros(out.shape + point.shape[-1:]).detach() if row is None
+        else row.movedim(0, -2) for row, point in zip(rows, points))
+    return (out if create else out.detach()), jacobians
 
 
 def symmetrize(matrices: Tensor) -> Tensor:

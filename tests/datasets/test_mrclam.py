@@ -172,6 +172,10 @@ def test_a_damaged_member_is_named(folder, tmp_path):
     # a second log appended: its time starts again (it was sorted in)
     ('Robot4_Groundtruth.dat', f'{T0} 3.0 1.5 0.0',
      r"'Robot4_Groundtruth.dat': data row 3001 goes back in time"),
+    # a bearing of 100 rad was wrapped to -0.531 rad and used
+    ('Robot1_Measurement.dat', f'{T0 + 2.0} 16 1.0 100.0',
+     r"'Robot1_Measurement.dat': data row 6 gives a bearing of 100.0 rad, "
+     r"outside \[-pi, pi\]"),
 ])
 def test_clashing_ids_and_time_going_back_are_refused_by_row(folder, name,
                                                              row, match):
@@ -179,6 +183,20 @@ def test_clashing_ids_and_time_going_back_are_refused_by_row(folder, name,
     path.write_text(path.read_text() + row + '\n')
     with pytest.raises(ValueError, match=match):
         read_mrclam(folder)
+
+
+def test_a_negative_range_is_the_likelihoods_to_take(folder):
+    # read as it is; kept where the likelihood takes negative ranges (every
+    # model of the library does), refused by file and row where not
+    path = folder / 'Robot3_Measurement.dat'
+    path.write_text(path.read_text() + f'{T0 + 2.45} 17 -0.2 0.1\n')
+    sequence = read_mrclam(folder)
+    data, _ = mrclam_realization(sequence, duration=10.0)
+    assert float(data.edge_attr[:, 0].min()) == pytest.approx(-0.2)
+    with pytest.raises(ValueError, match=(
+            r"'Robot3_Measurement.dat': data row 3 gives a negative range "
+            r"\(-0.2 m\), which the likelihood does not take")):
+        mrclam_realization(sequence, duration=10.0, negative_ranges=False)
 
 
 def test_interpolate_pose_turns_the_short_way():

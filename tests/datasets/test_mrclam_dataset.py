@@ -4,6 +4,7 @@ it): names and their options, scenario files, windows and halves, the
 zip, the folder and the download, and the models shipped for every
 ``mrclam-N`` name against a fit of sequence 6."""
 import json
+import logging
 import math
 import zipfile
 from pathlib import Path
@@ -11,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from tg_nebp.datasets import (MRCLAM, MRCLAMScenario, fitted_scenario,
                               load_datasets, load_scenario, read_mrclam)
@@ -126,6 +129,52 @@ def test_windows_halves_and_counts(root):
     assert one.counts[0]['unknown_barcodes'] == 1
 
 
+def test_the_reading_is_reported_and_a_sequence_without_links_refused(
+        root, tmp_path, caplog):
+    # what was kept, dropped and merged is one line, logged (the command
+    # line prints it); with an empty Barcodes.dat every measurement is an
+    # unknown barcode and the robots would be tracked on odometry alone:
+    # refused, with the counts
+    base = MRCLAMScenario.load('mrclam-9').replace(duration=10.0)
+    with caplog.at_level(logging.INFO, logger='tg_nebp'):
+        one = MRCLAM(str(root), base)
+    assert one.report == (
+        "MRCLAM sequence 9 ('mrclam-9'): 3 links in 1 window; 1 "
+        "measurement(s) of barcodes that Barcodes.dat does not give a "
+        "surveyed subject dropped, 1 outside the window left out, 2 "
+        "repeated within a step merged (the latest kept)")
+    assert caplog.messages == [one.report]
+    windows = MRCLAM(str(root), base.replace(duration=4.0, stride=4.0))
+    assert windows.report.startswith(
+        "MRCLAM sequence 9 ('mrclam-9'): 3 links in 6 windows; ")
+    empty = tmp_path / 'empty'
+    write_mrclam(empty / 'MRCLAM_Dataset9')
+    (empty / 'MRCLAM_Dataset9' / 'Barcodes.dat').write_text('# none\n')
+    with pytest.raises(ValueError, match=(
+            r"MRCLAM_Dataset9' holds no usable measurement: none of its 7 "
+            r"measurements names the barcode of another robot or of a "
+            r"surveyed landmark in 'Barcodes.dat' \(0 barcodes\)")):
+        MRCLAM(str(empty), base)
+
+
+def test_an_odometry_row_the_model_cannot_take_is_named(root):
+    # a speed of 1e6 m/s in one row of robot 2's odometry: the step it
+    # falls in moves the robot 5 km, refused by file and rows (it raised a
+    # raw linear-algebra error in the trackers)
+    path = root / 'MRCLAM_Dataset9' / 'Robot2_Odometry.dat'
+    lines = path.read_text().splitlines(keepends=True)
+    header = sum(line.startswith('#') for line in lines)
+    time, _, turn = lines[header + 99].split()
+    lines[header + 99] = f'{time} 1000000.0 {turn}\n'
+    path.write_text(''.join(lines))
+    base = MRCLAMScenario.load('mrclam-9').replace(duration=10.0)
+    with pytest.raises(ValueError, match=(
+            r"'Robot2_Odometry.dat': data rows 76 to 100 move the robot by "
+            r".* m and .* rad in the step from .* s, beyond the inputs the "
+            r"motion model UnicycleOdometry")):
+        MRCLAM(str(root), base)
+
+
 def test_zip_folder_and_download(root, tmp_path, monkeypatch):
     scenario = MRCLAMScenario.load('mrclam-9').replace(duration=10.0)
     from_folder = MRCLAM(str(root), scenario)[0]
@@ -208,3 +257,87 @@ def test_shipped_models_are_the_fit_of_sequence_6():
     assert report['horizon'] == 40
     dataset = MRCLAM(str(SEQUENCE_6.parent), shipped)
     assert len(dataset) == 1 and int(dataset[0].num_steps) == 1200
+
+
+DAMAGES = ('drop a row', 'repeat a row', 'swap two rows', 'cut a row short',
+           'a word', 'nan', 'inf', 'a huge number', 'a negative number',
+           'zero', 'empty the file', 'remove the file', 'append bytes')
+
+
+def _damaged(text: str, damage: str, where: float, value: float,
+             noise: bytes, everywhere: bool) -> bytes:
+    # the text of a file with one damage at the data row 'where' (a
+    # fraction of its rows; with 'everywhere' a changed number in every
+    # row) and column 'value' (a fraction of its columns)
+    lines = text.splitlines(keepends=True)
+    data = [k for k, line in enumerate(lines) if not line.startswith('#')]
+    if damage == 'empty the file' or not data:
+        return b''
+    if damage == 'append bytes':
+        return text.encode() + noise
+    k = data[min(int(where * len(data)), len(data) - 1)]
+    words = lines[k].split()
+    column = min(int(value * len(words)), len(words) - 1)
+    if damage == 'drop a row':
+        del lines[k]
+    elif damage == 'repeat a row':
+        lines.insert(k, lines[k])
+    elif damage == 'swap two rows':
+        j = data[max(data.index(k) - 1, 0)]
+        lines[j], lines[k] = lines[k], lines[j]
+    elif damage == 'cut a row short':
+        lines[k] = ' '.join(words[:-1]) + '\n'
+    else:
+        for k in data if everywhere else [k]:
+            words = lines[k].split()
+            words[column] = {
+                'a word': 'abc', 'nan': 'nan', 'inf': '-inf',
+                'a huge number': '1e300', 'zero': '0',
+                'a negative number': '-' + words[column]}[damage]
+            lines[k] = ' \t '.join(words) + '\n'
+    return ''.join(lines).encode()
+
+
+@pytest.fixture(scope='module')
+def pristine(tmp_path_factory):
+    folder = tmp_path_factory.mktemp('pristine') / 'MRCLAM_Dataset9'
+    write_mrclam(folder)
+    return {path.name: path.read_text() for path in folder.glob('*.dat')}
+
+
+@settings(max_examples=100, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(name=st.one_of(  # half the time a file whose links are kept
+           st.sampled_from(['Robot1_Measurement.dat',
+                            'Robot3_Measurement.dat']),
+           st.sampled_from(sorted(
+               ['Barcodes.dat', 'Landmark_Groundtruth.dat'] +
+               [f'Robot{r}_{kind}.dat' for r in range(1, 6) for kind in
+                ('Groundtruth', 'Odometry', 'Measurement')]))),
+       damage=st.sampled_from(DAMAGES),
+       where=st.floats(0, 1), value=st.floats(0, 1),
+       noise=st.binary(min_size=1, max_size=40), everywhere=st.booleans())
+def test_any_damage_is_read_and_reported_or_refused_naming_a_file(
+        pristine, tmp_path_factory, name, damage, where, value, noise,
+        everywhere):
+    # the property: a sequence that the writer's layout holds, with one
+    # damage anywhere, is either read (and what it kept and dropped
+    # reported) or refused with a ValueError that names a file (or the
+    # sequence, where the damage leaves no window), never anything else
+    folder = tmp_path_factory.mktemp('damaged') / 'MRCLAM_Dataset9'
+    folder.mkdir()
+    for file, text in pristine.items():
+        if file != name:
+            (folder / file).write_text(text)
+        elif damage != 'remove the file':
+            (folder / file).write_bytes(_damaged(text, damage, where, value,
+                                                 noise, everywhere))
+    scenario = MRCLAMScenario.load('mrclam-9').replace(duration=10.0)
+    try:
+        dataset = MRCLAM(str(folder.parent), scenario, log=False)
+    except ValueError as e:
+        assert '.dat' in str(e) or 'sequence 9' in str(e) or \
+            str(folder) in str(e), str(e)
+        return
+    assert len(dataset) == 1
+    assert dataset.report.startswith("MRCLAM sequence 9 ('mrclam-9'): ")

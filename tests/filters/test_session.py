@@ -635,6 +635,9 @@ def _robot_session():
     ({'r1': [0.1, float('nan')]}, "must be finite"),
     ([[0.1, 0.0]], "must map identifiers"),
     ({'r1': [True, False]}, r"'control\['r1'\]' must be numbers, not true"),
+    # a turn of 1e30 rad raised a raw linear-algebra error
+    ({'r1': [0.0, 1e30]}, r"'control\['r1'\]' = \[0.0, 1e\+30\] is beyond "
+     r"the inputs the motion model UnicycleOdometry"),
 ])
 def test_bad_control_is_named_and_changes_nothing(control, match):
     session = _robot_session()

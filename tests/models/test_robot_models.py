@@ -12,7 +12,7 @@ from tg_nebp.models import (GaussianRange, GaussianRangeBearing,
                             StateLayout, StudentTRangeBearing,
                             UnicycleOdometry, model_from_config,
                             resolve_models, wrap_angle)
-from tg_nebp.models.base import MeasurementModel
+from tg_nebp.models.base import MeasurementModel, MotionModel
 
 from helpers import gen
 
@@ -93,6 +93,21 @@ def test_unicycle_mean_and_jacobian_against_loops_and_differences():
             assert torch.allclose(jac[k, :, j], column, atol=1e-8)
 
 
+def _unicycle_noise(state, control):
+    # G M G^T written out for UnicycleOdometry(sigma_distance=0.01,
+    # distance_scale=0.1, sigma_turn=0.02, turn_scale=0.2,
+    # turn_per_distance=0.05): G = df/du at the state and input
+    d, turn = control.tolist()
+    heading = float(state[2]) + turn / 2
+    g = torch.tensor([[math.cos(heading), -d / 2 * math.sin(heading)],
+                      [math.sin(heading), d / 2 * math.cos(heading)],
+                      [0.0, 1.0]], dtype=torch.float64)
+    m = torch.diag(torch.tensor([
+        0.01**2 + (0.1 * d)**2,
+        0.02**2 + (0.2 * turn)**2 + (0.05 * d)**2], dtype=torch.float64))
+    return g @ m @ g.T
+
+
 def test_unicycle_noise_is_the_input_noise_through_its_jacobian():
     model = UnicycleOdometry(sigma_distance=0.01, distance_scale=0.1,
                              sigma_turn=0.02, turn_scale=0.2,
@@ -104,23 +119,47 @@ def test_unicycle_noise_is_the_input_noise_through_its_jacobian():
                            dtype=torch.float64)
     cov = model.noise_covariance(states, control=control)
     for k in range(2):
-        d, turn = control[k].tolist()
-        heading = float(states[k, 2]) + turn / 2
-        # G = df/du written out
-        g = torch.tensor([[math.cos(heading), -d / 2 * math.sin(heading)],
-                          [math.sin(heading), d / 2 * math.cos(heading)],
-                          [0.0, 1.0]], dtype=torch.float64)
-        m = torch.diag(torch.tensor([
-            0.01**2 + (0.1 * d)**2,
-            0.02**2 + (0.2 * turn)**2 + (0.05 * d)**2],
-            dtype=torch.float64))
-        assert torch.allclose(cov[k], g @ m @ g.T, atol=1e-14)
+        assert torch.allclose(cov[k], _unicycle_noise(states[k], control[k]),
+                              atol=1e-14)
     assert torch.allclose(cov[2], torch.diag(torch.tensor(
         [0.09, 0.09, 0.16], dtype=torch.float64)))
     assert torch.equal(cov, cov.transpose(-1, -2))
     # without any input every state is a random-walk step
     assert torch.allclose(model.noise_covariance(states)[0], cov[2])
     assert torch.equal(model.mean(states), states)
+
+
+def test_unicycle_linearize_is_its_mean_jacobian_and_noise_at_once():
+    # the one-pass linearization the Gaussian methods read equals the
+    # model's mean, the Jacobian of that mean (the role's default, by
+    # differentiating mean()) and the closed-form noise, with and without
+    # an input, and keeps the mean's graph where a tracker is trained
+    model = UnicycleOdometry(sigma_distance=0.01, distance_scale=0.1,
+                             sigma_turn=0.02, turn_scale=0.2,
+                             turn_per_distance=0.05)
+    states = torch.randn(2, 5, 3, dtype=torch.float64, generator=gen(3))
+    control = torch.randn(2, 5, 2, dtype=torch.float64, generator=gen(4))
+    control[1, 2] = NAN
+    moved, jac, noise = model.linearize(states, control=control)
+    assert torch.equal(moved, model.mean(states, control=control))
+    torch.testing.assert_close(
+        jac, MotionModel.jacobian(model, states, control=control),
+        rtol=0, atol=1e-15)
+    assert torch.equal(jac[1, 2], torch.eye(3, dtype=torch.float64))
+    for k in range(5):
+        torch.testing.assert_close(
+            noise[0, k], _unicycle_noise(states[0, k], control[0, k]),
+            rtol=0, atol=1e-15)
+    assert torch.equal(noise[1, 2], torch.diag(torch.tensor(
+        [0.25, 0.25, 0.25], dtype=torch.float64)))
+    leaf = states.clone().requires_grad_()
+    grad, = torch.autograd.grad(model.linearize(leaf, control)[0].sum(),
+                                leaf)
+    # d/dtheta of x' + y' + theta' (1 where the robot stays)
+    torch.testing.assert_close(grad[..., 2],
+                               jac[..., 0, 2] + jac[..., 1, 2] + 1)
+    with torch.no_grad():
+        assert not model.linearize(leaf, control)[0].requires_grad
 
 
 def test_unicycle_samples_match_the_linearized_moments():
@@ -360,16 +399,17 @@ def test_a_range_bearing_link_at_zero_distance_carries_no_information():
     assert model.expected(state, state).tolist() == [[0.0, -0.3]]
 
 
-@pytest.mark.parametrize('method', [
-    'gbp', 'gbp-lag3', 'gbp-lag4-settled', 'iekf', 'iekf-lag3',
-    'iekf-smoother', 'iekf-incremental', 'pcrb', 'pcrb-lag3', 'bp',
-    'hybrid'])
-def test_every_method_stays_finite_at_zero_distance(method):
+EVERY_METHOD = ['gbp', 'gbp-lag3', 'gbp-lag4-settled', 'iekf', 'iekf-lag3',
+                'iekf-smoother', 'iekf-incremental', 'pcrb', 'pcrb-lag3',
+                'bp', 'hybrid']
+
+
+def _finite_run(method, scenario, data):
+    # every output of the method on the data is finite
     from tg_nebp.bounds import PosteriorCRB
     from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
                                  FixedLagGaussianBP, GaussianBP, HybridBP,
                                  IncrementalSmoother, ParticleBP)
-    scenario, data = _robots_at_one_point()
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model)
     tracker = {
@@ -390,3 +430,34 @@ def test_every_method_stays_finite_at_zero_distance(method):
         tracker(data)
     for value in (out, ) if torch.is_tensor(out) else (out.mean, out.cov):
         assert bool(torch.isfinite(value).all())
+
+
+@pytest.mark.parametrize('method', EVERY_METHOD)
+def test_every_method_stays_finite_at_zero_distance(method):
+    _finite_run(method, *_robots_at_one_point())
+
+
+@pytest.mark.parametrize('method', EVERY_METHOD)
+def test_every_method_takes_the_largest_input_and_refuses_beyond(method):
+    # an odometry row of a kilometre or of 1e20 rad in one step left a
+    # raw linear-algebra error steps later: the inputs whose heading noise
+    # stays within pi (the model's representable()) keep every method
+    # finite, at the edge too; beyond, the row is refused by name
+    from tg_nebp.datasets import Scenario
+    scenario = Scenario.load('robots_train').replace(num_steps=4)
+    motion = scenario.motion_model
+    data = scenario.generate(gen(0))
+    reach = (math.pi ** 2 - motion.sigma_turn ** 2) ** 0.5
+    edge = torch.tensor([[0.999 * reach / motion.turn_per_distance, 0.0],
+                         [0.0, 0.999 * reach / motion.turn_scale]])
+    assert bool(motion.representable(edge).all())
+    assert not bool(motion.representable(1.002 * edge).any())
+    assert bool(motion.representable(torch.full((2, ), math.nan)))
+    data.control[0, 1], data.control[1, 2] = edge
+    _finite_run(method, scenario, data)
+    data.control[1, 2] = 1.002 * edge[1]
+    with pytest.raises(ValueError, match=(
+            r"'control\[1, 2\]' = \[0.0, 62\.8\d*\] is beyond the inputs "
+            r"the motion model UnicycleOdometry\(.*\) represents \(an "
+            r"input whose heading noise")):
+        _finite_run(method, scenario, data)

@@ -208,10 +208,9 @@ class PosteriorCRB(torch.nn.Module):
             for g, nodes in enumerate(layout.agents):
                 given = inputs(None if control is None else
                                control[nodes].double())
-                jacobian = self.motion.jacobian(previous[nodes], **given)
-                cov = predict_joint(covs[g], jacobian,
-                                    self.motion.noise_covariance(
-                                        previous[nodes], **given))
+                _, jacobian, noise = self.motion.linearize(previous[nodes],
+                                                           **given)
+                cov = predict_joint(covs[g], jacobian, noise)
                 # the smoothers' backward pass reads the transition
                 cross = (None if self.lag == 1 else
                          joint_cross(covs[g], jacobian))

@@ -376,6 +376,12 @@ def check_control(data, motion) -> None:
         t = int(torch.isinf(control[i]).any(-1).nonzero()[0, 0])
         raise ValueError(f"'control[{i}, {t}]' holds an infinite value (a "
                          f"step without input is a row of NaN)")
+    beyond = ~motion.representable(control)
+    if bool(beyond.any()):
+        i, t = beyond.nonzero()[0].tolist()
+        raise ValueError(f"'control[{i}, {t}]' = {control[i, t].tolist()} "
+                         f"is beyond the inputs the motion model {motion} "
+                         f"represents ({motion.input_limit})")
     partial = torch.isnan(control).any(-1) & ~torch.isnan(control).all(-1)
     if bool(partial.any()):
         i, t = partial.nonzero()[0].tolist()

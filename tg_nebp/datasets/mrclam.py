@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from tg_nebp.data.realization import Realization
-from tg_nebp.data.validation import check_positive_int
+from tg_nebp.data.validation import check_positive_int, magnitude_limit
 
 __all__ = ['MRCLAMSequence', 'read_mrclam', 'mrclam_realization',
            'integrate_odometry', 'interpolate_pose', 'fit_models',
@@ -72,6 +72,14 @@ def _table(text: str, name: str, columns: int) -> np.ndarray:
     if not np.isfinite(table).all():
         row = int(np.flatnonzero(~np.isfinite(table).all(1))[0])
         raise ValueError(f"'{name}': data row {row + 1} is not finite")
+    # the realizations hold float32, whose squared distances must be finite
+    limit = magnitude_limit(torch.float32)
+    beyond = np.flatnonzero((np.abs(table) > limit).any(1))
+    if beyond.size:
+        row = int(beyond[0])
+        raise ValueError(f"'{name}': data row {row + 1} holds a number "
+                         f"beyond {limit:.3g} in magnitude "
+                         f"({float(np.abs(table[row]).max()):.3g})")
     return table
 
 
@@ -146,8 +154,11 @@ def read_mrclam(source: Union[str, os.PathLike]) -> MRCLAMSequence:
     beside them skipped); a missing or damaged file, a row of the wrong
     width, a value that is not a finite number, a robot's row that goes
     back in time, a barcode given to two subjects and a landmark listed
-    under a robot's subject (or twice) are a :class:`ValueError` naming
-    the file and the row."""
+    under a robot's subject (or twice) and a bearing outside
+    :math:`[-\pi, \pi]` are a :class:`ValueError` naming the file and
+    the row, and so is a sequence none of whose measurements names another
+    robot or a surveyed landmark (an empty :obj:`Barcodes.dat`). A negative range is read as it is (whether a likelihood takes
+    it is the model's to say: :func:`mrclam_realization`)."""
     files = _files(source)
 
     def table(name, columns):
@@ -159,7 +170,8 @@ def read_mrclam(source: Union[str, os.PathLike]) -> MRCLAMSequence:
             row = int(back[0]) + 1  # its index; its data row is one more
             raise ValueError(
                 f"'{name}': data row {row + 1} goes back in time "
-                f"({data[row, 0]!r} after {data[row - 1, 0]!r}): the rows "
+                f"({float(data[row, 0])!r} after "
+                f"{float(data[row - 1, 0])!r}): the rows "
                 f"of a robot's file are in time order (a second log "
                 f"appended?)")
         return data
@@ -188,11 +200,37 @@ def read_mrclam(source: Union[str, os.PathLike]) -> MRCLAMSequence:
         sequence.groundtruth.append(table(f'Robot{r}_Groundtruth.dat', 4))
         sequence.odometry.append(table(f'Robot{r}_Odometry.dat', 3))
         sequence.measurements.append(table(f'Robot{r}_Measurement.dat', 4))
+        # a bearing is an angle from the robot's heading, in (-pi, pi]: a
+        # value beyond is a damaged row, not an angle to wrap
+        beyond = np.flatnonzero(np.abs(sequence.measurements[-1][:, 3]) >
+                                math.pi + 1e-6)
+        if beyond.size:
+            row = int(beyond[0])
+            raise ValueError(
+                f"'Robot{r}_Measurement.dat': data row {row + 1} gives a "
+                f"bearing of {float(sequence.measurements[-1][row, 3])!r} "
+                f"rad, "
+                f"outside [-pi, pi]")
         for what, data in (('Groundtruth', sequence.groundtruth[-1]),
                            ('Odometry', sequence.odometry[-1])):
             if len(data) < 2:
                 raise ValueError(f"'Robot{r}_{what}.dat' holds fewer than "
                                  f"two rows")
+    # a link needs a barcode of another robot or of a surveyed landmark:
+    # without one (an empty Barcodes.dat) the robots would be tracked on
+    # odometry alone
+    usable = sum(int(np.isin(rows[:, 1], [
+        barcode for barcode, subject in barcodes.items()
+        if subject != r + 1 and (1 <= subject <= NUM_ROBOTS or
+                                 subject in landmarks)]).sum())
+        for r, rows in enumerate(sequence.measurements))
+    if usable == 0:
+        total = sum(len(rows) for rows in sequence.measurements)
+        raise ValueError(
+            f"'{source}' holds no usable measurement: none of its {total} "
+            f"measurements names the barcode of another robot or of a "
+            f"surveyed landmark in 'Barcodes.dat' ({len(barcodes)} "
+            f"barcode{'s' * (len(barcodes) != 1)})")
     return sequence
 
 
@@ -236,7 +274,8 @@ def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
                          start: Optional[float] = None,
                          features: Sequence[str] = ('range', 'bearing'),
                          odometry: bool = True, links: str = 'all',
-                         prior_std: float = 0.5, heading_std: float = 0.2
+                         prior_std: float = 0.5, heading_std: float = 0.2,
+                         negative_ranges: bool = True
                          ) -> Tuple[Realization, Dict[str, int]]:
     r"""The realization of :obj:`duration` seconds of :obj:`sequence` from
     :obj:`start` (the sequence's :meth:`~MRCLAMSequence.start` by
@@ -246,6 +285,9 @@ def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
     the :obj:`links` (:obj:`"all"`, :obj:`"landmarks"` or
     :obj:`"robots"`); and what was dropped or merged
     (:obj:`"unknown_barcodes"`, :obj:`"repeated"`, :obj:`"outside"`).
+    A negative range kept is refused naming its file and row unless the
+    likelihood takes :obj:`negative_ranges` (the measurement role's
+    :attr:`~tg_nebp.models.MeasurementModel.negative_ranges`).
 
     Nodes: the robots first (agents, subject order), then the landmarks
     (anchors, subject order)."""
@@ -275,7 +317,8 @@ def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
     counts = dict(unknown_barcodes=0, repeated=0, outside=0)
     latest = {}  # (step, receiver, sender) -> (time, range, bearing)
     for r in range(NUM_ROBOTS):
-        for time, barcode, rng, bearing in sequence.measurements[r]:
+        for row, (time, barcode, rng, bearing) in enumerate(
+                sequence.measurements[r]):
             subject = sequence.barcodes.get(int(barcode))
             if subject is None or subject not in node_of \
                     or subject == r + 1:
@@ -288,6 +331,12 @@ def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
             if (links == 'landmarks' and to_robot) or \
                     (links == 'robots' and not to_robot):
                 continue
+            if rng < 0 and not negative_ranges:
+                raise ValueError(
+                    f"'Robot{r + 1}_Measurement.dat': data row {row + 1} "
+                    f"gives a negative range ({float(rng)!r} m), which the "
+                    f"likelihood does not take (its ranges are "
+                    f"non-negative)")
             step = min(int(math.ceil((time - t0) / dt)) - 1, steps - 1)
             key = (step, r, node_of[subject])
             if key in latest:

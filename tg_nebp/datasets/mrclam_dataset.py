@@ -8,6 +8,7 @@ command takes real robots as it takes simulated ones."""
 import dataclasses
 import hashlib
 import json
+import logging
 import math
 import os
 import re
@@ -15,6 +16,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple, Union
 
+import numpy as np
 from torch_geometric.data import InMemoryDataset
 
 from tg_nebp.data.realization import Realization
@@ -330,7 +332,55 @@ class MRCLAMScenario:
         return mrclam_realization(
             sequence, self.dt, resolved.num_steps * self.dt, start,
             self.features, self.odometry, self.links, self.prior_std,
-            self.heading_std)
+            self.heading_std, self.measurement_model.negative_ranges)
+
+
+def _check_odometry(data: Realization, sequence, scenario: 'MRCLAMScenario',
+                    start: float) -> None:
+    # the inputs that the odometry integrates to for each step, against
+    # what the motion model represents: one that it does not is refused
+    # naming the robot's file and the rows that made it (a corrupted row)
+    control = getattr(data, 'control', None)
+    if control is None:
+        return
+    motion = scenario.motion_model
+    beyond = ~motion.representable(control)
+    if not bool(beyond.any()):
+        return
+    robot, step = beyond.nonzero()[0].tolist()
+    begin = start + step * scenario.dt
+    times = sequence.odometry[robot][:, 0]
+    first = max(int(np.searchsorted(times, begin, 'right')) - 1, 0)
+    last = max(int(np.searchsorted(times, begin + scenario.dt, 'left')) - 1,
+               first)
+    distance, turn = control[robot, step].tolist()
+    raise ValueError(
+        f"'Robot{robot + 1}_Odometry.dat': data rows {first + 1} to "
+        f"{last + 1} move the robot by {distance:.4g} m and {turn:.4g} rad "
+        f"in the step from {begin:.3f} s, beyond the inputs the motion "
+        f"model {motion} represents ({motion.input_limit})")
+
+
+#: Where the reading of a real sequence is reported (what was kept,
+#: dropped and merged): the command line prints it on standard error.
+LOG = logging.getLogger('tg_nebp.datasets')
+
+
+def reading_report(what: str, counts: List[Dict[str, int]],
+                   links: List[int]) -> str:
+    r"""One line on the reading of the windows of a real sequence
+    (:obj:`what`): the links kept (:obj:`links`, per window) and the
+    measurements dropped or merged (:obj:`counts`, per window, as
+    :func:`~tg_nebp.datasets.mrclam_realization` gives them)."""
+    total = {key: sum(c[key] for c in counts) for key in
+             ('unknown_barcodes', 'repeated', 'outside')}
+    plural = 's' * (len(links) != 1)
+    return (f"{what}: {sum(links):,} links in {len(links)} window{plural}; "
+            f"{total['unknown_barcodes']:,} measurement(s) of barcodes "
+            f"that Barcodes.dat does not give a surveyed subject dropped, "
+            f"{total['outside']:,} outside the window{plural} left out, "
+            f"{total['repeated']:,} repeated within a step merged (the "
+            f"latest kept)")
 
 
 def range_part(model: MeasurementModel) -> MeasurementModel:
@@ -399,8 +449,10 @@ def fitted_scenario(source: Union[str, os.PathLike], sequence: int,
     shipped."""
     sequence_read = read_mrclam(source)
     span = sequence_read.end() - sequence_read.start()
-    data, _ = mrclam_realization(sequence_read, duration=min(
+    data, counts = mrclam_realization(sequence_read, duration=min(
         600.0, 0.5 * math.floor(span / 0.5)))
+    LOG.info(reading_report(f"MRCLAM sequence {sequence} (the fit's window)",
+                            [counts], [data.num_edges]))
     motion, measurement, report = fit_models(data, horizon=horizon)
     scenario = MRCLAMScenario(
         name=name or f'mrclam-{sequence}', sequence=sequence,
@@ -452,6 +504,11 @@ class MRCLAM(InMemoryDataset):
         counts (list): Per window, the measurements dropped or merged
             (:obj:`"unknown_barcodes"`, :obj:`"repeated"`,
             :obj:`"outside"`).
+        report (str): The links kept and the counts summed, one line
+            (:func:`~tg_nebp.datasets.mrclam_dataset.reading_report`; logged
+            to :obj:`tg_nebp.datasets` at level INFO, which the command
+            line prints). A sequence that gives no window a link is
+            refused.
 
     **STATS** (sequence 6, the test protocol):
 
@@ -498,10 +555,17 @@ class MRCLAM(InMemoryDataset):
         data_list, self.counts = [], []
         for start in starts:
             data, counts = scenario.realization(sequence, start)
-            check_realization(data)
+            # a negative range was refused by row unless the model takes it
+            check_realization(data, scenario.features, negative_ranges=True)
+            _check_odometry(data, sequence, scenario, start)
             data_list.append(data)
             self.counts.append(counts)
+        self.report = reading_report(
+            f"MRCLAM sequence {scenario.sequence} ('{scenario.name}')",
+            self.counts, [data.num_edges for data in data_list])
         self.data, self.slices = self.collate(data_list)
+        # every command that reads a sequence says what it dropped
+        LOG.info(self.report)
 
     @property
     def raw_dir(self) -> str:

@@ -241,9 +241,8 @@ class CentralizedIEKF(Tracker):
         :math:`(A, C)`."""
         motion = self.motion if motion is None else motion
         given = inputs(None if control is None else control.to(mean))
-        return (motion.mean(mean, **given),
-                predict_joint(cov, motion.jacobian(mean, **given),
-                              motion.noise_covariance(mean, **given)))
+        moved, jacobian, noise = motion.linearize(mean, **given)
+        return moved, predict_joint(cov, jacobian, noise)
 
     @staticmethod
     def _ends(state: Tensor, sender: Tensor, receiver: Tensor,

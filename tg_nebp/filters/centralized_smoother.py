@@ -257,13 +257,12 @@ class CentralizedSmoother(CentralizedIEKF):
         # Jacobian and cross covariance
         motion = self.motion if motion is None else motion
         given = inputs(control)
-        jacobian = motion.jacobian(base.point, **given)
+        moved, jacobian, noise = motion.linearize(base.point, **given)
         # the mean's offset from the point carried through the Jacobian (a
         # zero offset adds zeros: the IEKF's prediction exactly)
-        mean = motion.mean(base.point, **given) + (
+        mean = moved + (
             jacobian @ (base.mean - base.point).unsqueeze(-1)).squeeze(-1)
-        cov = predict_joint(base.cov, jacobian,
-                            motion.noise_covariance(base.point, **given))
+        cov = predict_joint(base.cov, jacobian, noise)
         return mean, cov, joint_cross(base.cov, jacobian)
 
     def _forward_backward(self, base: _Base, slots: List[_Slot],

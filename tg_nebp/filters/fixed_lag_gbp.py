@@ -27,13 +27,13 @@ __all__ = ['FixedLagGaussianBP', 'WindowState', 'SCHEDULES',
 SCHEDULES = ('sweep', 'residual')
 
 
-#: The settled steps of a long window in
-#: :meth:`~tg_nebp.filters.FixedLagGaussianBP.recommended`: the newest 5
+#: The settled steps of a window longer than 5 steps in
+#: :meth:`~tg_nebp.filters.FixedLagGaussianBP.recommended`: the newest 3
 #: steps iterated, the older settled and relinearized as iSAM2
 #: relinearizes (threshold 0.1, every 10th step), their filter inflated by
 #: 1.1. Chosen on MRCLAM sequence 6 (the development sequence; the results
 #: page, *Settled steps*).
-FIXED_LAG_RECOMMENDED = dict(iterated=5, relinearize_threshold=0.1,
+FIXED_LAG_RECOMMENDED = dict(iterated=3, relinearize_threshold=0.1,
                              relinearize_skip=10, settled_inflation=1.1)
 
 
@@ -63,7 +63,11 @@ class WindowState(NamedTuple):
     with settled steps (:obj:`iterated`), the forward pass's filtered
     means :obj:`settled_mean` :math:`(N, C, S)` and covariances
     :obj:`settled_cov` :math:`(N, C, S, S)` of the window's first
-    :math:`C` steps, where they still hold (:obj:`None`: none)."""
+    :math:`C` steps, where they still hold (:obj:`None`: none), and the
+    states :obj:`entry_point` :math:`(N, S)` that the transition out of
+    the Gaussian before the window is linearized at (the point of the
+    step marginalized out, as the forward pass over the settled steps
+    linearized it; :obj:`None`: the Gaussian's mean)."""
     mean: Tensor
     cov: Tensor
     fresh: Tensor
@@ -79,6 +83,7 @@ class WindowState(NamedTuple):
     start: Tensor
     settled_mean: Optional[Tensor] = None
     settled_cov: Optional[Tensor] = None
+    entry_point: Optional[Tensor] = None
 
     FIELDS = dict(GaussianState.FIELDS,
                   window=StateField(('N', 'W', 'S')),
@@ -93,7 +98,8 @@ class WindowState(NamedTuple):
                   start=StateField(('N', ), 'index'),
                   settled_mean=StateField(('N', 'C', 'S'), optional=True),
                   settled_cov=StateField(('N', 'C', 'S', 'S'), 'cov',
-                                         optional=True))
+                                         optional=True),
+                  entry_point=StateField(('N', 'S'), optional=True))
 
 
 def _renumbered(index: Tensor, num: int, num_new: int,
@@ -224,19 +230,22 @@ class FixedLagGaussianBP(GaussianBP):
     :math:`K < L` only the newest :math:`K` steps are iterated, and the
     older steps of the window are *settled*: their range messages are
     held as linear factors (information form), every agent's chain over
-    them is an extended Kalman filter (each transition linearized at the
-    filtered mean of the step it leaves, each filtered covariance
-    inflated, bounded, by :obj:`settled_inflation`) whose prediction is
-    the prior of the newest steps, and after the iterations one backward
-    pass carries the result into them. The filter is kept in the state
-    from one time step to the next (a step that becomes settled adds one
-    step to it; the step marginalized out of the window is its first, so
-    the prior before the window is not inflated again). At every
+    them is a Kalman filter linearized about the window's points (each
+    transition linearized at the point of the step it leaves, as the
+    messages are; each filtered covariance inflated, bounded, by
+    :obj:`settled_inflation`) whose prediction is the prior of the newest
+    steps, and after the iterations one backward pass carries the result
+    into them. The filter is kept in the state from one time step to the
+    next (a step that becomes settled adds one step to it; the step
+    marginalized out of the window is its first, so the prior before the
+    window is not inflated again, and its transition stays linearized at
+    its point, :obj:`WindowState.entry_point`). At every
     :obj:`relinearize_skip`-th time step, the messages of the factors of
     a settled node whose smoothed mean moved by more than
     :obj:`relinearize_threshold` from the point they were linearized at
-    are computed again from the smoothed beliefs there (its point moves),
-    and the filter runs again from the oldest such step: the window's
+    are computed again from the smoothed beliefs there (its point moves,
+    and so does the linearization of its transition), and the filter
+    runs again from the oldest such step: the window's
     marginal prior relinearized where the estimate moved (the fixed-lag
     counterpart of the fluid relinearization of iSAM2, `"iSAM2:
     Incremental Smoothing and Mapping Using the Bayes Tree"
@@ -340,15 +349,16 @@ class FixedLagGaussianBP(GaussianBP):
     def recommended(cls, **overrides) -> 'FixedLagGaussianBP':
         r""":meth:`GaussianBP.recommended
         <tg_nebp.filters.GaussianBP.recommended>`'s configuration over the
-        window; a window of more than 5 steps iterates its newest 5 and
+        window; a window of more than 5 steps iterates its newest 3 and
         settles the others (:obj:`FIXED_LAG_RECOMMENDED`: on MRCLAM
-        sequence 6 at lag 80, 5 iterated steps gave the smoothed RMSE of
-        10 and 20, and the settled inflation 1.1 is the smallest of 1,
-        1.1 and 1.2 with P(accept 0.95) of at least 0.85). :obj:`overrides`
-        replace or add constructor arguments."""
+        sequence 6 at lag 80, 3 iterated steps gave the smoothed RMSE of
+        5, 10 and 20 at three quarters of the time of 5, and the settled
+        inflation 1.1 is the smallest of 1, 1.1 and 1.2 with P(accept
+        0.95) of at least 0.85); a window of up to 5 steps iterates every
+        step. :obj:`overrides` replace or add constructor arguments."""
         lag = overrides.get('lag', 5)
         settled = FIXED_LAG_RECOMMENDED if isinstance(lag, int) and \
-            lag > FIXED_LAG_RECOMMENDED['iterated'] else {}
+            lag > 5 else {}
         return super().recommended(**{**settled, **overrides})
 
     def initial_state(self, data, generator=None) -> WindowState:
@@ -424,12 +434,15 @@ class FixedLagGaussianBP(GaussianBP):
         means = belief.mean.view(width, num, size).transpose(0, 1)
         output = StepOutput(t, layout.wrap(means[:, -1]), covs[:, -1],
                             window_mean=layout.wrap(means),
-                            window_cov=covs)
+                            window_cov=covs,
+                            window_start=state.start if bool(
+                                state.start.any()) else None)
         state = WindowState(state.mean, state.cov, state.fresh, state.memory,
                             state.predicted, points, window.links,
                             window.link_attr, self._time_steps(state, motion),
                             window.control, tuple(messages),
-                            window.factors.index, state.start, *settled)
+                            window.factors.index, state.start, *settled,
+                            state.entry_point)
         # the newest step's nodes, factors and messages, in its numbering
         newest = slice((width - 1) * num, width * num)
         factors = self.conv.factors(edge_index.long(), anchor, size)
@@ -491,7 +504,8 @@ class FixedLagGaussianBP(GaussianBP):
         filtered_mean = torch.stack([m for m, _ in chain.filtered], 1)
         filtered_cov = torch.stack([c for _, c in chain.filtered], 1)
         mean, info, cov = self._settled_smoothed(
-            window, agents, chain, filtered_mean, filtered_cov,
+            window, agents, chain, points[agents, :split + 1], filtered_mean,
+            filtered_cov,
             belief.mean[:num][agents], covs[agents, 0])
         settled = GaussianBelief(
             points[:, :split].transpose(0, 1).clone(
@@ -522,7 +536,7 @@ class FixedLagGaussianBP(GaussianBP):
         return belief, messages, covs, points, (cache_mean, cache_cov)
 
     def _settled_smoothed(self, window: _Window, agents: Tensor,
-                          chain: _Chain, filtered_mean,
+                          chain: _Chain, points: Tensor, filtered_mean,
                           filtered_cov, mean: Tensor, cov: Tensor):
         # the backward pass over the settled steps of the agents (their
         # filtered means (A, s, S) and covariances (A, s, S, S)) from the
@@ -533,12 +547,10 @@ class FixedLagGaussianBP(GaussianBP):
         # agent's first holds its prior
         count = filtered_mean.size(1)
         # the transitions as the forward pass linearized them: at the
-        # filtered means (the last row of the points is not read)
-        motion = self._motion_factors(window, torch.cat(
-            [filtered_mean, filtered_mean[:, -1:]], 1), agents)
-        linearized = tuple(torch.stack(part, 1) for part in zip(*motion[1:]))
+        # points (the last row of the points is not read)
+        linearized = self._linearized_motion(window, points, agents)
         ahead, ahead_cov, cross = self._transition(
-            linearized, filtered_mean, (filtered_mean, filtered_cov))
+            linearized, points[:, :-1], (filtered_mean, filtered_cov))
         mean, cov = rts_backward_chain(filtered_mean, filtered_cov,
                                        ahead.mean, ahead_cov, cross, mean,
                                        cov)
@@ -652,7 +664,8 @@ class FixedLagGaussianBP(GaussianBP):
         for first in state.start.unique().tolist():
             moved = self.predict(mean, cov, anchor | (state.start != first),
                                  motions[first],
-                                 self._control_at(controls, first, control))
+                                 self._control_at(controls, first, control),
+                                 state.entry_point)
             entry = moved if first == 0 else tuple(
                 torch.where((state.start == first).view(
                     (-1, ) + (1, ) * (m.dim() - 1)), m, e)
@@ -783,10 +796,12 @@ class FixedLagGaussianBP(GaussianBP):
         # continued after the filtered means and covariances 'cached' of
         # its first steps where given, and the prediction into the step
         # after them where the window has one. The transitions are
-        # linearized at the points, or (settled steps) at the filtered
-        # means, each filtered covariance inflated (bounded) by the
-        # settled inflation: an extended Kalman filter, whose steps hold
-        # from one time step to the next
+        # linearized at the points (all at once: a settled step's point
+        # moves only where it is relinearized, and the filter runs again
+        # from there); settled steps' filtered covariances are inflated
+        # (bounded) by the settled inflation: a Kalman filter linearized
+        # about the points, whose steps hold from one time step to the
+        # next
         start = window.start.index_select(0, rows)
         entry = GaussianBelief(*(part.index_select(0, rows)
                                  for part in window.prior))
@@ -796,8 +811,8 @@ class FixedLagGaussianBP(GaussianBP):
         reach = min(count + 1, here.size(1))
         held = 0 if cached is None else cached[0].size(1)
         base = max(held - 1, 0)  # the step the first transition leaves
-        motion = [None] * (reach - base) if settled else \
-            self._motion_factors(window, here[:, base:reach], rows, base)
+        motion = self._motion_factors(window, here[:, base:reach], rows,
+                                      base)
         prior, cov = entry, entry_cov
         filtered = [] if cached is None else list(zip(cached[0].unbind(1),
                                                       cached[1].unbind(1)))
@@ -805,11 +820,6 @@ class FixedLagGaussianBP(GaussianBP):
         for k in range(held, reach):
             if k > 0:
                 linearized, point = motion[k - base], here[:, k - 1]
-                if settled:
-                    point = filtered[-1][0]
-                    linearized = self._motion_factors(
-                        window, torch.stack([point, point], 1), rows,
-                        k - 1)[1]
                 prior, cov, cross = self._transition(linearized, point,
                                                      filtered[-1])
                 predicted.append((prior, cov, cross))
@@ -865,30 +875,32 @@ class FixedLagGaussianBP(GaussianBP):
         # the window's transitions out of steps first, first + 1, ...
         # linearized at the agents' 'points' (A, P, S) of steps first, ...,
         # first + P - 1: entry j > 0 is the f, F and Q of the transition
-        # into step first + j (one call of the model for all steps where
-        # they share it)
+        # into step first + j
+        if points.size(1) < 2:
+            return [None]
+        return [None] + list(zip(*(part.unbind(1) for part in
+                                   self._linearized_motion(
+                                       window, points, rows, first))))
+
+    @staticmethod
+    def _linearized_motion(window: _Window, points: Tensor, rows: Tensor,
+                           first: int = 0) -> Tuple[Tensor, ...]:
+        # the f, F and Q (A, P - 1, ...) of the transitions out of steps
+        # first, ..., first + P - 2 linearized at the agents' 'points' (A,
+        # P, S) of those steps (the last is not read): one call of the
+        # model for all steps where they share it
         here = points[:, :-1]
         count = here.size(1)
-        if count == 0:
-            return [None]
         steps = slice(first + 1, first + 1 + count)
         control = (None if window.control is None else
                    window.control.index_select(0, rows)[:, steps])
         motions = window.motions[steps]
-        groups = [list(range(count))]
-        if any(m is not motions[0] for m in motions):
-            groups = [[k] for k in range(count)]
-        out = [None] * count
-        for group in groups:
-            motion = motions[group[0]]
-            given = inputs(None if control is None else control[:, group])
-            at = here[:, group]
-            linearized = (motion.mean(at, **given),
-                          motion.jacobian(at, **given),
-                          motion.noise_covariance(at, **given))
-            for j, k in enumerate(group):
-                out[k] = tuple(part[:, j] for part in linearized)
-        return [None] + out
+        if motions.count(motions[0]) == count:
+            return motions[0].linearize(here, **inputs(control))
+        return tuple(torch.stack(part, 1) for part in zip(*(
+            motion.linearize(here[:, k], **inputs(
+                None if control is None else control[:, k]))
+            for k, motion in enumerate(motions))))
 
     @staticmethod
     def _transition(linearized: Tuple[Tensor, ...], point: Tensor,
@@ -1051,6 +1063,14 @@ class FixedLagGaussianBP(GaussianBP):
         cov = torch.where(there.view(-1, 1, 1), cov, state.cov)
         predicted = torch.where(there.view(-1, 1, 1), window.prior_cov,
                                 state.predicted)
+        # with settled steps the transition out of it is linearized where
+        # the forward pass linearized it: at the step's point
+        entry_point = None
+        if self._settles():
+            entry_point = torch.where(
+                there.view(-1, 1), state.window[:, 0],
+                state.mean if state.entry_point is None else
+                state.entry_point)
         links, kept = _renumbered(state.links, num, num, shift=1)
         index, carried = _renumbered(state.message_index, num, num, shift=1)
         return WindowState(
@@ -1061,7 +1081,7 @@ class FixedLagGaussianBP(GaussianBP):
             tuple(m[carried] for m in messages) if index.size(1) else None,
             index if index.size(1) else None,
             (state.start - 1).clamp_min(0),
-            *self._cache_after_slide(state))
+            *self._cache_after_slide(state), entry_point)
 
     @staticmethod
     def _cache_after_slide(state: WindowState):
@@ -1146,7 +1166,9 @@ class FixedLagGaussianBP(GaussianBP):
             link_attr=state.link_attr[kept],
             control=None if state.control is None else state.control[keep],
             messages=messages, message_index=index, start=state.start[keep],
-            settled_mean=None, settled_cov=None)
+            settled_mean=None, settled_cov=None,
+            entry_point=None if state.entry_point is None else
+            state.entry_point[keep])
 
     def join_state(self, state: WindowState,
                    joined: WindowState) -> WindowState:
@@ -1174,7 +1196,9 @@ class FixedLagGaussianBP(GaussianBP):
             links=links, control=control, message_index=index,
             start=torch.cat([state.start, torch.full_like(joined.start,
                                                           width)]),
-            settled_mean=None, settled_cov=None)
+            settled_mean=None, settled_cov=None,
+            entry_point=None if state.entry_point is None else
+            torch.cat([state.entry_point, joined.mean]))
 
     def reinitialized(self, state: WindowState, nodes: Tensor, mean: Tensor,
                       cov: Tensor) -> WindowState:
@@ -1205,7 +1229,9 @@ class FixedLagGaussianBP(GaussianBP):
             link_attr=state.link_attr[ends_kept], messages=messages,
             message_index=index,
             start=torch.where(nodes, width, state.start),
-            settled_mean=None, settled_cov=None)
+            settled_mean=None, settled_cov=None,
+            entry_point=None if state.entry_point is None else
+            torch.where(nodes.view(-1, 1), mean, state.entry_point))
 
     def settings(self) -> dict:
         return dict(super().settings(), lag=self.lag,

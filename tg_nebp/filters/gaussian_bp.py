@@ -234,21 +234,28 @@ class GaussianBP(Tracker):
 
     def predict(self, mean: Tensor, cov: Tensor, anchor: Tensor,
                 motion: Optional[MotionModel] = None,
-                control: Optional[Tensor] = None):
+                control: Optional[Tensor] = None,
+                point: Optional[Tensor] = None):
         r"""The prediction of every agent's mean :math:`(N, S)` and
         covariance :math:`(N, S, S)` by :obj:`motion` (the tracker's motion
         model by default) with every node's known input :obj:`control`
-        :math:`(N, C)`; anchors keep theirs."""
+        :math:`(N, C)`, the transition linearized at the means (or at the
+        states :obj:`point` :math:`(N, S)`: :math:`f(\mathbf{p}) +
+        \mathbf{F} (\boldsymbol{\mu} - \mathbf{p})`); anchors keep
+        theirs."""
         motion = self.motion if motion is None else motion
         agents = ~anchor
         mean, cov = mean.clone(), cov.clone()
         given = inputs(None if control is None else
                        control[agents].to(mean))
-        jacobian = motion.jacobian(mean[agents], **given)
+        at = mean[agents] if point is None else point[agents].to(mean)
+        moved, jacobian, noise = motion.linearize(at, **given)
         cov[agents] = symmetrize(
-            jacobian @ cov[agents] @ jacobian.transpose(-1, -2) +
-            motion.noise_covariance(mean[agents], **given))
-        mean[agents] = motion.mean(mean[agents], **given)
+            jacobian @ cov[agents] @ jacobian.transpose(-1, -2) + noise)
+        if point is not None:  # the mean's offset from the point carried
+            moved = moved + (jacobian @ (mean[agents] - at).unsqueeze(
+                -1)).squeeze(-1)
+        mean[agents] = moved
         return mean, cov
 
     def steps(self, data: Realization,

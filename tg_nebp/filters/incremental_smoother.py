@@ -489,9 +489,7 @@ class IncrementalSmoother(CentralizedSmoother):
                        motion: MotionModel):
         # the transition by 'motion' out of 'point' [*, A, S]: f, its
         # Jacobian and noise covariance
-        given = inputs(control)
-        return (motion.mean(point, **given), motion.jacobian(point, **given),
-                motion.noise_covariance(point, **given))
+        return motion.linearize(point, **inputs(control))
 
     def _prediction(self, chain: _Chain, k: int):
         # the prediction of step k [A S], its covariance and the cross

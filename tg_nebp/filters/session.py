@@ -412,6 +412,10 @@ class TrackingSession:
             if not bool(torch.isfinite(value).all()):
                 raise ValueError(f"{where} must be finite, got "
                                  f"{value.tolist()}")
+            if not bool(motion.representable(value)):
+                raise ValueError(f"{where} = {value.tolist()} is beyond the "
+                                 f"inputs the motion model {motion} "
+                                 f"represents ({motion.input_limit})")
             rows[row[node]] = value
         return rows.to(self.device, self.dtype)
 

@@ -40,7 +40,11 @@ class StepOutput(NamedTuple):
     the revised estimates of the steps :math:`t - W + 1, \dots, t`,
     :obj:`window_mean` :math:`(N, W, S)` and :obj:`window_cov`
     :math:`(N, W, S, S)`, the newest last (:obj:`mean` and :obj:`cov`
-    are the newest: the filtered estimate)."""
+    are the newest: the filtered estimate), and where nodes joined a live
+    session within the window, each node's first step in it
+    :obj:`window_start` :math:`(N)` (the rows before hold the prior it
+    joined with, no estimate; :obj:`None`: every node is there from the
+    window's first step)."""
     t: int
     mean: Tensor
     cov: Tensor
@@ -48,6 +52,7 @@ class StepOutput(NamedTuple):
     log_weights: Optional[Tensor] = None
     window_mean: Optional[Tensor] = None
     window_cov: Optional[Tensor] = None
+    window_start: Optional[Tensor] = None
 
 
 class TrackOutput(NamedTuple):

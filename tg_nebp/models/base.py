@@ -319,6 +319,33 @@ class MotionModel(Model):
             f"(mean() and noise_covariance()): the posterior CRB and the "
             f"Gaussian trackers need one")
 
+    #: What an input must be for the model to represent it (said where an
+    #: input is refused: :meth:`representable`).
+    input_limit: ClassVar[str] = 'finite'
+
+    def representable(self, control: Tensor) -> Tensor:
+        r"""Whether the model represents each finite known input
+        :math:`(*, C)` (a mask :math:`(*)`; NaN rows, no input, are
+        :obj:`True`): an input beyond what its noise and linearization
+        can stand for (a corrupted odometry row) is refused by name where
+        the data meets the model, instead of a broken covariance steps
+        later. By default every input."""
+        return torch.ones(control.shape[:-1], dtype=torch.bool,
+                          device=control.device)
+
+    def linearize(self, states: Tensor, control: Optional[Tensor] = None
+                  ) -> Tuple[Tensor, Tensor, Tensor]:
+        r"""The transition linearized at :obj:`states` :math:`(*, S)` (and
+        :obj:`control`): :math:`f`, :math:`\partial f / \partial
+        \mathbf{x}` and :math:`\mathbf{Q}` (:meth:`mean`, :meth:`jacobian`,
+        :meth:`noise_covariance`), what every Gaussian method and the bound
+        read at each step. By default the three calls; a model whose
+        Jacobians come from one pass of its own formula gives all three
+        from it."""
+        given = inputs(control)
+        return (self.mean(states, **given), self.jacobian(states, **given),
+                self.noise_covariance(states, **given))
+
     def measure(self, control: Tensor,
                 generator: Optional[torch.Generator] = None) -> Tensor:
         r"""The known inputs :math:`(*, C)` that a sensor (odometry)

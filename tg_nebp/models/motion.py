@@ -1,11 +1,12 @@
-from typing import Optional
+import math
+from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
 from tg_nebp.models.base import MotionModel, StateLayout
-from tg_nebp.utils import row_jacobian, symmetrize
+from tg_nebp.utils import row_linearization, symmetrize
 
 __all__ = ['ConstantVelocityDrag', 'ConstantVelocity', 'UnicycleOdometry']
 
@@ -234,6 +235,23 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
         missing = torch.isnan(control).any(-1)
         return torch.where(missing.unsqueeze(-1), 0.0, control), missing
 
+    #: See :meth:`representable`.
+    input_limit = ('an input whose heading noise, one standard deviation '
+                   'of the model\'s M, is at most pi radians')
+
+    def representable(self, control: Tensor) -> Tensor:
+        r"""Whether each input's heading noise stays within half a turn,
+        :math:`\sqrt{M_{\theta\theta}(\mathbf{u})} \le \pi`: beyond, the
+        heading after the step is unknown, no linearization of :math:`f`
+        in it holds, and the position noise :math:`\mathbf{G} \mathbf{M}
+        \mathbf{G}^\top` reaches scales that the Gaussian methods' joint
+        covariances cannot hold beside the others (a robot driving a
+        kilometre, or turning a thousand radians, in one step under the
+        default noise: a corrupted odometry row). NaN rows are
+        :obj:`True`."""
+        # NaN compares false: a row without input is representable
+        return ~(self.input_variances(control)[..., 1] > math.pi ** 2)
+
     def input_variances(self, control: Tensor) -> Tensor:
         r"""The variances :math:`(*, 2)` of the inputs' noise,
         :math:`\operatorname{diag} \mathbf{M}(\mathbf{u})`."""
@@ -285,13 +303,23 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
         3)`, with :math:`\mathbf{G}` by automatic differentiation of
         :meth:`propagate` in the inputs; the random walk's diagonal where
         there is no input."""
+        return self.linearize(states, control)[2]
+
+    def linearize(self, states: Tensor, control: Optional[Tensor] = None
+                  ) -> Tuple[Tensor, Tensor, Tensor]:
+        r""":meth:`mean`, :meth:`jacobian` and :meth:`noise_covariance`
+        from one pass of :meth:`propagate` (its Jacobians in the state and
+        in the inputs by one backward pass): the identity Jacobian and the
+        random walk where there is no input."""
         control, missing = self._inputs(states, control)
-        gain = row_jacobian(lambda given: self.propagate(states, given),
-                            control, states.requires_grad or
-                            control.requires_grad)  # G, (*, 3, 2)
+        moved, (jacobian, gain) = row_linearization(
+            self.propagate, (states, control))  # F (*, 3, 3), G (*, 3, 2)
         cov = (gain * self.input_variances(control).unsqueeze(-2)) @ \
             gain.transpose(-1, -2)
         idle = torch.diag_embed(self._idle_variances(states).expand(
             states.shape))
-        return torch.where(missing.view(missing.shape + (1, 1)), idle,
-                           symmetrize(cov))
+        eye = torch.eye(3, dtype=jacobian.dtype, device=jacobian.device)
+        square = missing.view(missing.shape + (1, 1))
+        return (torch.where(missing.unsqueeze(-1), states, moved),
+                torch.where(square, eye, jacobian),
+                torch.where(square, idle, symmetrize(cov)))
