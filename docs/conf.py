@@ -116,7 +116,8 @@ def public(module: str):
 # the packages and modules that have a page in docs/api
 API_PAGES = ['tg_nebp.nn.conv', 'tg_nebp.filters', 'tg_nebp.models',
              'tg_nebp.bounds', 'tg_nebp.gaussian',
-             'tg_nebp.experiments.evaluate', 'tg_nebp.experiments.train',
+             'tg_nebp.experiments.evaluate', 'tg_nebp.experiments.options',
+             'tg_nebp.experiments.train',
              'tg_nebp.experiments.compare', 'tg_nebp.experiments.frontier',
              'tg_nebp.experiments.reproduce',
              'tg_nebp.experiments.equivariant_nebp',

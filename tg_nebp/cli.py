@@ -16,10 +16,10 @@ from tg_nebp.datasets.mrclam import FIT_HORIZON
 from tg_nebp.datasets.mrclam_dataset import sequence_source
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.compare import compare
-from tg_nebp.experiments.evaluate import (METHOD_OPTIONS, METHODS,
-                                          WHOLE_SEQUENCE,
-                                          evaluate_scenario)
+from tg_nebp.experiments.evaluate import evaluate_scenario
 from tg_nebp.experiments.frontier import frontier
+from tg_nebp.experiments.options import (METHODS, WHOLE_SEQUENCE,
+                                         MethodOptions)
 from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
 from tg_nebp.experiments.track import (LIVE_METHODS, record_realization,
                                        score_files, track_stream)
@@ -237,13 +237,13 @@ def _bars(args) -> Callable:
 
 
 def _evaluate(args) -> int:
-    # method_tracker refuses an option that the method does not take
-    options = {name: getattr(args, name) for name in METHOD_OPTIONS}
+    # one record of the method's options, checked by method_tracker
+    options = MethodOptions.of(args)
     with joined_process_group(args.device) as device:
         result = evaluate_scenario(
             args.method, args.scenario, args.realizations, args.seed,
             args.root, args.out, args.batch_size, device, _bars(args),
-            **options)
+            options)
         if process_group()[1] > 0:
             return 0
     for key, entry in result['entries']:
@@ -290,11 +290,11 @@ def _train(args) -> int:
 
 
 def _track(args) -> int:
-    # method_tracker refuses an option that the method does not take
-    options = {name: getattr(args, name) for name in METHOD_OPTIONS}
+    # one record of the method's options, checked by method_tracker
     counts = track_stream(args.method, args.input, args.output,
                           args.scenario, args.on_error, args.save_state,
-                          args.resume, args.seed, args.device, **options)
+                          args.resume, args.seed, args.device,
+                          options=MethodOptions.of(args))
     if counts['skipped']:
         sys.stderr.write(f"{counts['skipped']} bad line(s) skipped\n")
     return 0
@@ -370,7 +370,7 @@ def _reproduce(args) -> int:
 
 
 def _add_method_options(parser: argparse.ArgumentParser):
-    # the options of method_tracker (METHOD_OPTIONS), for evaluate and track
+    # the options of method_tracker (MethodOptions), for evaluate and track
     add = parser.add_argument
     add('--no-control', action='store_true',
         help='ignore the known inputs (odometry) of the data: every step '

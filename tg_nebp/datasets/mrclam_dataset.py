@@ -505,9 +505,8 @@ class MRCLAM(InMemoryDataset):
             (:obj:`"unknown_barcodes"`, :obj:`"repeated"`,
             :obj:`"outside"`).
         report (str): The links kept and the counts summed, one line
-            (:func:`~tg_nebp.datasets.mrclam_dataset.reading_report`; logged
-            to :obj:`tg_nebp.datasets` at level INFO, which the command
-            line prints). A sequence that gives no window a link is
+            (logged to :obj:`tg_nebp.datasets` at level INFO, which the
+            command line prints). A sequence that gives no window a link is
             refused.
 
     **STATS** (sequence 6, the test protocol):

@@ -21,9 +21,10 @@ from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
-from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, WHOLE_SEQUENCE,
-                                          check_run, lag_key,
-                                          realizations_of, scenario_of)
+from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, check_run,
+                                          lag_key, realizations_of,
+                                          scenario_of)
+from tg_nebp.experiments.options import WHOLE_SEQUENCE
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              GaussianBP, HybridBP, IncrementalSmoother,

@@ -4,6 +4,7 @@ bound) of a method from its options, :func:`evaluate_scenario` generates
 or loads the realizations, runs it and merges its entry into
 :obj:`metrics.json`."""
 import contextlib
+import dataclasses
 import os
 import warnings
 from pathlib import Path
@@ -14,6 +15,7 @@ from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
                               load_scenario)
 from tg_nebp.evaluation import evaluate_method
+from tg_nebp.experiments.options import WHOLE_SEQUENCE, MethodOptions
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              GaussianBP, HybridBP, IncrementalSmoother,
@@ -23,43 +25,10 @@ from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
 from tg_nebp.utils import check_device, process_group
 
-__all__ = ['METHODS', 'METHOD_OPTIONS', 'method_tracker',
+__all__ = ['method_tracker',
            'tracker_measurement', 'evaluate_scenario', 'scenario_of',
            'check_run', 'realizations_of', 'checked_models',
            'SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key']
-
-#: The methods of :func:`method_tracker`, by their :obj:`metrics.json` key
-#: stem: particle BP, NEBP from a checkpoint, Gaussian BP, Gaussian NEBP
-#: from a checkpoint, hybrid BP (over Gaussian BP, a window of it or a
-#: Gaussian NEBP checkpoint), the centralized IEKF and the posterior CRB.
-METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'hybrid', 'iekf', 'pcrb')
-
-#: Every option of :func:`method_tracker` (the flag of
-#: :obj:`tg-nebp evaluate` is :obj:`--` and the name with hyphens) and the
-#: methods that take it: another method refuses it rather than ignore it.
-METHOD_OPTIONS = {
-    'checkpoint': ('nebp', 'gnebp', 'hybrid'),
-    'particles': ('bp', 'nebp', 'hybrid'),
-    'samples': ('bp', 'nebp'),
-    'compile': ('bp', 'nebp', 'gbp'),
-    'resampler': ('bp', ),
-    'regularize': ('bp', ),
-    'ess_threshold': ('bp', ),
-    'measurement': ('bp', 'iekf', 'gbp', 'hybrid', 'pcrb'),
-    'iterations': ('bp', 'iekf', 'gbp', 'gnebp', 'hybrid'),
-    'ends': ('bp', 'gbp'),
-    'marginal': ('iekf', ),
-    'incremental': ('iekf', ),
-    'inflation': ('gbp', 'hybrid'),
-    'tolerance': ('gbp', 'gnebp', 'hybrid'),
-    'lag': ('gbp', 'hybrid', 'iekf', 'pcrb'),
-    'no_control': METHODS,
-}
-
-#: The value of :obj:`lag` (:obj:`--lag`) that smooths over the whole
-#: sequence: the full smoother (:obj:`iekf`) and its bound (:obj:`pcrb`).
-WHOLE_SEQUENCE = 'all'
-
 
 def lag_key(lag) -> str:
     r"""The suffix of a smoother's :obj:`metrics.json` key:
@@ -162,23 +131,14 @@ def _given(**options) -> dict:
 
 
 def method_tracker(method: str, scenario: Scenario,
-                   measurement: Optional[str] = None,
-                   particles: Optional[int] = None,
-                   iterations: Optional[int] = None,
-                   samples: Union[int, str, None] = None,
-                   resampler: Optional[str] = None,
-                   regularize: Union[float, str, None] = None,
-                   ess_threshold: Optional[float] = None,
-                   ends: Optional[str] = None, marginal: bool = False,
-                   inflation: Optional[float] = None,
-                   tolerance: Optional[float] = None,
-                   checkpoint: Optional[str] = None,
-                   compile: bool = False, no_control: bool = False,
-                   lag: Union[int, str, None] = None,
-                   incremental: bool = False
+                   options: Optional[MethodOptions] = None, **given
                    ) -> Tuple[Union[Tracker, PosteriorCRB], str]:
-    r"""The tracker of :obj:`method` (one of :data:`METHODS`) for the data
-    of :obj:`scenario`, and its :obj:`metrics.json` key. The options left
+    r"""The tracker of :obj:`method` (one of :data:`~tg_nebp.experiments.options.METHODS`) for the data
+    of :obj:`scenario`, and its :obj:`metrics.json` key, with the
+    :obj:`options` (a :class:`~tg_nebp.experiments.options.MethodOptions`,
+    or its fields as keywords :obj:`given`; both: the keywords replace the
+    record's), checked once (:meth:`MethodOptions.check
+    <tg_nebp.experiments.options.MethodOptions.check>`). The options left
     at :obj:`None` take each method's default: particle BP with 1,000
     particles, one iteration, receiver-only messages and the multinomial
     resampler; NEBP and Gaussian NEBP as their checkpoints say (for
@@ -189,7 +149,7 @@ def method_tracker(method: str, scenario: Scenario,
     (a :obj:`tolerance` of 0 runs every iteration); the IEKF with 5
     Gauss-Newton iterations. A given value is used or refused, never
     replaced: an option that :obj:`method` does not take
-    (:data:`METHOD_OPTIONS`) is a :class:`ValueError`, and so is a count
+    (:data:`~tg_nebp.experiments.options.METHOD_OPTIONS`) is a :class:`ValueError`, and so is a count
     below one. Particle BP with more than one iteration and receiver-only
     messages is refused: the senders' beliefs already hold the receivers'
     information, and each iteration would count it again. With
@@ -206,7 +166,7 @@ def method_tracker(method: str, scenario: Scenario,
     :obj:`iekf` the :class:`~tg_nebp.filters.CentralizedSmoother` and
     :obj:`pcrb` the smoothing bound at that lag (keys
     :obj:`"gbp-lagL"`, :obj:`"iekf-lagL"`, :obj:`"pcrb-lagL"`);
-    :obj:`lag="all"` (:data:`WHOLE_SEQUENCE`) is the full smoother and its
+    :obj:`lag="all"` (:data:`~tg_nebp.experiments.options.WHOLE_SEQUENCE`) is the full smoother and its
     bound (:obj:`"iekf-smoother"`, :obj:`"pcrb-smoother"`).
 
     :obj:`hybrid` is :class:`~tg_nebp.filters.HybridBP`
@@ -216,64 +176,30 @@ def method_tracker(method: str, scenario: Scenario,
     more than one step (its filtered estimates; key
     :obj:`"hybrid-lagL"`), or over the Gaussian NEBP of a
     :obj:`checkpoint` (key :obj:`"hybrid-gnebp"`)."""
-    method, key = _method_tracker(method, scenario, measurement, particles,
-                                  iterations, samples, resampler,
-                                  regularize, ess_threshold, ends, marginal,
-                                  inflation, tolerance, checkpoint, compile,
-                                  no_control, lag, incremental)
-    method.use_control = not no_control
+    options = (MethodOptions.of(given) if options is None else
+               dataclasses.replace(options, **given)).check(method)
+    tracker, key = _method_tracker(method, scenario, options)
+    tracker.use_control = not options.no_control
     # its own metrics.json entry: the run with the inputs stays
-    return method, key + ('-no-control' if no_control else '')
+    return tracker, key + ('-no-control' if options.no_control else '')
 
 
-def _method_tracker(method, scenario, measurement, particles, iterations,
-                    samples, resampler, regularize, ess_threshold, ends,
-                    marginal, inflation, tolerance, checkpoint, compile,
-                    no_control, lag, incremental):
-    # every option by name (all the arguments but the first two), before
-    # any other local exists
-    options = {name: value for name, value in locals().items()
-               if name in METHOD_OPTIONS}
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got "
-                         f"{method!r}")
+def _method_tracker(method: str, scenario, options: MethodOptions):
+    # the tracker of a method and its checked options, and its key
     if not isinstance(scenario, SCENARIO_TYPES):
         raise TypeError(f"'scenario' must be a Scenario or an "
                         f"MRCLAMScenario, got {scenario!r}")
-    for name, value in options.items():
-        takers = METHOD_OPTIONS[name]
-        # None, and False for a switch, is an option left out
-        if value is not None and value is not False and method not in takers:
-            raise ValueError(f"'{name}' (--{name.replace('_', '-')}) is for "
-                             f"method {' or '.join(takers)}, not {method}")
-    # here, not in the trackers: NEBP's checkpoint loader reports a
-    # constructor's TypeError as a checkpoint that does not match
-    for name in ('particles', 'iterations'):
-        if options[name] is not None:
-            check_positive_int(options[name], name)
-    if samples is not None and samples != 'all':
-        check_positive_int(samples, 'samples')
-    if lag == WHOLE_SEQUENCE and method in ('gbp', 'hybrid'):
-        raise ValueError(f"'lag' {WHOLE_SEQUENCE!r} (the whole sequence) is "
-                         f"for method iekf or pcrb; {method} takes a window "
-                         f"of L steps")
-    if lag is not None and lag != WHOLE_SEQUENCE:
-        check_positive_int(lag, 'lag')
-    if incremental and lag != WHOLE_SEQUENCE:
-        raise ValueError(f"'incremental' is the smoother of the whole "
-                         f"sequence: give 'lag' {WHOLE_SEQUENCE!r}")
-    if lag is not None and marginal:
-        raise ValueError("'lag' and 'marginal': the smoother keeps the "
-                         "joint of its window")
+    lag, iterations = options.lag, options.iterations
     window = None if lag == WHOLE_SEQUENCE else lag
     models = dict(motion=scenario.motion_model,
-                  measurement=tracker_measurement(scenario, measurement))
+                  measurement=tracker_measurement(scenario,
+                                                  options.measurement))
     if method == 'pcrb':
         if lag is None:
             return PosteriorCRB(**models), 'pcrb'
         return PosteriorCRB(**models, lag=window), 'pcrb' + lag_key(lag)
     if method == 'iekf':
-        if incremental:
+        if options.incremental:
             return IncrementalSmoother(
                 **_given(num_iterations=iterations),
                 **models), 'iekf-incremental'
@@ -282,53 +208,59 @@ def _method_tracker(method, scenario, measurement, particles, iterations,
                 window, **_given(num_iterations=iterations),
                 **models), 'iekf' + lag_key(lag)
         tracker = CentralizedIEKF(**_given(num_iterations=iterations),
-                                  marginal=marginal, **models)
-        return tracker, 'iekf-marginal' if marginal else 'iekf'
+                                  marginal=options.marginal, **models)
+        return tracker, 'iekf-marginal' if options.marginal else 'iekf'
     if method == 'gbp':
-        given = _given(num_iterations=iterations, inflation=inflation,
-                       ends=ends, tolerance=tolerance)
+        given = _given(num_iterations=iterations,
+                       inflation=options.inflation, ends=options.ends,
+                       tolerance=options.tolerance)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
         if lag is not None:
             return FixedLagGaussianBP.recommended(
-                lag=lag, **given, compile=compile,
+                lag=lag, **given, compile=options.compile,
                 **models), 'gbp' + lag_key(lag)
-        return GaussianBP.recommended(**given, compile=compile,
+        return GaussianBP.recommended(**given, compile=options.compile,
                                       **models), 'gbp'
+    checkpoint = options.checkpoint
     if method == 'gnebp':
         if checkpoint is None:
             raise ValueError(f"method 'gnebp' needs a checkpoint "
                              f"(--checkpoint PATH, or one shipped: "
                              f"{', '.join(PRETRAINED)})")
-        given = _given(num_iterations=iterations, tolerance=tolerance)
+        given = _given(num_iterations=iterations,
+                       tolerance=options.tolerance)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
         return checked_models(gaussian_nebp_from_checkpoint(
             checkpoint, **given), scenario, checkpoint), 'gnebp'
     if method == 'hybrid':
-        return _hybrid(scenario, models, checkpoint, particles, lag,
-                       _given(num_iterations=iterations, inflation=inflation,
-                              tolerance=tolerance), measurement)
+        return _hybrid(scenario, models, checkpoint, options.particles, lag,
+                       _given(num_iterations=iterations,
+                              inflation=options.inflation,
+                              tolerance=options.tolerance),
+                       options.measurement)
     if method == 'nebp':
         if checkpoint is None:
             raise ValueError("method 'nebp' needs a checkpoint (--checkpoint "
                              "PATH)")
         return checked_models(nebp_from_checkpoint(
-            checkpoint, particles, compile=compile, num_samples=samples),
-            scenario, checkpoint), 'nebp'
+            checkpoint, options.particles, compile=options.compile,
+            num_samples=options.samples), scenario, checkpoint), 'nebp'
     # receiver-only messages are particle BP's default
-    if iterations is not None and iterations > 1 and ends in (None,
-                                                              'receiver'):
+    if iterations is not None and iterations > 1 and options.ends in (
+            None, 'receiver'):
         raise ValueError(
             f"--iterations {iterations} with --ends receiver counts the "
             f"receivers' own information again at every iteration (the "
             f"senders' beliefs already hold it); use --ends both, whose "
             f"iterations send extrinsic messages")
-    given = _given(num_particles=particles, num_iterations=iterations,
-                   resampler=resampler, num_samples=samples,
-                   regularize=regularize, ess_threshold=ess_threshold,
-                   ends=ends)
-    return ParticleBP(**given, compile=compile, **models), 'bp'
+    given = _given(num_particles=options.particles,
+                   num_iterations=iterations, resampler=options.resampler,
+                   num_samples=options.samples,
+                   regularize=options.regularize,
+                   ess_threshold=options.ess_threshold, ends=options.ends)
+    return ParticleBP(**given, compile=options.compile, **models), 'bp'
 
 
 def _hybrid(scenario, models: dict, checkpoint: Optional[str],
@@ -369,12 +301,13 @@ def evaluate_scenario(method: str,
                       root: str = 'datasets', out: str = 'results',
                       batch_size: int = 1, device: str = 'cpu',
                       progress_factory: Optional[Callable] = None,
-                      **options) -> dict:
+                      options: Optional[MethodOptions] = None,
+                      **given) -> dict:
     r"""Generates (or loads) :obj:`realizations` test realizations of
     :obj:`scenario` from :obj:`seed` under :obj:`root` (10 by default; a
     real sequence's windows read from :obj:`root`, every one by default),
     runs
-    :func:`method_tracker(method, ..., **options) <method_tracker>` on
+    :func:`method_tracker(method, ..., options, **given) <method_tracker>` on
     them and merges its entry into :obj:`out/metrics.json`
     (:func:`~tg_nebp.evaluation.evaluate_method`). Under :obj:`torchrun`
     the realizations are sharded over the processes and rank 0 writes.
@@ -405,7 +338,7 @@ def evaluate_scenario(method: str,
     check_run(realizations, batch_size, device)
     scenario = scenario_of(scenario)
     realizations = realizations_of(scenario, realizations, 10)
-    tracker, key = method_tracker(method, scenario, **options)
+    tracker, key = method_tracker(method, scenario, options, **given)
     world_size, rank = process_group()
     dataset, = load_datasets(root, (scenario, realizations, seed))
     share = len(range(rank, len(dataset), world_size))

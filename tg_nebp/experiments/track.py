@@ -4,6 +4,7 @@ estimates per step out), :obj:`tg-nebp record` (:func:`record_realization`:
 a scenario's realization as such a stream, its truth apart) and
 :obj:`tg-nebp score` (:func:`score_files`)."""
 import contextlib
+import dataclasses
 import gc
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ import torch
 
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.experiments.evaluate import method_tracker, scenario_of
+from tg_nebp.experiments.options import MethodOptions
 from tg_nebp.filters.session import TrackingSession
 from tg_nebp.io import write_text
 from tg_nebp.live import (read_lines, realization_lines, score, track_lines,
@@ -21,7 +23,7 @@ from tg_nebp.live import (read_lines, realization_lines, score, track_lines,
 __all__ = ['LIVE_METHODS', 'track_stream', 'record_realization',
            'score_files']
 
-#: Every tracker of :data:`~tg_nebp.experiments.evaluate.METHODS` runs
+#: Every tracker of :data:`~tg_nebp.experiments.options.METHODS` runs
 #: live (the bound, which is not a tracker, does not).
 LIVE_METHODS = ('bp', 'nebp', 'gbp', 'gnebp', 'hybrid', 'iekf')
 
@@ -52,12 +54,14 @@ def track_stream(method: str, input: str = '-', output: str = '-',
                  resume: Optional[str] = None, seed: int = 0,
                  device: str = 'cpu',
                  report: Optional[Callable[[str], None]] = None,
-                 **options) -> dict:
+                 options: Optional[MethodOptions] = None,
+                 **given) -> dict:
     r"""Tracks a stream of measurement lines (:mod:`tg_nebp.live`) from
     :obj:`input` (a path, or :obj:`"-"`: standard input, read line by
     line as it arrives) with :obj:`method`'s tracker
     (:func:`~tg_nebp.experiments.evaluate.method_tracker` with the models
-    of :obj:`scenario` and :obj:`options`), writing every step's estimate
+    of :obj:`scenario` and the :obj:`options`, a record or keywords
+    :obj:`given`), writing every step's estimate
     line to :obj:`output` (:obj:`"-"`: standard output) at once, flushed.
 
     :obj:`save_state` saves the session after every line (atomically);
@@ -72,14 +76,16 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     if method not in LIVE_METHODS:
         raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
                          f"(the bound does not track), got {method!r}")
-    if options.get('lag') is not None and method not in ('gbp', 'hybrid') \
-            and not options.get('incremental'):
+    options = (MethodOptions.of(given) if options is None else
+               dataclasses.replace(options, **given))
+    if options.lag is not None and method not in ('gbp', 'hybrid') \
+            and not options.incremental:
         raise ValueError(f"'lag' (--lag) tracks live with method gbp "
                          f"(fixed-lag Gaussian BP), hybrid (over it) or iekf "
                          f"--lag all --incremental (the incremental "
                          f"smoother); the batch {method} smoother is an "
                          f"offline reference")
-    tracker, _ = method_tracker(method, scenario_of(scenario), **options)
+    tracker, _ = method_tracker(method, scenario_of(scenario), options)
     tracker = tracker.to(device).eval()
     done = written = 0
     digests = None

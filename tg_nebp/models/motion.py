@@ -307,8 +307,8 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
 
     def linearize(self, states: Tensor, control: Optional[Tensor] = None
                   ) -> Tuple[Tensor, Tensor, Tensor]:
-        r""":meth:`mean`, :meth:`jacobian` and :meth:`noise_covariance`
-        from one pass of :meth:`propagate` (its Jacobians in the state and
+        r""":meth:`mean`, :meth:`~tg_nebp.models.MotionModel.jacobian` and
+        :meth:`noise_covariance` from one pass of :meth:`propagate` (its Jacobians in the state and
         in the inputs by one backward pass): the identity Jacobian and the
         random walk where there is no input."""
         control, missing = self._inputs(states, control)
