@@ -1,6 +1,8 @@
 r"""The :obj:`tg-nebp` command line: :obj:`evaluate`, :obj:`train`,
 :obj:`reproduce`, :obj:`frontier`, :obj:`compare`, :obj:`bench`, and the
-live path: :obj:`track`, :obj:`record` and :obj:`score`."""
+live path: :obj:`track`, :obj:`record` and :obj:`score`. Here the parser
+and the handling of errors; what each command runs and prints is in
+:mod:`tg_nebp.cli_commands`."""
 import argparse
 import contextlib
 import logging
@@ -9,21 +11,14 @@ import sys
 from pathlib import Path
 from typing import Callable, List, NoReturn, Optional
 
-from tqdm import tqdm
-
-from tg_nebp.datasets import fitted_scenario
+from tg_nebp.cli_commands import (run_compare, run_evaluate, run_fit,
+                                  run_frontier, run_record, run_reproduce,
+                                  run_score, run_track, run_train)
 from tg_nebp.datasets.mrclam import FIT_HORIZON
-from tg_nebp.datasets.mrclam_dataset import sequence_source
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
-from tg_nebp.experiments.compare import compare
-from tg_nebp.experiments.evaluate import evaluate_scenario
-from tg_nebp.experiments.frontier import frontier
-from tg_nebp.experiments.options import (METHODS, WHOLE_SEQUENCE,
-                                         MethodOptions)
-from tg_nebp.experiments.reproduce import PRESET_NAMES, reproduce
-from tg_nebp.experiments.track import (LIVE_METHODS, record_realization,
-                                       score_files, track_stream)
-from tg_nebp.experiments.train import train_scenario
+from tg_nebp.experiments.options import METHODS, WHOLE_SEQUENCE
+from tg_nebp.experiments.reproduce import PRESET_NAMES
+from tg_nebp.experiments.track import LIVE_METHODS
 from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.particle_bp import MAX_BANDWIDTH
 from tg_nebp.filters.resampling import RESAMPLERS
@@ -32,7 +27,7 @@ from tg_nebp.live import ON_ERROR
 from tg_nebp.models import MODELS
 from tg_nebp.threads import threads_in_force
 from tg_nebp.training import MAX_LR, PRETRAINED
-from tg_nebp.utils import check_device, joined_process_group, process_group
+from tg_nebp.utils import check_device
 
 __all__ = ['main']
 
@@ -211,164 +206,6 @@ def _add_measurement(parser, who: str):
         "data shows the cost of mismatch")
 
 
-class _Bar(tqdm):
-    r"""The progress bar of a command; its :obj:`update` after every time
-    step also lets the thread governor take its reading."""
-    governor = None
-
-    def update(self, n=1):
-        super().update(n)
-        if self.governor is not None:
-            self.governor.update()
-
-
-def _bars(args) -> Callable:
-    # the progress_factory of the library's commands: rank 0's bar, unless
-    # --quiet
-    def bar(total, desc):
-        # shown after a second: a run refused at its start (a checked
-        # argument) prints its one error line and no empty bar
-        made = _Bar(total=total, desc=desc, unit='step', delay=1.0,
-                    disable=args.quiet or process_group()[1] > 0)
-        made.governor = args.governor
-        return made
-
-    return bar
-
-
-def _evaluate(args) -> int:
-    # one record of the method's options, checked by method_tracker
-    options = MethodOptions.of(args)
-    with joined_process_group(args.device) as device:
-        result = evaluate_scenario(
-            args.method, args.scenario, args.realizations, args.seed,
-            args.root, args.out, args.batch_size, device, _bars(args),
-            options)
-        if process_group()[1] > 0:
-            return 0
-    for key, entry in result['entries']:
-        what = 'RMSE floor' if key.startswith('pcrb') else 'RMSE'
-        heading = (f", heading {entry['heading_rmse']:.4f} rad"
-                   if 'heading_rmse' in entry else '')
-        largest = (f", median {entry['median_error']:.3f} m, max "
-                   f"{entry['max_error']:.2f} m" if 'max_error' in entry
-                   else '')
-        print(f"{key}: {what} {entry['rmse']:.3f} m{largest}{heading}, "
-              f"outage {entry['outage']}, P(accept) {entry['accept']}, "
-              f"{entry['seconds']:.1f} s -> "
-              f"{Path(args.out) / 'metrics.json'}")
-    if 'tracks' in result:
-        print(f"tracks, filtered and smoothed -> {result['tracks']}")
-    return 0
-
-
-def _train(args) -> int:
-    with joined_process_group(args.device) as device:
-        scenario = (args.scenario[0] if len(args.scenario) == 1 else
-                    args.scenario)
-        trained = train_scenario(
-            scenario, args.out, args.variant, args.particles,
-            args.iterations, args.realizations, args.val_realizations,
-            args.epochs, args.batch_size, args.lr, args.seed,
-            args.measurement, args.samples, args.regularize,
-            args.ess_threshold, args.resume, args.log_dir, args.root,
-            device, args.compile, _bars(args), base=args.base,
-            hidden_dim=args.hidden_dim, val_scenario=args.val_scenario)
-        if process_group()[1] > 0:
-            return 0
-    for h in trained.history:
-        unit = ('m^2 per agent-step' if args.base == 'particle' else
-                'negative log-likelihood plus m^2, per agent-step')
-        print(f"epoch {h['epoch']}: train loss {h['train_loss']:.4f}, "
-              f"validation loss {h['val_loss']:.4f} ({unit})")
-    print(f'checkpoint -> {trained.checkpoint}')
-    if trained.log is not None:
-        events = ', TensorBoard events' if trained.log.tensorboard else ''
-        print(f'log -> {trained.log.log_dir} (steps.csv, epochs.csv, '
-              f'history.png{events})')
-    return 0
-
-
-def _track(args) -> int:
-    # one record of the method's options, checked by method_tracker
-    counts = track_stream(args.method, args.input, args.output,
-                          args.scenario, args.on_error, args.save_state,
-                          args.resume, args.seed, args.device,
-                          options=MethodOptions.of(args))
-    if counts['skipped']:
-        sys.stderr.write(f"{counts['skipped']} bad line(s) skipped\n")
-    return 0
-
-
-def _record(args) -> int:
-    record_realization(args.measurements, args.truth, args.scenario,
-                       args.realization, args.seed, args.root)
-    print(f"realization {args.realization} -> {args.measurements} "
-          f"(measurements), {args.truth} (truth)")
-    return 0
-
-
-def _fit(args) -> int:
-    # the output checked before the fit's work (and its own refusals)
-    if Path(args.output).is_dir():
-        raise ValueError(f"--output '{args.output}' is a folder, not a file")
-    source = sequence_source(args.root, args.sequence)
-    scenario, report = fitted_scenario(source, args.sequence,
-                                       horizon=args.horizon)
-    scenario.save(args.output)
-    print(f"motion: {scenario.motion_model}\nmeasurement: "
-          f"{scenario.measurement_model}\nfit: {report}\n-> {args.output} "
-          f"(--scenario {args.output} --root {args.root})")
-    return 0
-
-
-def _score(args) -> int:
-    entry = score_files(args.estimates, args.truth)
-    print(f"RMSE {entry['rmse']:.3f} m, outage {entry['outage']}, "
-          f"P(accept) {entry['accept']}, {entry['steps']} steps, "
-          f"{entry['estimates']} estimates; not estimated: "
-          f"{entry['unscored_steps']} truth steps, "
-          f"{entry['unscored_states']} true states")
-    return 0
-
-
-def _frontier(args) -> int:
-    out = Path(args.out)
-    result = frontier(args.particles, args.samples, args.resampler,
-                      args.regularize, args.ess_threshold, args.scenario,
-                      args.realizations, args.seed, out, args.root,
-                      args.device, args.batch_size, args.compile,
-                      _bars(args))
-    print(f"{len(result['points'])} points -> {out / 'frontier.json'}, "
-          f"{out / 'frontier.md'}, {out / 'frontier.png'}")
-    return 0
-
-
-def _compare(args) -> int:
-    out = Path(args.out)
-    result = compare(out, _bars(args), root=args.root,
-                     scenarios=args.scenario,
-                     realizations=args.realizations, seed=args.seed,
-                     checkpoints=args.checkpoint, device=args.device,
-                     batch_size=args.batch_size, methods=args.methods,
-                     lag=args.lag)
-    print(f"{sum(map(len, result['results'].values()))} rows -> "
-          f"{out / 'compare.json'}, {out / 'compare.md'}, "
-          f"{out / 'compare.png'}")
-    return 0
-
-
-def _reproduce(args) -> int:
-    metrics = reproduce(args.preset, args.device, args.out, args.root,
-                        progress_factory=_bars(args), compile=args.compile,
-                        num_samples=args.samples)
-    print(f"report -> {Path(args.out) / 'report.md'}")
-    for method, entry in metrics.items():
-        print(f"{method}: outage {entry['outage']}, P(accept) "
-              f"{entry['accept']}")
-    return 0
-
-
 def _add_method_options(parser: argparse.ArgumentParser):
     # the options of method_tracker (MethodOptions), for evaluate and track
     add = parser.add_argument
@@ -450,7 +287,7 @@ def _evaluate_command(sub) -> None:
     ev.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(ev)
     _add_method_options(ev)
-    ev.set_defaults(run=_evaluate)
+    ev.set_defaults(run=run_evaluate)
 
 
 def _train_command(sub) -> None:
@@ -522,7 +359,7 @@ def _train_command(sub) -> None:
     _add_compile(tr)
     _add_samples(tr, 1)
     _add_resampling(tr)
-    tr.set_defaults(run=_train)
+    tr.set_defaults(run=run_train)
 
 
 def _reproduce_command(sub) -> None:
@@ -537,7 +374,7 @@ def _reproduce_command(sub) -> None:
     _add_common(rp)
     _add_compile(rp)
     _add_samples(rp, 1)
-    rp.set_defaults(run=_reproduce)
+    rp.set_defaults(run=run_reproduce)
 
 
 def _frontier_command(sub) -> None:
@@ -576,7 +413,7 @@ def _frontier_command(sub) -> None:
     fr.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(fr)
     _add_compile(fr)
-    fr.set_defaults(run=_frontier)
+    fr.set_defaults(run=run_frontier)
 
 
 def _compare_command(sub) -> None:
@@ -627,7 +464,7 @@ def _compare_command(sub) -> None:
                     help='output folder (default: results/compare)')
     cp.add_argument('--quiet', action='store_true', help='no progress bar')
     _add_common(cp)
-    cp.set_defaults(run=_compare)
+    cp.set_defaults(run=run_compare)
 
 
 def _track_command(sub) -> None:
@@ -669,7 +506,7 @@ def _track_command(sub) -> None:
                     help='seed of the session\'s draws (default: 0)')
     _add_method_options(tk)
     _add_common(tk, root=False)
-    tk.set_defaults(run=_track)
+    tk.set_defaults(run=run_track)
 
 
 def _record_command(sub) -> None:
@@ -694,7 +531,7 @@ def _record_command(sub) -> None:
                     help='where the true states go')
     rc.add_argument('--root', default='datasets',
                     help='dataset root (default: datasets)')
-    rc.set_defaults(run=_record, threads=None, device='cpu')
+    rc.set_defaults(run=run_record, threads=None, device='cpu')
 
 
 def _fit_command(sub) -> None:
@@ -721,7 +558,7 @@ def _fit_command(sub) -> None:
                     f'default: {FIT_HORIZON}, 20 s)')
     ft.add_argument('--output', required=True, metavar='FILE.json',
                     help='the scenario file written')
-    ft.set_defaults(run=_fit, threads=None, device='cpu')
+    ft.set_defaults(run=run_fit, threads=None, device='cpu')
 
 
 def _score_command(sub) -> None:
@@ -733,7 +570,7 @@ def _score_command(sub) -> None:
         'them.')
     sc.add_argument('--estimates', required=True, metavar='FILE')
     sc.add_argument('--truth', required=True, metavar='FILE')
-    sc.set_defaults(run=_score, threads=None, device='cpu')
+    sc.set_defaults(run=run_score, threads=None, device='cpu')
 
 
 def _bench_command(sub) -> None:
@@ -807,7 +644,7 @@ def _thread_invariant(args) -> bool:
 @contextlib.contextmanager
 def _threads_in_force(args):
     r"""--threads for the run: a count, or (:obj:`auto`, the default of BP
-    runs) a governor that the progress bars of :func:`_bars` update."""
+    runs) a governor that the progress bars of :func:`progress_bars` update."""
     threads = args.threads
     if threads is None:
         threads = 'auto' if _thread_invariant(args) else None

@@ -17,7 +17,7 @@ import torch
 from scipy.stats import chi2
 from torch import Tensor
 
-from tg_nebp.models.base import wrap_angle
+from tg_nebp.models.layout import wrap_angle
 from tg_nebp.utils import (rounding_tolerance, symmetric_psd_defects,
                            symmetrize)
 

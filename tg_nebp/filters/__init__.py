@@ -16,7 +16,8 @@ from .fixed_lag_gbp import (FIXED_LAG_RECOMMENDED, FixedLagGaussianBP,
                             WindowState)
 from .relocation import LinkSearch, SearchResult
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
-from .session import AgentPrior, AnchorAt, TrackingSession
+from .session import TrackingSession
+from .session_inputs import AgentPrior, AnchorAt
 from .partitioned_gbp import (Partition, PartitionedFixedLagGaussianBP,
                               PartitionedGaussianBP, PartitionedTracker,
                               partition, strips)

@@ -13,8 +13,8 @@ import math
 import numbers
 import re
 from pathlib import Path
-from typing import (Any, Dict, Hashable, List, Mapping, NamedTuple,
-                    Optional, Sequence, Tuple, Union)
+from typing import (Any, Dict, Hashable, List, Mapping, Optional, Sequence,
+                    Tuple, Union)
 
 import torch
 from torch import Tensor
@@ -22,6 +22,11 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_position_dim, check_prior,
                                      check_state_dim, magnitude_limit)
+from tg_nebp.filters.session_inputs import (LONGEST_SECONDS, AgentPrior,
+                                            AnchorAt, Identifier,
+                                            checked_identifier,
+                                            checked_numbers, identified,
+                                            seconds_or_none)
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.io import atomic_write, first_line, read_tensors
 
@@ -37,96 +42,10 @@ SESSION_VERSION = 1
 #: checks: refuse the step (:obj:`"raise"`) or leave the link out
 #: (:obj:`"drop"`).
 BAD_LINKS = ('raise', 'drop')
-# the longest time step or time accepted, in seconds (a thousand years):
-# beyond it the motion model's noise overflows
-_LONGEST = 3e10
-
-Identifier = Union[str, int]
 #: The types a session hands its tracker, by the name a saved one stores.
 _DTYPES = {str(t).replace('torch.', ''): t
            for t in (torch.float16, torch.bfloat16, torch.float32,
                      torch.float64)}
-
-
-class AgentPrior(NamedTuple):
-    r"""A joining agent: the prior :obj:`mean` :math:`(S)` and :obj:`cov`
-    :math:`(S, S)` of its state :math:`[\mathbf{p}, \mathbf{v}]` (a state
-    before the step it joins at, predicted like the prior of a
-    realization's first step)."""
-    mean: Sequence[float]
-    cov: Sequence[Sequence[float]]
-
-
-class AnchorAt(NamedTuple):
-    r"""A joining anchor at the known :obj:`position` :math:`(D)`."""
-    position: Sequence[float]
-
-
-def _identifier(value, where: str) -> Identifier:
-    # a user's identifier: a string or an integer (not a bool, whose JSON
-    # form is not an identifier)
-    if isinstance(value, str) or (isinstance(value, numbers.Integral)
-                                  and not isinstance(value, bool)):
-        return value if isinstance(value, str) else int(value)
-    raise ValueError(f"{where}: an identifier is a string or an integer, "
-                     f"got {value!r}")
-
-
-def _holds_truth_values(value) -> bool:
-    # whether a value (nested lists, an array, a tensor) holds a bool
-    if isinstance(value, bool):
-        return True
-    if isinstance(value, (list, tuple)):
-        return any(_holds_truth_values(item) for item in value)
-    return str(getattr(value, 'dtype', '')) in ('bool', 'torch.bool')
-
-
-def _numbers(value, shape: Tuple[Optional[int], ...],
-             where: str) -> Tensor:
-    # numbers (a list, an array, a tensor) of the given shape (None: any
-    # size), in float64; true and false are not numbers here (as a time
-    # step's are not)
-    if _holds_truth_values(value):
-        raise ValueError(f"{where} must be numbers, not true or false: got "
-                         f"{value!r}"[:200])
-    try:
-        tensor = torch.as_tensor(value, dtype=torch.float64).cpu()
-    except OverflowError:  # an integer beyond any float
-        raise ValueError(f"{where} holds a number too large for a float: "
-                         f"{value!r}"[:200]) from None
-    except (TypeError, ValueError, RuntimeError):
-        raise ValueError(f"{where} must be a list of numbers of shape "
-                         f"{list(shape)}, got {value!r}") from None
-    if tensor.dim() != len(shape) or any(
-            n is not None and n != m for n, m in zip(shape, tensor.shape)):
-        raise ValueError(f"{where} must have shape {list(shape)}, got "
-                         f"{list(tensor.shape)}")
-    return tensor
-
-
-def _seconds(value) -> Optional[float]:
-    # a time or time step as a float: None for anything but a finite real
-    # number within the longest accepted (an integer beyond any float
-    # included)
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        return None
-    try:
-        value = float(value)
-    except OverflowError:
-        return None
-    return value if math.isfinite(value) and abs(value) <= _LONGEST \
-        else None
-
-
-def _identified(message: str, ids: List[Identifier]) -> str:
-    # a tracker's error names nodes by their rows ('node 7'): the
-    # identifiers of those rows added
-    rows = sorted({int(row) for row in re.findall(r'\bnode (\d+)', message)
-                   if int(row) < len(ids)})
-    if not rows:
-        return message
-    return message + ' (' + ', '.join(f'node {row} is {ids[row]!r}'
-                                      for row in rows) + ')'
 
 
 def _fingerprint(tracker: Tracker) -> str:
@@ -208,9 +127,9 @@ class TrackingSession:
         self.dtype = dtype
         self.generator = (torch.Generator(self.device).manual_seed(seed)
                           if generator is None else generator)
-        if _seconds(time) is None:
+        if seconds_or_none(time) is None:
             raise ValueError(f"'time' must be a finite number (at most "
-                             f"{_LONGEST:.0e} s), got {time!r}"[:200])
+                             f"{LONGEST_SECONDS:.0e} s), got {time!r}"[:200])
         self.time = float(time)
         #: The time index of the next step (the steps done).
         self.num_steps = 0
@@ -325,7 +244,7 @@ class TrackingSession:
                 self.generator, motion=motion, control=inputs)
         except ValueError as e:
             self.generator.set_state(random)
-            raise ValueError(_identified(str(e), ids)) from None
+            raise ValueError(identified(str(e), ids)) from None
         except BaseException:
             self.generator.set_state(random)
             raise
@@ -354,10 +273,10 @@ class TrackingSession:
                 return dt, motion
             dt += self.skipped_time
         elif time is not None:
-            given = _seconds(time)
+            given = seconds_or_none(time)
             if given is None:
                 raise ValueError(f"'time' must be a finite number (at most "
-                                 f"{_LONGEST:.0e} s), got {time!r}"[:200])
+                                 f"{LONGEST_SECONDS:.0e} s), got {time!r}"[:200])
             # a given time counts from the last step tracked (what skipped
             # steps passed is in it)
             if not given > self.time:
@@ -365,10 +284,10 @@ class TrackingSession:
                                  f"last step's time {self.time}")
             dt = given - self.time
         else:
-            given = _seconds(dt)
+            given = seconds_or_none(dt)
             if given is None or not given > 0:
                 raise ValueError(f"'dt' must be a finite number above 0 (at "
-                                 f"most {_LONGEST:.0e} s), got {dt!r}"[:200])
+                                 f"most {LONGEST_SECONDS:.0e} s), got {dt!r}"[:200])
             dt = given + self.skipped_time
         return float(dt), motion.with_time_step(float(dt))
 
@@ -408,7 +327,7 @@ class TrackingSession:
             if bool(anchor[row[node]]):
                 raise ValueError(f"{where}: {node!r} is an anchor, which "
                                  f"does not move")
-            value = _numbers(values, (motion.control_dim, ), where)
+            value = checked_numbers(values, (motion.control_dim, ), where)
             if not bool(torch.isfinite(value).all()):
                 raise ValueError(f"{where} must be finite, got "
                                  f"{value.tolist()}")
@@ -519,7 +438,7 @@ class TrackingSession:
                 continue
             try:
                 unknown = [end for end in link
-                           if _identifier(end, where) not in row]
+                           if checked_identifier(end, where) not in row]
             except ValueError as e:
                 problems[k] = str(e)
                 continue
@@ -564,7 +483,7 @@ class TrackingSession:
         ids = list(self._ids)
         leaving = set()
         for k, node in enumerate(leave):
-            node = _identifier(node, f"'leave[{k}]'")
+            node = checked_identifier(node, f"'leave[{k}]'")
             if node in leaving:
                 raise ValueError(f"'leave[{k}]': {node!r} is repeated")
             if node not in self._row:
@@ -602,12 +521,12 @@ class TrackingSession:
         size = size or motion.state_dim
         for k, (node, prior) in enumerate(join.items()):
             where = f"'join[{k}]' ({node!r})"
-            node = _identifier(node, where)
+            node = checked_identifier(node, where)
             if node in present or node in ids:
                 raise ValueError(f"{where}: the identifier is already in "
                                  f"use")
             if isinstance(prior, AnchorAt):
-                position = _numbers(
+                position = checked_numbers(
                     prior.position, (None if size is None else
                                      motion.layout(size).position_dim, ),
                     f"{where} position")
@@ -617,9 +536,9 @@ class TrackingSession:
                 covs.append(position.new_zeros(size, size))
                 anchors.append(True)
             elif isinstance(prior, AgentPrior):
-                mean = _numbers(prior.mean, (size, ), f"{where} mean")
+                mean = checked_numbers(prior.mean, (size, ), f"{where} mean")
                 size = size or mean.numel()
-                cov = _numbers(prior.cov, (size, size), f"{where} cov")
+                cov = checked_numbers(prior.cov, (size, size), f"{where} cov")
                 means.append(mean)
                 covs.append(cov)
                 anchors.append(False)
@@ -748,7 +667,7 @@ class TrackingSession:
                              f"not this tracker's {state_type.__name__}")
         try:
             state = self._saved_state(saved.get('state'), state_type)
-            ids = [_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
+            ids = [checked_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
             anchor = saved['anchor']
             time, steps = saved['time'], saved['num_steps']
             skipped = saved.get('skipped_time', 0.0)
@@ -756,7 +675,7 @@ class TrackingSession:
             dtype = _DTYPES[saved['dtype']]
             self._check_saved(state, ids, anchor, time, steps, size, dtype)
             if not isinstance(skipped, float) or not \
-                    0 <= skipped <= _LONGEST:
+                    0 <= skipped <= LONGEST_SECONDS:
                 raise ValueError(f"'skipped_time' must be a number of "
                                  f"seconds of at least 0, got {skipped!r}")
         except (KeyError, TypeError, ValueError, AttributeError) as e:

@@ -1,7 +1,7 @@
-from .base import (MODELS, LinkPairRange, MeasurementModel, Model,
-                   MotionModel, RangeModel, StateLayout,
-                   links_within_range, model_from_config, model_like,
-                   redraw_negative, wrap_angle)
+from .layout import StateLayout, wrap_angle
+from .registry import MODELS, Model, model_from_config, model_like
+from .base import (LinkPairRange, MeasurementModel, MotionModel, RangeModel,
+                   links_within_range, redraw_negative)
 from .motion import ConstantVelocity, ConstantVelocityDrag, UnicycleOdometry
 from .measurement import GaussianRange, NLOSRange, StudentTRange
 from .range_bearing import (GaussianRangeBearing, RangeBearingModel,

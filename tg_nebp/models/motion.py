@@ -5,7 +5,8 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
-from tg_nebp.models.base import MotionModel, StateLayout
+from tg_nebp.models.base import MotionModel
+from tg_nebp.models.layout import StateLayout
 from tg_nebp.utils import row_linearization, symmetrize
 
 __all__ = ['ConstantVelocityDrag', 'ConstantVelocity', 'UnicycleOdometry']

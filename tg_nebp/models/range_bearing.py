@@ -14,9 +14,9 @@ from scipy.stats import t as student_t
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number
-from tg_nebp.models.base import (LOG_SQRT_2PI, MeasurementModel, StateLayout,
-                                 links_within_range, redraw_negative,
-                                 wrap_angle)
+from tg_nebp.models.base import (LOG_SQRT_2PI, MeasurementModel,
+                                 links_within_range, redraw_negative)
+from tg_nebp.models.layout import StateLayout, wrap_angle
 from tg_nebp.models.measurement import NU_RANGE, SIGMA_RANGE
 from tg_nebp.utils import row_jacobian
 
