@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Callable, List, NoReturn, Optional
@@ -669,7 +670,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     with _library_reports() as reports:
         status = _main(args)
-    if status == 0:  # a failed run prints its one error line alone
+    # a failed run prints its one error line alone; under torchrun rank 0
+    # speaks for all (each rank read the same data)
+    if status == 0 and int(os.environ.get('RANK', '0')) == 0:
         for line in dict.fromkeys(reports):
             sys.stderr.write(line + '\n')
         sys.stderr.flush()

@@ -173,8 +173,8 @@ def run_compare(args) -> int:
 
 def run_reproduce(args) -> int:
     metrics = reproduce(args.preset, args.device, args.out, args.root,
-                        progress_factory=progress_bars(args), compile=args.compile,
-                        num_samples=args.samples)
+                        progress_factory=progress_bars(args),
+                        compile=args.compile, num_samples=args.samples)
     print(f"report -> {Path(args.out) / 'report.md'}")
     for method, entry in metrics.items():
         print(f"{method}: outage {entry['outage']}, P(accept) "

@@ -57,10 +57,10 @@ def test_a_record_and_keywords_build_the_same_tracker():
     # the record travels whole; keywords beside it replace its fields
     scenario = Scenario.load('paper_test')
     record = MethodOptions(lag=4, tolerance=0.0, iterations=3)
-    by_record, key = method_tracker('gbp', scenario, record)
+    by_record, key = method_tracker('gbp', scenario, options=record)
     by_keywords, same = method_tracker('gbp', scenario, lag=4, tolerance=0.0,
                                        iterations=3)
     assert key == same == 'gbp-lag4'
     assert by_record.settings() == by_keywords.settings()
-    replaced, key = method_tracker('gbp', scenario, record, lag=6)
+    replaced, key = method_tracker('gbp', scenario, options=record, lag=6)
     assert key == 'gbp-lag6' and replaced.lag == 6

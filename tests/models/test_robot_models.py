@@ -162,6 +162,28 @@ def test_unicycle_linearize_is_its_mean_jacobian_and_noise_at_once():
         assert not model.linearize(leaf, control)[0].requires_grad
 
 
+def test_a_subclass_formula_is_what_the_trackers_linearize():
+    # a unicycle whose noise covariance adds slip: the one-pass
+    # linearization of the parent's formula must not hide it from the
+    # Gaussian methods and the bound (they call linearize())
+    class Slipping(UnicycleOdometry, name='test-slipping-unicycle'):
+        def noise_covariance(self, states, control=None):
+            return super().noise_covariance(states, control) + torch.eye(
+                3, dtype=states.dtype)
+
+    model = Slipping()
+    states = torch.randn(4, 3, dtype=torch.float64, generator=gen(5))
+    control = torch.rand(4, 2, dtype=torch.float64, generator=gen(6))
+    moved, jac, noise = model.linearize(states, control)
+    assert torch.equal(noise, model.noise_covariance(states, control))
+    assert torch.equal(moved, model.mean(states, control))
+    base = UnicycleOdometry().linearize(states, control)
+    torch.testing.assert_close(noise - base[2],
+                               torch.eye(3, dtype=torch.float64).expand(
+                                   4, 3, 3), rtol=0, atol=1e-15)
+    torch.testing.assert_close(jac, base[1], rtol=0, atol=1e-15)
+
+
 def test_unicycle_samples_match_the_linearized_moments():
     # small noise: the draws' mean and covariance are f(x, u) and G M G^T
     model = UnicycleOdometry(sigma_distance=0.002, distance_scale=0.01,

@@ -157,8 +157,9 @@ def read_mrclam(source: Union[str, os.PathLike]) -> MRCLAMSequence:
     under a robot's subject (or twice) and a bearing outside
     :math:`[-\pi, \pi]` are a :class:`ValueError` naming the file and
     the row, and so is a sequence none of whose measurements names another
-    robot or a surveyed landmark (an empty :obj:`Barcodes.dat`). A negative range is read as it is (whether a likelihood takes
-    it is the model's to say: :func:`mrclam_realization`)."""
+    robot or a surveyed landmark (an empty :obj:`Barcodes.dat`). A negative
+    range is read as it is (whether a likelihood takes it is the model's to
+    say: :func:`mrclam_realization`)."""
     files = _files(source)
 
     def table(name, columns):

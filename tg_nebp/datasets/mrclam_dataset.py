@@ -506,8 +506,9 @@ class MRCLAM(InMemoryDataset):
             :obj:`"outside"`).
         report (str): The links kept and the counts summed, one line
             (logged to :obj:`tg_nebp.datasets` at level INFO, which the
-            command line prints). A sequence that gives no window a link is
-            refused.
+            command line prints). A sequence none of whose measurements
+            names another robot or a surveyed landmark is refused when it
+            is read; a window without links is read, and reported.
 
     **STATS** (sequence 6, the test protocol):
 

@@ -130,11 +130,12 @@ def _given(**options) -> dict:
             if value is not None}
 
 
-def method_tracker(method: str, scenario: Scenario,
+def method_tracker(method: str, scenario: Scenario, *,
                    options: Optional[MethodOptions] = None, **given
                    ) -> Tuple[Union[Tracker, PosteriorCRB], str]:
-    r"""The tracker of :obj:`method` (one of :data:`~tg_nebp.experiments.options.METHODS`) for the data
-    of :obj:`scenario`, and its :obj:`metrics.json` key, with the
+    r"""The tracker of :obj:`method` (one of
+    :data:`~tg_nebp.experiments.options.METHODS`) for the data of
+    :obj:`scenario`, and its :obj:`metrics.json` key, with the
     :obj:`options` (a :class:`~tg_nebp.experiments.options.MethodOptions`,
     or its fields as keywords :obj:`given`; both: the keywords replace the
     record's), checked once (:meth:`MethodOptions.check
@@ -149,10 +150,11 @@ def method_tracker(method: str, scenario: Scenario,
     (a :obj:`tolerance` of 0 runs every iteration); the IEKF with 5
     Gauss-Newton iterations. A given value is used or refused, never
     replaced: an option that :obj:`method` does not take
-    (:data:`~tg_nebp.experiments.options.METHOD_OPTIONS`) is a :class:`ValueError`, and so is a count
-    below one. Particle BP with more than one iteration and receiver-only
-    messages is refused: the senders' beliefs already hold the receivers'
-    information, and each iteration would count it again. With
+    (:data:`~tg_nebp.experiments.options.METHOD_OPTIONS`) is a
+    :class:`ValueError`, and so is a count below one. Particle BP with
+    more than one iteration and receiver-only messages is refused: the
+    senders' beliefs already hold the receivers' information, and each
+    iteration would count it again. With
     :obj:`no_control` the method ignores the realizations' known inputs
     (odometry): every step is the motion model's input-free prediction
     (:attr:`Tracker.use_control <tg_nebp.filters.Tracker.use_control>`).
@@ -166,8 +168,9 @@ def method_tracker(method: str, scenario: Scenario,
     :obj:`iekf` the :class:`~tg_nebp.filters.CentralizedSmoother` and
     :obj:`pcrb` the smoothing bound at that lag (keys
     :obj:`"gbp-lagL"`, :obj:`"iekf-lagL"`, :obj:`"pcrb-lagL"`);
-    :obj:`lag="all"` (:data:`~tg_nebp.experiments.options.WHOLE_SEQUENCE`) is the full smoother and its
-    bound (:obj:`"iekf-smoother"`, :obj:`"pcrb-smoother"`).
+    :obj:`lag="all"` (:data:`~tg_nebp.experiments.options.WHOLE_SEQUENCE`)
+    is the full smoother and its bound (:obj:`"iekf-smoother"`,
+    :obj:`"pcrb-smoother"`).
 
     :obj:`hybrid` is :class:`~tg_nebp.filters.HybridBP`
     (:obj:`HYBRID_RECOMMENDED`, :obj:`particles` per agent) over Gaussian
@@ -307,7 +310,8 @@ def evaluate_scenario(method: str,
     :obj:`scenario` from :obj:`seed` under :obj:`root` (10 by default; a
     real sequence's windows read from :obj:`root`, every one by default),
     runs
-    :func:`method_tracker(method, ..., options, **given) <method_tracker>` on
+    :func:`method_tracker(method, ..., options=options, **given)
+    <method_tracker>` on
     them and merges its entry into :obj:`out/metrics.json`
     (:func:`~tg_nebp.evaluation.evaluate_method`). Under :obj:`torchrun`
     the realizations are sharded over the processes and rank 0 writes.
@@ -338,7 +342,8 @@ def evaluate_scenario(method: str,
     check_run(realizations, batch_size, device)
     scenario = scenario_of(scenario)
     realizations = realizations_of(scenario, realizations, 10)
-    tracker, key = method_tracker(method, scenario, options, **given)
+    tracker, key = method_tracker(method, scenario, options=options,
+                                  **given)
     world_size, rank = process_group()
     dataset, = load_datasets(root, (scenario, realizations, seed))
     share = len(range(rank, len(dataset), world_size))

@@ -1,9 +1,10 @@
-r"""The options of a method of :func:`~tg_nebp.experiments.evaluate.method_tracker`
-as one record, :class:`MethodOptions`: made where they are given (the
-command line's flags, a call's keywords), checked once against the method,
-and handed on whole to the tracker that it builds. Each field names the
-methods that take it (:data:`METHOD_OPTIONS` is read from the fields), so a
-new option is one field."""
+r"""The options of a method of
+:func:`~tg_nebp.experiments.evaluate.method_tracker` as one record,
+:class:`MethodOptions`: made where they are given (the command line's
+flags, a call's keywords), checked once against the method, and handed on
+whole to the tracker that it builds. Each field names the methods that
+take it (:data:`METHOD_OPTIONS` is read from the fields), so a new option
+is one field."""
 import dataclasses
 from typing import Any, Dict, Mapping, Optional, Tuple, Union
 

@@ -85,7 +85,8 @@ def track_stream(method: str, input: str = '-', output: str = '-',
                          f"--lag all --incremental (the incremental "
                          f"smoother); the batch {method} smoother is an "
                          f"offline reference")
-    tracker, _ = method_tracker(method, scenario_of(scenario), options)
+    tracker, _ = method_tracker(method, scenario_of(scenario),
+                                options=options)
     tracker = tracker.to(device).eval()
     done = written = 0
     digests = None

@@ -275,8 +275,9 @@ class TrackingSession:
         elif time is not None:
             given = seconds_or_none(time)
             if given is None:
-                raise ValueError(f"'time' must be a finite number (at most "
-                                 f"{LONGEST_SECONDS:.0e} s), got {time!r}"[:200])
+                raise ValueError(
+                    f"'time' must be a finite number (at most "
+                    f"{LONGEST_SECONDS:.0e} s), got {time!r}"[:200])
             # a given time counts from the last step tracked (what skipped
             # steps passed is in it)
             if not given > self.time:
@@ -286,8 +287,9 @@ class TrackingSession:
         else:
             given = seconds_or_none(dt)
             if given is None or not given > 0:
-                raise ValueError(f"'dt' must be a finite number above 0 (at "
-                                 f"most {LONGEST_SECONDS:.0e} s), got {dt!r}"[:200])
+                raise ValueError(
+                    f"'dt' must be a finite number above 0 (at most "
+                    f"{LONGEST_SECONDS:.0e} s), got {dt!r}"[:200])
             dt = given + self.skipped_time
         return float(dt), motion.with_time_step(float(dt))
 
@@ -667,7 +669,8 @@ class TrackingSession:
                              f"not this tracker's {state_type.__name__}")
         try:
             state = self._saved_state(saved.get('state'), state_type)
-            ids = [checked_identifier(i, "'ids'") for i in json.loads(saved['ids'])]
+            ids = [checked_identifier(i, "'ids'")
+                   for i in json.loads(saved['ids'])]
             anchor = saved['anchor']
             time, steps = saved['time'], saved['num_steps']
             skipped = saved.get('skipped_time', 0.0)
@@ -727,8 +730,13 @@ class TrackingSession:
         # the tracker's state of a state_dict, on this session's device
         if state is None:
             return None
+        # an optional field that a session saved by an earlier version
+        # lacks is absent (None), as a state without it holds
+        absent = {name: None for name, field in getattr(
+            state_type, 'FIELDS', {}).items()
+            if field.optional and name not in state}
         try:
-            return state_type(**{
+            return state_type(**absent, **{
                 name: (value.to(self.device) if isinstance(value, Tensor)
                        else tuple(v.to(self.device) for v in value)
                        if isinstance(value, list) else value)

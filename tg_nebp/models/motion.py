@@ -304,14 +304,26 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
         3)`, with :math:`\mathbf{G}` by automatic differentiation of
         :meth:`propagate` in the inputs; the random walk's diagonal where
         there is no input."""
-        return self.linearize(states, control)[2]
+        return self._one_pass(states, control)[2]
 
     def linearize(self, states: Tensor, control: Optional[Tensor] = None
                   ) -> Tuple[Tensor, Tensor, Tensor]:
         r""":meth:`mean`, :meth:`~tg_nebp.models.MotionModel.jacobian` and
-        :meth:`noise_covariance` from one pass of :meth:`propagate` (its Jacobians in the state and
-        in the inputs by one backward pass): the identity Jacobian and the
-        random walk where there is no input."""
+        :meth:`noise_covariance` from one pass of :meth:`propagate` (its
+        Jacobians in the state and in the inputs by one backward pass): the
+        identity Jacobian and the random walk where there is no input. A
+        subclass that overrides one of the three gets the three calls (the
+        role's default), so that its own formula is what the trackers
+        read."""
+        if any(getattr(type(self), name) is not getattr(UnicycleOdometry,
+                                                        name)
+               for name in ('mean', 'jacobian', 'noise_covariance')):
+            return super().linearize(states, control)
+        return self._one_pass(states, control)
+
+    def _one_pass(self, states: Tensor, control: Optional[Tensor]
+                  ) -> Tuple[Tensor, Tensor, Tensor]:
+        # f, F and Q of this class's formula from one pass of propagate
         control, missing = self._inputs(states, control)
         moved, (jacobian, gain) = row_linearization(
             self.propagate, (states, control))  # F (*, 3, 3), G (*, 3, 2)
