@@ -344,3 +344,38 @@ def test_smoother_rows_each_beside_its_bound(tmp_path, capsys):
     assert 'must be at least 2' in capsys.readouterr().err
     with pytest.raises(ValueError, match="'lag' must be at least 2"):
         run_compare(scenarios=scenarios, lag=1)
+
+
+def test_range_only_rows_divided_by_the_bound_of_the_ranges_alone():
+    # on a scenario with bearings the range-only likelihood ('gaussian')
+    # reads the ranges alone: its filtered rows stand beside the filtering
+    # bound of the ranges alone, its smoothed rows beside the smoothing
+    # bound of the ranges alone at their lag; the other likelihoods beside
+    # the bounds of everything measured
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.datasets import Scenario
+    built = compare_methods(Scenario.load('robots_test'), lag=3)
+    bound = built['pcrb-lag3-range-only'][1]()
+    assert isinstance(bound, PosteriorCRB) and bound.lag == 3
+    assert bound.measurement.features == ('range', )
+    assert 'pcrb-lag3-range-only' not in compare_methods(tiny_scenario(),
+                                                         lag=3)
+
+    def row(*rmse):
+        return dict(spread=dict(realizations=[(0.0, 0.0, r) for r in rmse]))
+
+    rows = {'pcrb': row(1.0, 2.0), 'pcrb-range-only': row(2.0, 4.0),
+            'pcrb-lag3': row(0.5, 1.0), 'pcrb-lag3-range-only': row(1.0, 2.0),
+            'gbp gaussian': row(3.0, 6.0),
+            'gbp-lag3-smoothed gaussian': row(1.5, 3.0),
+            'gbp-lag3-smoothed range-bearing': row(1.5, 3.0)}
+    ratios = floor_ratios(rows)
+    assert ratios['gbp gaussian'] == (1.5, 0.0)
+    assert ratios['gbp-lag3-smoothed gaussian'] == (1.5, 0.0)
+    assert ratios['gbp-lag3-smoothed range-bearing'] == (3.0, 0.0)
+    # the bound of the ranges alone, beside the bound of everything: what
+    # the bearings are worth
+    assert ratios['pcrb-range-only'] == (2.0, 0.0)
+    # without the bound of the ranges alone (a scenario without bearings)
+    del rows['pcrb-lag3-range-only']
+    assert floor_ratios(rows)['gbp-lag3-smoothed gaussian'] == (3.0, 0.0)

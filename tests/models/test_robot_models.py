@@ -184,6 +184,84 @@ def test_a_subclass_formula_is_what_the_trackers_linearize():
     torch.testing.assert_close(jac, base[1], rtol=0, atol=1e-15)
 
 
+def test_closed_form_derivatives_are_autograd_of_the_formula():
+    # the unicycle's F and G and the range-bearing Jacobian in closed form
+    # equal reverse-mode differentiation of propagate() and expected()
+    # (zero distance included), and their own derivatives equal the second
+    # derivatives of the formula: training differentiates through them
+    from tg_nebp.utils import row_jacobian, row_linearization
+    states = torch.randn(6, 3, dtype=torch.float64, generator=gen(7))
+    control = torch.randn(6, 2, dtype=torch.float64, generator=gen(8))
+    moved, jac, gain = UnicycleOdometry.propagate_derivatives(states,
+                                                              control)
+    out, (jac_ad, gain_ad) = row_linearization(UnicycleOdometry.propagate,
+                                               (states, control))
+    assert torch.equal(moved, out)
+    torch.testing.assert_close(jac, jac_ad, rtol=0, atol=1e-15)
+    torch.testing.assert_close(gain, gain_ad, rtol=0, atol=1e-15)
+    sender = torch.randn(6, 3, dtype=torch.float64, generator=gen(9))
+    receiver = torch.randn(6, 3, dtype=torch.float64, generator=gen(10))
+    receiver[2, :2] = sender[2, :2]  # zero distance: no gradient
+    model = GaussianRangeBearing()
+
+    def autograd(snd, rcv, create_graph=None):
+        return row_jacobian(lambda both: model.expected(both[:, :3],
+                                                        both[:, 3:]),
+                            torch.cat([snd, rcv], -1), create_graph)
+
+    closed = model.measurement_jacobian(sender, receiver)
+    torch.testing.assert_close(closed, autograd(sender, receiver), rtol=0,
+                               atol=1e-14)
+    assert torch.equal(closed[2], torch.zeros(2, 6, dtype=torch.float64))
+    for function, reference in (
+            (lambda x: model.measurement_jacobian(x, receiver),
+             lambda x: autograd(x, receiver, True)),
+            (lambda x: UnicycleOdometry.propagate_derivatives(x, control)[1],
+             lambda x: row_linearization(UnicycleOdometry.propagate,
+                                         (x, control), True)[1][0])):
+        point = sender.clone().requires_grad_()
+        ours = function(point)
+        weights = torch.randn(ours.shape, dtype=torch.float64,
+                              generator=gen(11))
+        ours, = torch.autograd.grad((ours * weights).sum(), point)
+        theirs, = torch.autograd.grad((reference(point) * weights).sum(),
+                                      point)
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-13)
+
+
+def test_a_subclass_own_formula_is_differentiated_as_written():
+    # a subclass that moves (or measures) by a formula of its own gets its
+    # derivatives by automatic differentiation of that formula, not the
+    # parent's closed form
+    class Slower(UnicycleOdometry, name='test-slower-unicycle'):
+        @staticmethod
+        def propagate(states, control):
+            return UnicycleOdometry.propagate(states, control * torch.tensor(
+                [0.5, 2.0], dtype=control.dtype))
+
+    class Shifted(GaussianRangeBearing, name='test-shifted-range-bearing'):
+        @staticmethod
+        def expected(sender, receiver):
+            return GaussianRangeBearing.expected(sender, receiver) ** 2
+
+    states = torch.randn(4, 3, dtype=torch.float64, generator=gen(5))
+    control = torch.rand(4, 2, dtype=torch.float64, generator=gen(6))
+    moved, jac, _ = Slower().linearize(states, control)
+    torch.testing.assert_close(moved, Slower.propagate(states, control))
+    torch.testing.assert_close(
+        jac, MotionModel.jacobian(Slower(), states, control=control),
+        rtol=0, atol=1e-15)
+    assert (jac - UnicycleOdometry().linearize(states, control)[1]).abs(
+    ).max() > 0.1
+    model, sender = Shifted(), states + 1.0
+    both = torch.cat([sender, states], -1)
+    from tg_nebp.utils import row_jacobian
+    torch.testing.assert_close(
+        model.measurement_jacobian(sender, states),
+        row_jacobian(lambda x: model.expected(x[:, :3], x[:, 3:]), both),
+        rtol=0, atol=1e-15)
+
+
 def test_unicycle_samples_match_the_linearized_moments():
     # small noise: the draws' mean and covariance are f(x, u) and G M G^T
     model = UnicycleOdometry(sigma_distance=0.002, distance_scale=0.01,

@@ -46,6 +46,8 @@ COMPARE_SCENARIOS = ('paper_test', 'paper_test_nlos')
 BOUND = 'pcrb'
 #: The end of the first word of a smoother's row of smoothed estimates.
 SMOOTHED = '-smoothed'
+#: The suffix of a bound of the ranges alone (a scenario with bearings)
+RANGE_ONLY = '-range-only'
 #: The first word of a checkpoint's row, by the checkpoint's base.
 CHECKPOINT_ROWS = {'particle': 'nebp', 'gaussian': 'gnebp'}
 
@@ -88,7 +90,9 @@ def compare_methods(scenario: Scenario,
     With a :obj:`lag` :math:`L \geq 2` the smoothers join the table, each
     as two rows, its filtered estimates and its smoothed ones (the key's
     first word ending in :obj:`"-smoothed"`): the smoothing bounds at lag
-    :math:`L` (:obj:`"pcrb-lagL"`) and of the whole sequence
+    :math:`L` (:obj:`"pcrb-lagL"`; on a scenario with bearings, that of
+    the ranges alone too, :obj:`"pcrb-lagL-range-only"`, the floor of the
+    range-only rows) and of the whole sequence
     (:obj:`"pcrb-smoother"`), the centralized fixed-lag smoother with the
     scenario's likelihood (:obj:`"iekf-lagL ..."`), the full one
     (:obj:`"iekf-smoother ..."`) and the incremental one
@@ -108,7 +112,7 @@ def compare_methods(scenario: Scenario,
         likelihoods = ['range-bearing', 'student-t-range-bearing',
                        'gaussian']
         range_only = model_like('gaussian', 'measurement', own)
-        methods[f'{BOUND}-range-only'] = (
+        methods[f'{BOUND}{RANGE_ONLY}'] = (
             'the posterior CRB of the ranges alone (no bearing)',
             lambda: PosteriorCRB(motion, range_only))
     else:
@@ -124,6 +128,10 @@ def compare_methods(scenario: Scenario,
         methods[BOUND + lag_key(WHOLE_SEQUENCE)] = (
             'the smoothing bound of the whole sequence',
             lambda: PosteriorCRB(motion, own, lag=None))
+        if 'bearing' in own.features:
+            methods[f'{BOUND}{suffix}{RANGE_ONLY}'] = (
+                f'the smoothing bound at lag {lag} of the ranges alone',
+                lambda: PosteriorCRB(motion, range_only, lag=lag))
     shown = {likelihood: likelihood for likelihood in likelihoods}
     if 'bearing' in own.features:
         shown['gaussian'] = 'gaussian range-only'
@@ -525,7 +533,10 @@ def floor_row(key: str) -> str:
 def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:
     r"""Each row's RMSE as a multiple of its bound's floor on the same
     realizations (:func:`floor_row`: the filtering bound, or a smoothed
-    row's smoothing bound): the mean and sample standard deviation over
+    row's smoothing bound; on a scenario with bearings, the rows of the
+    range-only likelihood by the same bound of the ranges alone,
+    :obj:`"pcrb-range-only"` and :obj:`"pcrb-lagL-range-only"`, where the
+    table holds it): the mean and sample standard deviation over
     the realizations of RMSE / floor (the rows of one scenario of
     :obj:`compare.json`; a row whose bound's row is missing has none).
     Rows of other realization counts than their bound's, or a floor that
@@ -534,6 +545,11 @@ def floor_ratios(rows: Dict[str, dict]) -> Dict[str, Tuple[float, float]]:
     ratios = {}
     for key, entry in rows.items():
         bound = floor_row(key)
+        # the range-only likelihood of a scenario with bearings reads the
+        # ranges alone: its floor is theirs (where the table has it)
+        if key.partition(' ')[2] == 'gaussian' and \
+                bound + RANGE_ONLY in rows:
+            bound += RANGE_ONLY
         if bound not in rows:
             continue
         floors = [r[2] for r in rows[bound]['spread']['realizations']]

@@ -446,15 +446,15 @@ class FixedLagGaussianBP(GaussianBP):
                             window.control, tuple(messages),
                             window.factors.index, state.start, *settled,
                             state.entry_point)
-        # the newest step's nodes, factors and messages, in its numbering
+        # the newest step's nodes, factors and messages, in its numbering:
+        # the window's last block (its factors are those of the step's
+        # links alone, in the same order)
         newest = slice((width - 1) * num, width * num)
-        factors = self.conv.factors(edge_index.long(), anchor, size)
-        into = (window.factors.index[1] >= newest.start).nonzero().view(-1)
-        rows, found = _matched(
-            window.factors.index[:, into] - newest.start, factors.index)
-        last = type(messages)(*(part.new_zeros(
-            (factors.index.size(1), ) + part.shape[1:]).index_copy(
-                0, rows, part[into[found]]) for part in messages))
+        factors = self.conv.restricted_factors(
+            window.factors, torch.arange(width * num, device=anchor.device)
+            >= newest.start, size)
+        into = window.factors.index[1] >= newest.start
+        last = type(messages)(*(part[into] for part in messages))
         solved = SolvedStep(output, state, GaussianBelief(
             belief.mean[newest], belief.info[newest]), factors, last)
         if width == self.lag:
@@ -722,7 +722,15 @@ class FixedLagGaussianBP(GaussianBP):
                 torch.zeros(count, width, dtype=dtype, device=device))
         if state.messages is None:
             return out, torch.ones(count, dtype=torch.bool, device=device)
-        rows, source = _matched(state.message_index, index)
+        held = state.message_index.size(1)
+        if held <= count and torch.equal(index[:, :held],
+                                         state.message_index):
+            # the window of the last step, slid: its message edges come
+            # first, in order (the edges sorted by target, the new step's
+            # targets last); a node that left or joined renumbers them
+            rows = source = torch.arange(held, device=device)
+        else:
+            rows, source = _matched(state.message_index, index)
         fresh = torch.ones(count, dtype=torch.bool, device=device)
         fresh[rows] = False
         return type(out)(*(o.index_copy(0, rows, s[source].to(o))

@@ -224,6 +224,35 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
                             states[..., 1] + distance * torch.sin(heading),
                             states[..., 2] + turn], -1)
 
+    @staticmethod
+    def propagate_derivatives(states: Tensor, control: Tensor
+                              ) -> Tuple[Tensor, Tensor, Tensor]:
+        r""":meth:`propagate` and its Jacobians in the states,
+        :math:`\mathbf{F} = \partial f / \partial \mathbf{x}` :math:`(*, 3,
+        3)`, and in the inputs, :math:`\mathbf{G} = \partial f / \partial
+        \mathbf{u}` :math:`(*, 3, 2)`, in closed form (with :math:`h =
+        \theta + \delta_\theta / 2`: :math:`\partial (x, y) / \partial
+        \theta = \delta_d (-\sin h, \cos h)`, :math:`\partial (x, y) /
+        \partial \delta_d = (\cos h, \sin h)` and :math:`\partial (x, y) /
+        \partial \delta_\theta = \frac{1}{2} \partial (x, y) / \partial
+        \theta`): the derivatives of the formula above, which automatic
+        differentiation of :meth:`propagate` gives too (a test holds them
+        equal) at a fraction of its cost on the few states of a live
+        step. Differentiable: training through a tracker reads them."""
+        distance, turn = control[..., 0], control[..., 1]
+        heading = states[..., 2] + 0.5 * turn
+        cos, sin = torch.cos(heading), torch.sin(heading)
+        zero, one = torch.zeros_like(cos), torch.ones_like(cos)
+        jacobian = torch.stack([
+            torch.stack([one, zero, -distance * sin], -1),
+            torch.stack([zero, one, distance * cos], -1),
+            torch.stack([zero, zero, one], -1)], -2)
+        gain = torch.stack([
+            torch.stack([cos, -0.5 * distance * sin], -1),
+            torch.stack([sin, 0.5 * distance * cos], -1),
+            torch.stack([zero, one], -1)], -2)
+        return UnicycleOdometry.propagate(states, control), jacobian, gain
+
     def _inputs(self, states: Tensor, control: Optional[Tensor]):
         # the inputs broadcast to the states, zero where missing, and the
         # mask of the missing ones
@@ -301,16 +330,20 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
     def noise_covariance(self, states: Tensor,
                          control: Optional[Tensor] = None) -> Tensor:
         r""":math:`\mathbf{G} \mathbf{M} \mathbf{G}^\top` :math:`(*, 3,
-        3)`, with :math:`\mathbf{G}` by automatic differentiation of
-        :meth:`propagate` in the inputs; the random walk's diagonal where
+        3)`, with :math:`\mathbf{G}` the Jacobian of :meth:`propagate` in
+        the inputs (:meth:`propagate_derivatives`; by automatic
+        differentiation where a subclass moves the robot by a
+        :meth:`propagate` of its own); the random walk's diagonal where
         there is no input."""
         return self._one_pass(states, control)[2]
 
     def linearize(self, states: Tensor, control: Optional[Tensor] = None
                   ) -> Tuple[Tensor, Tensor, Tensor]:
         r""":meth:`mean`, :meth:`~tg_nebp.models.MotionModel.jacobian` and
-        :meth:`noise_covariance` from one pass of :meth:`propagate` (its
-        Jacobians in the state and in the inputs by one backward pass): the
+        :meth:`noise_covariance` from one pass of :meth:`propagate` and its
+        Jacobians in the state and in the inputs
+        (:meth:`propagate_derivatives`, or one backward pass of a
+        subclass's own :meth:`propagate`): the
         identity Jacobian and the random walk where there is no input. A
         subclass that overrides one of the three gets the three calls (the
         role's default), so that its own formula is what the trackers
@@ -325,8 +358,12 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
                   ) -> Tuple[Tensor, Tensor, Tensor]:
         # f, F and Q of this class's formula from one pass of propagate
         control, missing = self._inputs(states, control)
-        moved, (jacobian, gain) = row_linearization(
-            self.propagate, (states, control))  # F (*, 3, 3), G (*, 3, 2)
+        if type(self).propagate is UnicycleOdometry.propagate:
+            moved, jacobian, gain = self.propagate_derivatives(states,
+                                                               control)
+        else:  # a subclass's own move: differentiated as it is written
+            moved, (jacobian, gain) = row_linearization(
+                self.propagate, (states, control))  # F (*, 3, 3), G (*, 3, 2)
         cov = (gain * self.input_variances(control).unsqueeze(-2)) @ \
             gain.transpose(-1, -2)
         idle = torch.diag_embed(self._idle_variances(states).expand(

@@ -167,12 +167,41 @@ class RangeBearingModel(MeasurementModel):
     def measurement_jacobian(self, sender: Tensor,
                              receiver: Tensor) -> Tensor:
         r"""The Jacobian :math:`(E, 2, 6)` of :meth:`expected` with respect
-        to :math:`[x_j, y_j, \theta_j, x_i, y_i, \theta_i]`, by automatic
-        differentiation of the model's own formula
-        (:func:`~tg_nebp.utils.row_jacobian`)."""
+        to :math:`[x_j, y_j, \theta_j, x_i, y_i, \theta_i]`: in closed form
+        (:meth:`expected_jacobian`), or by automatic differentiation
+        (:func:`~tg_nebp.utils.row_jacobian`) of a subclass's own
+        :meth:`expected`."""
+        if type(self).expected is RangeBearingModel.expected:
+            return self.expected_jacobian(sender, receiver)
         ends = torch.cat([sender[:, :3], receiver[:, :3]], -1)
         return row_jacobian(lambda both: self.expected(both[:, :3],
                                                        both[:, 3:]), ends)
+
+    @staticmethod
+    def expected_jacobian(sender: Tensor, receiver: Tensor) -> Tensor:
+        r"""The Jacobian :math:`(E, 2, 6)` of :meth:`expected` in closed
+        form: with :math:`\Delta = \mathbf{p}_j - \mathbf{p}_i` and
+        :math:`d = \|\Delta\|`, the range's row :math:`[\Delta / d, 0,
+        -\Delta / d, 0]` and the bearing's :math:`[\Delta^\perp / d^2, 0,
+        -\Delta^\perp / d^2, -1]`, :math:`\Delta^\perp = (-\Delta_y,
+        \Delta_x)`; zero at zero distance, as :meth:`expected` gives no
+        gradient there. What automatic differentiation of the formula
+        gives too (a test holds them equal), at a fraction of its cost on
+        the few links of a live step. Differentiable."""
+        dx = sender[:, 0] - receiver[:, 0]
+        dy = sender[:, 1] - receiver[:, 1]
+        square = dx * dx + dy * dy
+        apart = square > 0
+        # the safe square keeps the other branch's gradient finite
+        square = torch.where(apart, square, torch.ones_like(square))
+        distance = square.sqrt()
+        zero = torch.zeros_like(dx)
+        jacobian = torch.stack([
+            torch.stack([dx / distance, dy / distance, zero,
+                         -dx / distance, -dy / distance, zero], -1),
+            torch.stack([-dy / square, dx / square, zero, dy / square,
+                         -dx / square, -torch.ones_like(dx)], -1)], -2)
+        return torch.where(apart.view(-1, 1, 1), jacobian, 0.0)
 
     def _ends(self, sender: Tensor, receiver: Tensor):
         # the Jacobian placed on the full states' entries of both ends
