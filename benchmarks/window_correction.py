@@ -20,6 +20,13 @@ realization the smoothed RMSE over the smoothing bound's at the lag (mean
 and standard deviation), untrained and trained; one torch thread.
 
     python benchmarks/window_correction.py     # paper_train -> paper_test
+    python benchmarks/window_correction.py --scenario paper_train \
+        paper_train_sparse --realizations 8 --test-scenario paper_test \
+        paper_test_sparse --test-realizations 5
+
+With several training networks, each gives the realizations asked (the
+realizations in turn) and its own 5 validation ones; the correction's
+features are invariant, so one network runs on every scenario.
 """
 import argparse
 import time
@@ -94,11 +101,12 @@ def window_loss(step, data):
         t=step.t - width + 1 + k), data) for k in range(width))
 
 
-def train(correction, scenario, realizations, epochs, lr, lag):
+def train(correction, realizations, epochs, lr, lag):
+    # realizations: (scenario, realization) pairs, in this order each epoch
     optimizer = torch.optim.Adam(correction.parameters(), lr=lr)
     for epoch in range(epochs):
         total = 0.0
-        for data in realizations:
+        for scenario, data in realizations:
             tracker = window_tracker(scenario, correction, lag)
             state = tracker.initial_state(data)
             for t, ((edge_index, edge_attr), control) in enumerate(zip(
@@ -149,8 +157,9 @@ def scores(correction, scenario, realizations, lag):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--scenario', default='paper_train')
-    parser.add_argument('--test-scenario', default='paper_test')
+    parser.add_argument('--scenario', nargs='+', default=['paper_train'])
+    parser.add_argument('--test-scenario', nargs='+',
+                        default=['paper_test'])
     parser.add_argument('--realizations', type=int, default=16)
     parser.add_argument('--test-realizations', type=int, default=10)
     parser.add_argument('--epochs', type=int, default=3)
@@ -158,31 +167,38 @@ def main():
     parser.add_argument('--lag', type=int, default=5)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    scenario = Scenario.load(args.scenario)
-    test_scenario = Scenario.load(args.test_scenario)
+    scenarios = [Scenario.load(name) for name in args.scenario]
+    tests = [Scenario.load(name) for name in args.test_scenario]
     torch.manual_seed(1)
-    correction = GaussianNEBPConv(scenario.measurement_model)
-    untrained = GaussianNEBPConv(scenario.measurement_model)
-    generator = torch.Generator().manual_seed(1)
-    validation = [scenario.generate(generator) for _ in range(5)]
-    generator = torch.Generator().manual_seed(10)
-    training = [scenario.generate(generator)
-                for _ in range(args.realizations)]
+    measurement = scenarios[0].measurement_model
+    correction = GaussianNEBPConv(measurement)
+    untrained = GaussianNEBPConv(measurement)
+
+    def drawn(scenario, seed, count):
+        generator = torch.Generator().manual_seed(seed)
+        return [(scenario, scenario.generate(generator))
+                for _ in range(count)]
+
+    validation = [drawn(scenario, 1, 5) for scenario in scenarios]
+    # the training networks' realizations in turn
+    training = [pair for pairs in zip(*(drawn(
+        scenario, 10, args.realizations) for scenario in scenarios))
+        for pair in pairs]
     start = time.perf_counter()
-    train(correction, scenario, training, args.epochs, args.lr, args.lag)
+    train(correction, training, args.epochs, args.lr, args.lag)
     print(f'trained in {time.perf_counter() - start:.0f} s', flush=True)
-    generator = torch.Generator().manual_seed(0)
-    test = [test_scenario.generate(generator)
-            for _ in range(args.test_realizations)]
-    for name, where, realizations in (
-            ('validation', scenario, validation),
-            ('test', test_scenario, test)):
-        for label, net in (('untrained', untrained),
-                           ('trained', correction)):
-            print(f'{where.name} ({name}, {len(realizations)} '
-                  f'realizations) {label}: '
-                  f'{scores(net, where, realizations, args.lag)}',
-                  flush=True)
+    for name, groups in (
+            ('validation', validation),
+            ('test', [drawn(scenario, 0, args.test_realizations)
+                      for scenario in tests])):
+        for pairs in groups:
+            where, realizations = pairs[0][0], [d for _, d in pairs]
+            for label, net in (('untrained', untrained),
+                               ('trained', correction)):
+                print(f'{where.name} ({name}, {len(realizations)} '
+                      f'realizations) {label}: '
+                      f'{scores(net, where, realizations, args.lag)}',
+                      flush=True)
 
 
 if __name__ == '__main__':
