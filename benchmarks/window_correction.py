@@ -20,6 +20,7 @@ realization the smoothed RMSE over the smoothing bound's at the lag (mean
 and standard deviation), untrained and trained; one torch thread.
 
     python benchmarks/window_correction.py     # paper_train -> paper_test
+    python benchmarks/window_correction.py --node-memory
     python benchmarks/window_correction.py --scenario paper_train \
         paper_train_sparse --realizations 8 --test-scenario paper_test \
         paper_test_sparse --test-realizations 5
@@ -45,10 +46,17 @@ from tg_nebp.training import gaussian_step_loss
 
 class TemperedWindowConv(GaussianBPConv):
     # Gaussian BP's general messages of every window step, each tempered
-    # by the correction's weight of its message edge
-    def __init__(self, measurement, correction: GaussianNEBPConv):
+    # by the correction's weight of its message edge; with 'node_memory'
+    # the correction's node part too: an embedding of every node of every
+    # window step, zero at each time step's first iteration and updated
+    # at every iteration by the correction's GRU from its edges and its
+    # node features (degree, anchors in reach, spread, consistency)
+    def __init__(self, measurement, correction: GaussianNEBPConv,
+                 node_memory: bool = False):
         super().__init__(measurement)
         self.correction = correction
+        self.node_memory = node_memory
+        self.memory, self.iteration = None, 0
 
     @property
     def rank_one(self) -> bool:
@@ -56,6 +64,9 @@ class TemperedWindowConv(GaussianBPConv):
 
     def step_messages(self, belief, edge_index, edge_attr, anchor, factors,
                       messages=None, generator=None, fresh=None):
+        if self.node_memory:
+            return self._with_memory(belief, edge_index, edge_attr, anchor,
+                                     factors, messages, generator)
         linearization = self.linearize(belief, edge_index, edge_attr,
                                        factors, generator)
         new = self.messages(belief, anchor, factors, linearization,
@@ -73,12 +84,42 @@ class TemperedWindowConv(GaussianBPConv):
         return FactorMessages(new.info * weight.view(-1, 1, 1),
                               new.eta * weight)
 
+    def _with_memory(self, belief, edge_index, edge_attr, anchor, factors,
+                     messages, generator):
+        # GaussianNEBPConv.forward's correction over the window's rows
+        net, rows = self.correction, belief.mean.size(0)
+        if self.memory is None:
+            self.memory = net.initial_memory(rows)
+        new, features, edge = net._corrected(
+            belief, edge_index, edge_attr, anchor, self.memory, messages,
+            generator, factors, self.iteration)
+        gathered = net.propagate(factors.index, edge=edge, size=(rows, rows))
+        hidden = net.node_update(torch.cat([gathered, features.node.to(
+            edge)], -1), self.memory[:, :net.hidden_dim])
+        self.memory = torch.cat([hidden, features.consistency.to(edge).view(
+            -1, 1), self.memory[:, -1:]], -1)
+        self.iteration += 1
+        weight = net.message_weights(edge).to(new.eta)
+        return FactorMessages(new.info * weight.view(-1, 1, 1),
+                              new.eta * weight)
+
+
+class CorrectedWindow(FixedLagGaussianBP):
+    # the window whose conv starts every time step with a fresh memory
+    def solve_step(self, *args, **kwargs):
+        self.conv.memory, self.conv.iteration = None, 0
+        return super().solve_step(*args, **kwargs)
+
+
+NODE_MEMORY = False  # set from the command line
+
 
 def window_tracker(scenario, correction, lag):
-    tracker = FixedLagGaussianBP.recommended(
+    tracker = CorrectedWindow.recommended(
         lag=lag, motion=scenario.motion_model,
         measurement=scenario.measurement_model)
-    tracker.conv = TemperedWindowConv(scenario.measurement_model, correction)
+    tracker.conv = TemperedWindowConv(scenario.measurement_model, correction,
+                                      NODE_MEMORY)
     return tracker
 
 
@@ -165,7 +206,12 @@ def main():
     parser.add_argument('--epochs', type=int, default=3)
     parser.add_argument('--lr', type=float, default=3e-4)
     parser.add_argument('--lag', type=int, default=5)
+    parser.add_argument('--node-memory', action='store_true',
+                        help="the correction's node part too (its node "
+                        'features and embeddings, per time step)')
     args = parser.parse_args()
+    global NODE_MEMORY
+    NODE_MEMORY = args.node_memory
     torch.set_num_threads(1)
     scenarios = [Scenario.load(name) for name in args.scenario]
     tests = [Scenario.load(name) for name in args.test_scenario]
