@@ -64,41 +64,22 @@ class TemperedWindowConv(GaussianBPConv):
 
     def step_messages(self, belief, edge_index, edge_attr, anchor, factors,
                       messages=None, generator=None, fresh=None):
-        if self.node_memory:
-            return self._with_memory(belief, edge_index, edge_attr, anchor,
-                                     factors, messages, generator)
-        linearization = self.linearize(belief, edge_index, edge_attr,
-                                       factors, generator)
-        new = self.messages(belief, anchor, factors, linearization,
-                            messages, fresh)
-        net = self.correction
-        # no node memory: the embeddings and the history read as zeros
-        memory = belief.mean.new_zeros(belief.mean.size(0),
-                                       net.hidden_dim + 2)
-        features = net.features(belief, anchor, factors, linearization,
-                                new, 0, memory)
-        dtype = net.weight_head.weight.dtype
-        edge = net.edge_mlp(torch.cat([features.edge.to(dtype), torch.zeros(
-            features.edge.size(0), 2 * net.hidden_dim, dtype=dtype)], -1))
-        weight = net.message_weights(edge).to(new.eta)
-        return FactorMessages(new.info * weight.view(-1, 1, 1),
-                              new.eta * weight)
-
-    def _with_memory(self, belief, edge_index, edge_attr, anchor, factors,
-                     messages, generator):
-        # GaussianNEBPConv.forward's correction over the window's rows
+        # GaussianNEBPConv.forward's correction over the window's rows;
+        # without the node part the embeddings stay zero
         net, rows = self.correction, belief.mean.size(0)
         if self.memory is None:
             self.memory = net.initial_memory(rows)
         new, features, edge = net._corrected(
             belief, edge_index, edge_attr, anchor, self.memory, messages,
             generator, factors, self.iteration)
-        gathered = net.propagate(factors.index, edge=edge, size=(rows, rows))
-        hidden = net.node_update(torch.cat([gathered, features.node.to(
-            edge)], -1), self.memory[:, :net.hidden_dim])
-        self.memory = torch.cat([hidden, features.consistency.to(edge).view(
-            -1, 1), self.memory[:, -1:]], -1)
-        self.iteration += 1
+        if self.node_memory:
+            gathered = net.propagate(factors.index, edge=edge,
+                                     size=(rows, rows))
+            hidden = net.node_update(torch.cat([gathered, features.node.to(
+                edge)], -1), self.memory[:, :net.hidden_dim])
+            self.memory = torch.cat([hidden, features.consistency.to(
+                edge).view(-1, 1), self.memory[:, -1:]], -1)
+            self.iteration += 1
         weight = net.message_weights(edge).to(new.eta)
         return FactorMessages(new.info * weight.view(-1, 1, 1),
                               new.eta * weight)
@@ -111,15 +92,12 @@ class CorrectedWindow(FixedLagGaussianBP):
         return super().solve_step(*args, **kwargs)
 
 
-NODE_MEMORY = False  # set from the command line
-
-
-def window_tracker(scenario, correction, lag):
+def window_tracker(scenario, correction, lag, node_memory):
     tracker = CorrectedWindow.recommended(
         lag=lag, motion=scenario.motion_model,
         measurement=scenario.measurement_model)
     tracker.conv = TemperedWindowConv(scenario.measurement_model, correction,
-                                      NODE_MEMORY)
+                                      node_memory)
     return tracker
 
 
@@ -142,13 +120,14 @@ def window_loss(step, data):
         t=step.t - width + 1 + k), data) for k in range(width))
 
 
-def train(correction, realizations, epochs, lr, lag):
+def train(correction, realizations, epochs, lr, lag, node_memory):
     # realizations: (scenario, realization) pairs, in this order each epoch
     optimizer = torch.optim.Adam(correction.parameters(), lr=lr)
     for epoch in range(epochs):
         total = 0.0
         for scenario, data in realizations:
-            tracker = window_tracker(scenario, correction, lag)
+            tracker = window_tracker(scenario, correction, lag,
+                                     node_memory)
             state = tracker.initial_state(data)
             for t, ((edge_index, edge_attr), control) in enumerate(zip(
                     data.edges_by_step(), tracker.controls_of(data))):
@@ -164,7 +143,7 @@ def train(correction, realizations, epochs, lr, lag):
               flush=True)
 
 
-def scores(correction, scenario, realizations, lag):
+def scores(correction, scenario, realizations, lag, node_memory):
     # filtered and smoothed RMSE, smoothed P(accept 0.95) pooled, and each
     # realization's smoothed RMSE over its smoothing bound's
     filtered = smoothed = count = 0.0
@@ -175,8 +154,10 @@ def scores(correction, scenario, realizations, lag):
         for data in realizations:
             agents = ~data.anchor
             truth = data.states[agents, :, :2].double()
-            out = Smoothed(window_tracker(scenario, correction, lag))(data)
-            newest = window_tracker(scenario, correction, lag)(data)
+            out = Smoothed(window_tracker(scenario, correction, lag,
+                                          node_memory))(data)
+            newest = window_tracker(scenario, correction, lag,
+                                    node_memory)(data)
             error = (out.mean[agents, :, :2] - truth).square().sum(-1)
             smoothed += float(error.sum())
             filtered += float((newest.mean[agents, :, :2] - truth).square(
@@ -210,8 +191,6 @@ def main():
                         help="the correction's node part too (its node "
                         'features and embeddings, per time step)')
     args = parser.parse_args()
-    global NODE_MEMORY
-    NODE_MEMORY = args.node_memory
     torch.set_num_threads(1)
     scenarios = [Scenario.load(name) for name in args.scenario]
     tests = [Scenario.load(name) for name in args.test_scenario]
@@ -231,7 +210,8 @@ def main():
         scenario, 10, args.realizations) for scenario in scenarios))
         for pair in pairs]
     start = time.perf_counter()
-    train(correction, training, args.epochs, args.lr, args.lag)
+    train(correction, training, args.epochs, args.lr, args.lag,
+          args.node_memory)
     print(f'trained in {time.perf_counter() - start:.0f} s', flush=True)
     for name, groups in (
             ('validation', validation),
@@ -241,10 +221,10 @@ def main():
             where, realizations = pairs[0][0], [d for _, d in pairs]
             for label, net in (('untrained', untrained),
                                ('trained', correction)):
+                row = scores(net, where, realizations, args.lag,
+                             args.node_memory)
                 print(f'{where.name} ({name}, {len(realizations)} '
-                      f'realizations) {label}: '
-                      f'{scores(net, where, realizations, args.lag)}',
-                      flush=True)
+                      f'realizations) {label}: {row}', flush=True)
 
 
 if __name__ == '__main__':
