@@ -12,6 +12,7 @@ import torch
 
 import tg_nebp
 from tg_nebp.datasets import Scenario
+from tg_nebp.models import GaussianRange
 
 PACKAGE_ROOT = str(Path(tg_nebp.__file__).resolve().parents[1])
 
@@ -424,6 +425,23 @@ def simulate_robots(motion, measurement, true_control, anchors, start,
         num_nodes=count + anchors.size(0))
 
 
+class GeneralRange(GaussianRange):
+    r"""The Gaussian range through the general (matrix) messages: a range
+    model with its own :meth:`linearize` is not sent rank-one messages."""
+    def linearize(self, *args):
+        return super().linearize(*args)
+
+
+def anchor_links_only(data):
+    r"""The realization without its links between agents."""
+    keep = data.anchor[data.edge_index[0]]
+    out = data.clone()
+    out.edge_index = data.edge_index[:, keep]
+    out.edge_attr = data.edge_attr[keep]
+    out.edge_time = data.edge_time[keep]
+    return out
+
+
 def embed_in_3d(data, height_var=4.0):
     r"""A 2-D realization as a 3-D one at height zero: states [x, y, 0, v_x,
     v_y, 0], the prior's height (variance :obj:`height_var`) and vertical
@@ -480,10 +498,13 @@ def live_trackers():
     session tests: Gaussian BP plain and recommended, the IEKF joint and
     marginal, particle BP plain and recommended (M-sample messages,
     regularized), NEBP, the Gaussian NEBP, fixed-lag Gaussian BP (a
-    window of 3 steps, and one of 4 whose 2 oldest are settled), hybrid BP (over Gaussian BP and over that window)
-    and the incremental smoother (relinearizing every other step)."""
+    window of 3 steps, and one of 4 whose 2 oldest are settled), the
+    Gaussian NEBP in a window of 3, hybrid BP (over Gaussian BP and over
+    that window) and the incremental smoother (relinearizing every other
+    step)."""
     from tg_nebp.filters import (NEBP, CentralizedIEKF, FixedLagGaussianBP,
-                                 GaussianBP, GaussianNEBP, HybridBP,
+                                 FixedLagGaussianNEBP, GaussianBP,
+                                 GaussianNEBP, HybridBP,
                                  IncrementalSmoother, ParticleBP)
     return {
         'gbp': lambda: GaussianBP(),
@@ -499,6 +520,8 @@ def live_trackers():
                                        hidden_dim=8), seed=4, scale=0.1),
         'gnebp': lambda: randomize(GaussianNEBP.recommended(hidden_dim=8),
                                    seed=5, scale=0.1),
+        'gnebp-lag3': lambda: randomize(FixedLagGaussianNEBP.recommended(
+            lag=3, hidden_dim=8), seed=5, scale=0.1),
         'hybrid': lambda: HybridBP.recommended(num_particles=20),
         'hybrid-lag3': lambda: HybridBP.recommended(lag=3, num_particles=20),
         'iekf-incremental': lambda: IncrementalSmoother(relinearize_skip=2),

@@ -5,6 +5,7 @@ import json
 import pytest
 
 from tg_nebp.cli import main
+from tg_nebp.filters import FixedLagGaussianNEBP
 from tg_nebp.models import NLOSRange
 from tg_nebp.training import (gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -184,6 +185,29 @@ def test_train_gaussian_nebp_on_a_mix_of_scenarios(tmp_path, capsys):
                  '--out', str(tmp_path / 'o3'), *common]) == 2
     assert capsys.readouterr().err.startswith(
         "error: 'hidden_dim' (--hidden-dim) is for the gaussian base")
+    # and so is the window
+    assert main(['train', '--scenario', str(clean), '--lag', '3',
+                 '--out', str(tmp_path / 'o4'), *common]) == 2
+    assert capsys.readouterr().err.startswith(
+        "error: 'lag' (--lag) is for the gaussian base")
+
+
+def test_train_gaussian_nebp_in_a_window(tmp_path, capsys):
+    # trained through the window's iterations on the loss of every window
+    # step; its checkpoint rebuilds the window, trained
+    scenario = tmp_path / 'tiny.json'
+    scenario.write_text(json.dumps(dict(vars(tiny_scenario(steps=4)))))
+    out = tmp_path / 'out'
+    assert main(['train', '--base', 'gaussian', '--lag', '3', '--scenario',
+                 str(scenario), '--realizations', '2', '--val-realizations',
+                 '1', '--epochs', '1', '--batch-size', '2', '--iterations',
+                 '4', '--hidden-dim', '8', '--lr', '0.01', '--root',
+                 str(tmp_path / 'data'), '--out', str(out), '--quiet']) == 0
+    assert 'negative log-likelihood' in capsys.readouterr().out
+    model = gaussian_nebp_from_checkpoint(out / 'nebp.pt')
+    assert isinstance(model, FixedLagGaussianNEBP)
+    assert (model.lag, model.num_iterations, model.inflation) == (3, 4, 1.5)
+    assert float(model.correction.weight_head.weight.abs().sum()) > 0
 
 
 def test_fit_then_evaluate_record_track_and_score_a_real_sequence(

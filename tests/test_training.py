@@ -14,7 +14,8 @@ import torch
 from torch_geometric.data import Batch
 
 from tg_nebp.datasets import Scenario
-from tg_nebp.filters import NEBP, GaussianNEBP, StepOutput
+from tg_nebp.filters import (NEBP, FixedLagGaussianNEBP, GaussianNEBP,
+                             StepOutput)
 from tg_nebp.training import (CHECKPOINT_VERSION, PRETRAINED, adam,
                               checkpoint_base, checkpoint_path, gaussian_nebp_from_checkpoint,
                               gaussian_step_loss, load_checkpoint,
@@ -659,9 +660,12 @@ def test_pretrained_checkpoints_load_by_name_with_their_command(name):
     path = checkpoint_path(name)
     assert path.is_file() and path.parent.name == 'pretrained'
     tracker = gaussian_nebp_from_checkpoint(name)
-    assert isinstance(tracker, GaussianNEBP)
+    windowed = name.startswith('window')
+    assert isinstance(tracker, (FixedLagGaussianNEBP if windowed else
+                                GaussianNEBP))
     # trained: not the identity correction of an untrained one
-    assert float(tracker.conv.weight_head.weight.detach().abs().sum()) > 0
+    assert float(tracker.correction.weight_head.weight.detach().abs().sum(
+    )) > 0
     readme = (path.parent / 'README.md').read_text()
     assert f'`{name}.pt`' in readme and 'tg-nebp train --base gaussian' \
         in readme

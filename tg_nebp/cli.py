@@ -311,6 +311,11 @@ def _train_command(sub) -> None:
                     "particle)")
     tr.add_argument('--hidden-dim', type=_positive, default=32,
                     help='embedding size of the Gaussian base (default: 32)')
+    tr.add_argument('--lag', type=_positive, default=None,
+                    help='the Gaussian base inside the window of fixed-lag '
+                    'Gaussian BP of this many steps (FixedLagGaussianNEBP, '
+                    'trained on the loss of every window step; default: '
+                    'no window)')
     tr.add_argument('--particles', type=_positive, default=None,
                     help='particles K (default: 1000; the paper: 50000)')
     tr.add_argument('--variant', choices=sorted(VARIANTS), default='paper',

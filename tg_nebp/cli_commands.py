@@ -86,7 +86,8 @@ def run_train(args) -> int:
             args.measurement, args.samples, args.regularize,
             args.ess_threshold, args.resume, args.log_dir, args.root,
             device, args.compile, progress_bars(args), base=args.base,
-            hidden_dim=args.hidden_dim, val_scenario=args.val_scenario)
+            hidden_dim=args.hidden_dim, val_scenario=args.val_scenario,
+            lag=args.lag)
         if process_group()[1] > 0:
             return 0
     for h in trained.history:

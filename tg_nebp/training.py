@@ -20,7 +20,8 @@ from torch import Tensor
 from torch.utils.data.distributed import DistributedSampler
 from torch_geometric.data import Batch
 
-from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
+from tg_nebp.filters import (NEBP, FixedLagGaussianNEBP, GaussianNEBP,
+                             StepOutput, Tracker)
 from tg_nebp.data.realization import position_dim_of
 from tg_nebp.data.validation import check_number
 from tg_nebp.io import atomic_write, one_line, read_tensors
@@ -30,7 +31,7 @@ __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
            'position_loss', 'save_checkpoint', 'load_checkpoint',
            'nebp_from_checkpoint', 'gaussian_nebp_from_checkpoint',
            'tracker_from_checkpoint', 'checkpoint_path', 'checkpoint_base',
-           'gaussian_step_loss',
+           'gaussian_step_loss', 'gaussian_window_loss',
            'checkpoint_history', 'CHECKPOINT_VERSION', 'MAX_LR', 'BASES',
            'PRETRAINED']
 
@@ -46,7 +47,9 @@ READABLE_VERSIONS = (2, 3)
 
 #: The trackers a checkpoint holds, by the :obj:`base` of its
 #: configuration (none: a particle NEBP, as every checkpoint before the
-#: Gaussian one).
+#: Gaussian one); a Gaussian one whose configuration has a :obj:`lag`
+#: holds the correction inside a window
+#: (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`).
 BASES = {'particle': NEBP, 'gaussian': GaussianNEBP}
 #: The evaluation method of each base (:obj:`tg-nebp evaluate --method`).
 _METHOD_OF_BASE = {'particle': 'nebp', 'gaussian': 'gnebp'}
@@ -54,10 +57,15 @@ _METHOD_OF_BASE = {'particle': 'nebp', 'gaussian': 'gnebp'}
 #: The names of the checkpoints that ship with the package, Gaussian NEBP
 #: trained on the paper's training network (:obj:`"paper"`), on its NLOS
 #: variant with the Gaussian likelihood inside (:obj:`"nlos"`), on a mix of
-#: the 2-D regimes (:obj:`"mix"`) and on the 3-D training network
-#: (:obj:`"box3d"`). The commands that made them are in
-#: :obj:`tg_nebp/pretrained/README.md`.
-PRETRAINED = ('paper', 'nlos', 'mix', 'box3d', 'robots', 'mrclam')
+#: the 2-D regimes (:obj:`"mix"`), on the 3-D training network
+#: (:obj:`"box3d"`), on the simulated and the real robots (:obj:`"robots"`,
+#: :obj:`"mrclam"`), and inside the window of 5 steps of fixed-lag Gaussian
+#: BP on the paper's, sparse and wide-prior training networks
+#: (:obj:`"window"`, a :class:`~tg_nebp.filters.FixedLagGaussianNEBP`) and
+#: on the 3-D one (:obj:`"window3d"`).
+#: The commands that made them are in :obj:`tg_nebp/pretrained/README.md`.
+PRETRAINED = ('paper', 'nlos', 'mix', 'box3d', 'robots', 'mrclam', 'window',
+              'window3d')
 
 
 def checkpoint_path(checkpoint: Union[str, Path]) -> Path:
@@ -112,6 +120,21 @@ def gaussian_step_loss(step, batch: Batch) -> Tensor:
     return (nll + error.square().sum(-1)).sum()
 
 
+def gaussian_window_loss(step, batch: Batch) -> Tensor:
+    r""":func:`gaussian_step_loss` of every step of the window that a
+    windowed tracker's step holds (its :obj:`window_mean` and
+    :obj:`window_cov`: the estimates of the window's steps after this
+    one), summed: the loss that trains a correction through the window
+    (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`), which changes the
+    past steps' estimates too. A step without a window: its own."""
+    if step.window_mean is None:
+        return gaussian_step_loss(step, batch)
+    width = step.window_mean.size(1)
+    return sum(gaussian_step_loss(StepOutput(
+        step.t - width + 1 + k, step.window_mean[:, k],
+        step.window_cov[:, k]), batch) for k in range(width))
+
+
 def save_checkpoint(path: Union[str, Path], model: Tracker,
                     optimizer: Optional[torch.optim.Optimizer] = None,
                     progress: Optional[dict] = None):
@@ -162,8 +185,11 @@ def _load_base(path: Union[str, Path], base: Optional[str] = None) -> dict:
 
 
 def _rebuilt(path, state: dict, options: dict) -> Tracker:
-    # the tracker of a checkpoint's base, with its weights
-    tracker = BASES[base_of(state['config'])]
+    # the tracker of a checkpoint's base (the window's correction where it
+    # has a lag), with its weights
+    base = base_of(state['config'])
+    tracker = (FixedLagGaussianNEBP if base == 'gaussian' and
+               'lag' in state['config'] else BASES[base])
     try:
         model = tracker.from_config(state['config'], **options)
         model.load_state_dict(state['model'])
@@ -204,8 +230,9 @@ def nebp_from_checkpoint(path: Union[str, Path],
 
 def gaussian_nebp_from_checkpoint(path: Union[str, Path],
                                   **options) -> GaussianNEBP:
-    r"""Rebuilds a :class:`~tg_nebp.filters.GaussianNEBP` tracker from a
-    checkpoint: a path or a name of :data:`PRETRAINED`
+    r"""Rebuilds a :class:`~tg_nebp.filters.GaussianNEBP` tracker (a
+    :class:`~tg_nebp.filters.FixedLagGaussianNEBP` where it was trained
+    in a window) from a checkpoint: a path or a name of :data:`PRETRAINED`
     (:func:`checkpoint_path`). :obj:`options` replace entries that do not
     size the network (:obj:`num_iterations`, :obj:`tolerance`). A particle
     NEBP's checkpoint is refused by name."""

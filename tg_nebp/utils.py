@@ -24,6 +24,7 @@ __all__ = [
     'floored_exp',
     'compute_dtype',
     'plain_tensor',
+    'detached',
     'sort_by_receiver',
     'as_edge_index',
     'long_edge_index',
@@ -272,6 +273,20 @@ def plain_tensor(tensor: Tensor) -> Tensor:
     if isinstance(tensor, (EdgeIndex, Index)):
         return tensor.as_tensor()
     return tensor
+
+
+def detached(value):
+    r""":obj:`value` with every tensor in it detached: a tensor, or a
+    (named) tuple or list of them, nested, :obj:`None` and other values
+    kept (a tracker's state between the steps of a training truncated in
+    time)."""
+    if isinstance(value, Tensor):
+        return value.detach()
+    if isinstance(value, tuple) and hasattr(value, '_fields'):
+        return type(value)(*(detached(item) for item in value))
+    if isinstance(value, (tuple, list)):
+        return type(value)(detached(item) for item in value)
+    return value
 
 
 def sort_by_receiver(edge_index: Tensor, num_nodes: int,

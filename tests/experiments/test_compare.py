@@ -288,6 +288,36 @@ def test_a_gaussian_nebp_checkpoint_gets_its_own_row(tmp_path):
     assert plain['rmse'] == pytest.approx(learned['rmse'], rel=1e-9)
 
 
+def test_a_window_checkpoint_gets_a_smoothers_two_rows(tmp_path):
+    # the correction trained in a window of 3: 'gnebp-lag3 <file> <hash>'
+    # (filtered) and 'gnebp-lag3-smoothed ...', divided by the smoothing
+    # bound at its lag; untrained it is the recommended window's numbers
+    from tg_nebp.experiments.compare import floor_row
+    from tg_nebp.filters import FixedLagGaussianNEBP, Smoothed
+    checkpoint = tmp_path / 'w.pt'
+    save_checkpoint(checkpoint, FixedLagGaussianNEBP.recommended(
+        lag=3, hidden_dim=4))
+    rows = compare_methods(tiny_scenario(), [checkpoint], lag=3)
+    keys = [k for k in rows if k.startswith('gnebp')]
+    assert [k.split(' ')[:2] for k in keys] == [
+        ['gnebp-lag3', 'w.pt'], ['gnebp-lag3-smoothed', 'w.pt']]
+    assert isinstance(rows[keys[0]][1](), FixedLagGaussianNEBP)
+    smoothed = rows[keys[1]][1]()
+    assert isinstance(smoothed, Smoothed) and isinstance(
+        smoothed.tracker, FixedLagGaussianNEBP)
+    assert [floor_row(k) for k in keys] == ['pcrb', 'pcrb-lag3']
+    result = run_compare(
+        methods=['pcrb', 'gbp-lag3 gaussian', 'gbp-lag3-smoothed gaussian',
+                 'gnebp-lag3'], checkpoints=[checkpoint], lag=3,
+        root=str(tmp_path / 'data'), scenarios=scenario_files(tmp_path)[:1],
+        realizations=1, out=tmp_path / 'out', log=lambda _: None)
+    table = result['results']['tiny']
+    for window, learned in zip(('gbp-lag3 gaussian',
+                                'gbp-lag3-smoothed gaussian'), keys):
+        assert table[window]['rmse'] == pytest.approx(table[learned]['rmse'],
+                                                      rel=1e-9)
+
+
 def test_smoother_rows_each_beside_its_bound(tmp_path, capsys):
     # with a lag the smoothers join the table, their smoothed rows divided
     # by the smoothing bound of the same realizations and lag

@@ -15,9 +15,10 @@ from tg_nebp.filters import (AgentPrior, CentralizedSmoother,
                              TrackingSession)
 from tg_nebp.models import ConstantVelocity, StudentTRange
 
-from helpers import (assert_batch_equals_alone, gen, linear_kalman_filter,
-                     linear_rts_smoother, linear_scenario, stream_realization,
-                     tiny_scenario, tree_realization)
+from helpers import (anchor_links_only, assert_batch_equals_alone, gen,
+                     linear_kalman_filter, linear_rts_smoother,
+                     linear_scenario, stream_realization, tiny_scenario,
+                     tree_realization)
 
 
 @pytest.mark.parametrize('options', [
@@ -212,16 +213,6 @@ def test_settings_and_errors():
         FixedLagGaussianBP(3, settled_inflation=0.5)
 
 
-def _anchor_links_only(data):
-    # the realization without its links between agents
-    keep = data.anchor[data.edge_index[0]]
-    out = data.clone()
-    out.edge_index = data.edge_index[:, keep]
-    out.edge_attr = data.edge_attr[keep]
-    out.edge_time = data.edge_time[keep]
-    return out
-
-
 @pytest.mark.parametrize('iterated', [1, 2, 3])
 def test_settled_steps_are_exact_where_their_messages_cannot_change(
         iterated):
@@ -230,7 +221,7 @@ def test_settled_steps_are_exact_where_their_messages_cannot_change(
     # of the iterated ones, one backward pass into them) give every
     # window of the full iteration, which is the Kalman smoother's (above)
     scenario, data = tree_realization(steps=6)
-    data = _anchor_links_only(data)
+    data = anchor_links_only(data)
     options = dict(num_iterations=60, tolerance=1e-12,
                    motion=scenario.motion_model,
                    measurement=scenario.measurement_model)

@@ -11,23 +11,16 @@ from torch_geometric.data import Batch
 
 from tg_nebp.data import Realization
 from tg_nebp.filters import GaussianBP, GaussianNEBP
-from tg_nebp.models import ConstantVelocity, GaussianRange
+from tg_nebp.models import ConstantVelocity
 from tg_nebp.training import gaussian_step_loss
 
-from helpers import (assert_batch_equals_alone, gen, randomize,
-                     tiny_scenario)
+from helpers import (GeneralRange, assert_batch_equals_alone, gen,
+                     randomize, tiny_scenario)
 
 
 def spd(info):
     symmetric = torch.equal(info, info.transpose(-1, -2))
     return symmetric and not bool(torch.linalg.cholesky_ex(info)[1].any())
-
-
-class GeneralRange(GaussianRange):
-    # the same model through the general (matrix) messages: a range model
-    # with its own linearize is not sent rank-one messages
-    def linearize(self, *args):
-        return super().linearize(*args)
 
 
 def test_identity_tracker_is_gaussian_bp_bit_for_bit():

@@ -83,7 +83,10 @@ def compare_methods(scenario: Scenario,
     likelihood, and NEBP from every checkpoint, particle
     (:obj:`"nebp <file> <hash>"`) or Gaussian (:obj:`"gnebp <file>
     <hash>"`, and hybrid BP over it, :obj:`"hybrid-gnebp <file>
-    <hash>"`; a name of :data:`~tg_nebp.training.PRETRAINED` is the
+    <hash>"`; one trained in a window of :math:`L` steps,
+    :class:`~tg_nebp.filters.FixedLagGaussianNEBP`, as a smoother's two
+    rows, :obj:`"gnebp-lagL <file> <hash>"` and :obj:`"gnebp-lagL-smoothed
+    <file> <hash>"`; a name of :data:`~tg_nebp.training.PRETRAINED` is the
     shipped checkpoint): the file's hash is part of the key, so a changed
     checkpoint is a new row.
 
@@ -101,7 +104,7 @@ def compare_methods(scenario: Scenario,
     :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
     hybrid BP over it (:obj:`"hybrid-lagL ..."`, filtered)."""
     from tg_nebp.training import (checkpoint_base, checkpoint_path,
-                                  tracker_from_checkpoint)
+                                  load_checkpoint, tracker_from_checkpoint)
 
     motion, own = scenario.motion_model, scenario.measurement_model
     methods = {BOUND: ('the posterior CRB: the floor, and an efficient '
@@ -224,6 +227,18 @@ def compare_methods(scenario: Scenario,
             raise ValueError(f"the NEBP checkpoint '{path}' does not exist")
         base = checkpoint_base(path)
         kind = CHECKPOINT_ROWS[base]
+        window = load_checkpoint(path)['config'].get('lag')
+        if window is not None:
+            # the correction inside a window: a smoother's two rows
+            name = f'{kind}{lag_key(window)}'
+            methods[f'{name} {path.name} {_file_hash(path)}'] = (
+                f'Gaussian NEBP in a window of {window} from {path}, '
+                f'filtered', lambda path=path: tracker_from_checkpoint(path))
+            methods[f'{name}{SMOOTHED} {path.name} {_file_hash(path)}'] = (
+                f'Gaussian NEBP in a window of {window} from {path}, '
+                f'smoothed',
+                lambda path=path: Smoothed(tracker_from_checkpoint(path)))
+            continue
         methods[f'{kind} {path.name} {_file_hash(path)}'] = (
             f'{"Gaussian " if base == "gaussian" else ""}NEBP from {path}',
             lambda path=path: tracker_from_checkpoint(path))

@@ -13,9 +13,11 @@ from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
 from tg_nebp.experiments.evaluate import (realizations_of, scenario_of,
                                           tracker_measurement)
-from tg_nebp.filters import NEBP, GaussianNEBP, Tracker
+from tg_nebp.filters import (NEBP, FixedLagGaussianNEBP, GaussianNEBP,
+                             Tracker)
 from tg_nebp.training import (BASES, checkpoint_history, gaussian_step_loss,
-                              step_loss, steps_per_epoch, train)
+                              gaussian_window_loss, step_loss,
+                              steps_per_epoch, train)
 from tg_nebp.training_log import TrainingLog
 from tg_nebp.utils import check_device, process_group
 
@@ -109,8 +111,8 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
                    description: str = 'train', base: str = 'particle',
                    hidden_dim: int = _GAUSSIAN_HIDDEN_DIM,
                    val_scenario: Union[str, Scenario, Sequence,
-                                       None] = None
-                   ) -> TrainedScenario:
+                                       None] = None,
+                   lag: Optional[int] = None) -> TrainedScenario:
     r"""Trains NEBP on :obj:`realizations` realizations of
     :obj:`scenario` drawn from :obj:`seed` (100 by default), validated on
     :obj:`val_realizations` (10 by default) drawn from :obj:`seed + 1` of
@@ -130,10 +132,15 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
     it is :class:`~tg_nebp.filters.GaussianNEBP` (embeddings of
     :obj:`hidden_dim`; :obj:`iterations` default 20), trained on
     :func:`~tg_nebp.training.gaussian_step_loss`, and the particle options
-    are refused. :obj:`scenario` may be a list: the realizations of every
-    scenario (:obj:`realizations` and :obj:`val_realizations` of each)
-    are mixed (:class:`MixedRealizations`), and the tracker takes the
-    first's models.
+    are refused; with a :obj:`lag` it is the correction inside the window
+    of fixed-lag Gaussian BP
+    (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`, the window's
+    recommended inflation under the learned ones), trained on
+    :func:`~tg_nebp.training.gaussian_window_loss`. :obj:`scenario` may
+    be a list: the realizations of every scenario (:obj:`realizations`
+    and :obj:`val_realizations` of each) are mixed
+    (:class:`MixedRealizations`), and the tracker takes the first's
+    models.
 
     A real sequence (:class:`~tg_nebp.datasets.MRCLAMScenario`) gives its
     windows (all of them by default), the same ones for every seed: its
@@ -163,11 +170,13 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
         if base == 'gaussian' and value != _PARTICLE_OPTIONS[name]:
             raise ValueError(f"'{name}' (--{name.replace('_', '-')}) is "
                              f"for the particle base, not the gaussian one")
-    if base == 'particle' and hidden_dim != _GAUSSIAN_HIDDEN_DIM:
-        raise ValueError("'hidden_dim' (--hidden-dim) is for the gaussian "
-                         "base, not the particle one")
+    for name, given in (('hidden_dim', hidden_dim != _GAUSSIAN_HIDDEN_DIM),
+                        ('lag', lag is not None)):
+        if base == 'particle' and given:
+            raise ValueError(f"'{name}' (--{name.replace('_', '-')}) is for "
+                             f"the gaussian base, not the particle one")
     for name, value in (('particles', particles), ('iterations', iterations),
-                        ('hidden_dim', hidden_dim)):
+                        ('hidden_dim', hidden_dim), ('lag', lag)):
         if value is not None:
             check_positive_int(value, name)
     scenarios = ([scenario_of(s) for s in scenario]
@@ -201,7 +210,14 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
     val_set = _mixed(datasets[len(scenarios):], features)
     scenario = first
     torch.manual_seed(seed)  # the GNN's initial weights
-    if base == 'gaussian':
+    if base == 'gaussian' and lag is not None:
+        model = FixedLagGaussianNEBP.recommended(
+            lag=lag, motion=first.motion_model, measurement=inside,
+            hidden_dim=hidden_dim, position_dim=first.position_dim,
+            **({} if iterations is None else
+               dict(num_iterations=iterations)))
+        loss = gaussian_window_loss
+    elif base == 'gaussian':
         model = GaussianNEBP(20 if iterations is None else iterations,
                              motion=first.motion_model,
                              measurement=inside, hidden_dim=hidden_dim,

@@ -11,9 +11,10 @@ from .centralized_smoother import CentralizedSmoother
 from .incremental_smoother import IncrementalSmoother, SmootherState
 from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
                           SolvedStep)
-from .gaussian_nebp import GaussianNEBP
+from .gaussian_nebp import GaussianNEBP, LearnedCorrection
 from .fixed_lag_gbp import (FIXED_LAG_RECOMMENDED, FixedLagGaussianBP,
                             WindowState)
+from .fixed_lag_gaussian_nebp import FixedLagGaussianNEBP
 from .relocation import LinkSearch, SearchResult
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import TrackingSession
@@ -35,7 +36,9 @@ __all__ = [
     'Smoothed',
     'GaussianBP',
     'GaussianNEBP',
+    'LearnedCorrection',
     'FixedLagGaussianBP',
+    'FixedLagGaussianNEBP',
     'FIXED_LAG_RECOMMENDED',
     'WindowState',
     'HybridBP',

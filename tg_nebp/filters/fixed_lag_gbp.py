@@ -411,28 +411,32 @@ class FixedLagGaussianBP(GaussianBP):
                                                     0)
         agents = (~anchor).nonzero().view(-1)
         settled = None, None  # no settled step: no forward pass to keep
+        # a learned correction's memory: every agent's, on each of its
+        # rows of the window (the iterated ones)
+        memory = None if state.memory is None else state.memory.repeat(
+            width - split, 1)
         if state.messages is None and width == 1:
             # no message yet: a window of one step is its prior
             belief = window.prior
             covs = window.prior_cov.unsqueeze(1)
-            belief, messages, covs = self._iterate_window(
+            belief, messages, covs, memory = self._iterate_window(
                 window, belief, messages, fresh, covs, anchor, graph_of,
-                num_graphs, generator)
+                num_graphs, generator, memory)
             points = belief.mean.view(width, num, size).transpose(0, 1)
         elif split == 0:
             points = self._points(state, window, anchor)
             belief, covs = self.share(*self._solve(window, points, messages,
                                                    agents))
-            belief, messages, covs = self._iterate_window(
+            belief, messages, covs, memory = self._iterate_window(
                 window, belief, messages, fresh, covs, anchor, graph_of,
-                num_graphs, generator)
+                num_graphs, generator, memory)
             points = belief.mean.view(width, num, size).transpose(0, 1)
         else:
-            belief, messages, covs, points, settled = \
+            belief, messages, covs, points, settled, memory = \
                 self._settled_and_iterated(
                     state, window, self._points(state, window, anchor),
                     messages, fresh, split, anchor, graph_of, num_graphs,
-                    generator, t)
+                    generator, t, memory)
         layout = self.motion.layout(size)
         means = belief.mean.view(width, num, size).transpose(0, 1)
         output = StepOutput(t, layout.wrap(means[:, -1]), covs[:, -1],
@@ -440,7 +444,9 @@ class FixedLagGaussianBP(GaussianBP):
                             window_cov=covs,
                             window_start=state.start if bool(
                                 state.start.any()) else None)
-        state = WindowState(state.mean, state.cov, state.fresh, state.memory,
+        # the memory carried on: that of the agents' newest rows
+        state = WindowState(state.mean, state.cov, state.fresh,
+                            None if memory is None else memory[-num:],
                             state.predicted, points, window.links,
                             window.link_attr, self._time_steps(state, motion),
                             window.control, tuple(messages),
@@ -468,7 +474,8 @@ class FixedLagGaussianBP(GaussianBP):
     def _settled_and_iterated(self, state: WindowState, window: _Window,
                               points: Tensor, messages, fresh: Tensor,
                               split: int, anchor: Tensor, graph_of: Tensor,
-                              num_graphs: int, generator, t: int):
+                              num_graphs: int, generator, t: int,
+                              memory: Optional[Tensor] = None):
         # a step of a window whose first 'split' steps are settled: their
         # messages held, the forward pass over them (continued from the
         # state's where it holds) is the prior of the newest steps, the
@@ -478,8 +485,8 @@ class FixedLagGaussianBP(GaussianBP):
         # threshold from its point are then relinearized at the smoothed
         # beliefs (its point moves there), at every relinearize_skip-th
         # time step t. Returns the window's beliefs, messages,
-        # covariances, points and the settled steps' filtered means and
-        # covariances that still hold
+        # covariances, points, the settled steps' filtered means and
+        # covariances that still hold, and the iterated rows' 'memory'
         num, width, size = points.shape
         agents = (~anchor).nonzero().view(-1)
         held = 0 if state.settled_mean is None else min(
@@ -496,9 +503,9 @@ class FixedLagGaussianBP(GaussianBP):
         iterated = type(messages)(*(m[kept] for m in messages))
         belief, covs = self.share(*self._solve(newest, points[:, split:],
                                                iterated, agents))
-        belief, iterated, covs = self._iterate_window(
+        belief, iterated, covs, memory = self._iterate_window(
             newest, belief, iterated, fresh[kept], covs, anchor, graph_of,
-            num_graphs, generator)
+            num_graphs, generator, memory)
         position = kept.nonzero().view(-1)
         messages = type(messages)(*(m.index_copy(0, position, i) for m, i in
                                     zip(messages, iterated)))
@@ -531,12 +538,13 @@ class FixedLagGaussianBP(GaussianBP):
             points.new_full((1, ), float(split - holds)),
             torch.zeros(1, dtype=torch.long, device=points.device), 1)[0])
         if holds == 0:
-            return belief, messages, covs, points, (None, None)
+            return belief, messages, covs, points, (None, None), memory
         cache_mean = points.new_zeros(num, holds, size)
         cache_cov = points.new_zeros(num, holds, size, size)
         cache_mean[agents] = filtered_mean[:, :holds]
         cache_cov[agents] = filtered_cov[:, :holds]
-        return belief, messages, covs, points, (cache_mean, cache_cov)
+        return (belief, messages, covs, points, (cache_mean, cache_cov),
+                memory)
 
     def _settled_smoothed(self, window: _Window, agents: Tensor,
                           chain: _Chain, points: Tensor, filtered_mean,
@@ -687,7 +695,8 @@ class FixedLagGaussianBP(GaussianBP):
         anchors = anchor.repeat(width)
         return _Window(GaussianBelief(mean, info), cov, state.start, motions,
                        controls, links, link_attr, anchors,
-                       self.conv.factors(links, anchors, size))
+                       self.conv.factors(links, anchors, size,
+                                         slots=not self.rank_one))
 
     @staticmethod
     def _control_at(controls: Optional[Tensor], k: int,
@@ -710,7 +719,7 @@ class FixedLagGaussianBP(GaussianBP):
         count = index.size(1)
         width = len(self.measurement.scope(state.mean.size(1)))
         dtype, device = state.mean.dtype, state.mean.device
-        if self.conv.rank_one:
+        if self.rank_one:
             out = RangeMessages(torch.zeros(count, dtype=dtype, device=device),
                                 torch.zeros(count, dtype=dtype,
                                             device=device),
@@ -933,19 +942,19 @@ class FixedLagGaussianBP(GaussianBP):
     def _iterate_window(self, window: _Window, belief: GaussianBelief,
                         messages, fresh: Tensor, covs: Tensor,
                         anchor: Tensor, graph_of: Tensor, num_graphs: int,
-                        generator):
+                        generator, memory: Optional[Tensor] = None):
         # the iterations of one step over the window: the range messages
-        # of every step from the current beliefs, then the agents' chains
-        # solved (all, or as the schedule picks); a graph whose window
-        # means all moved by at most the tolerance in an iteration keeps
-        # that iteration's beliefs and stops (each graph of a batch as
-        # alone)
+        # of every step from the current beliefs (window_messages, with
+        # the rows' memory), then the agents' chains solved (all, or as
+        # the schedule picks); a graph whose window means all moved by at
+        # most the tolerance in an iteration keeps that iteration's
+        # beliefs and memory and stops (each graph of a batch as alone)
         num, size = anchor.numel(), belief.mean.size(-1)
         width = belief.mean.size(0) // num
         done = torch.zeros(num_graphs, dtype=torch.bool,
                            device=anchor.device)
         moving = ~anchor  # every agent at the first iteration
-        for _ in range(self.num_iterations):
+        for iteration in range(self.num_iterations):
             still = ~done[graph_of]  # the nodes whose graphs iterate
             points = belief.mean.view(width, num, size).transpose(0, 1)
             if self.schedule == 'residual':
@@ -957,12 +966,15 @@ class FixedLagGaussianBP(GaussianBP):
                                      (solve & ~anchor).nonzero().view(-1),
                                      _Solved(belief, covs))
             else:
-                new_messages = self.conv.step_messages(
-                    belief, window.links, window.link_attr, window.anchor,
-                    window.factors, messages, generator, fresh)
+                new_messages, new_memory = self.window_messages(
+                    window, belief, messages, fresh, memory, iteration,
+                    generator)
                 solved = self._solve(window, points, new_messages,
                                      (~anchor).nonzero().view(-1))
                 rows = still.repeat(width)
+                if memory is not None:
+                    memory = torch.where(rows.view(-1, 1), new_memory,
+                                         memory)
                 edges = rows[window.factors.index[1]]
                 solved = _Solved(GaussianBelief(*(
                     torch.where(rows.view((-1, ) + (1, ) * (n.dim() - 1)),
@@ -987,7 +999,30 @@ class FixedLagGaussianBP(GaussianBP):
             done = done | (largest <= self.tolerance)
             if bool(done.all()):
                 break
-        return belief, messages, covs
+        return belief, messages, covs, memory
+
+    def window_messages(self, window: _Window, belief: GaussianBelief,
+                        messages, fresh: Tensor, memory: Optional[Tensor],
+                        iteration: int, generator):
+        r"""The messages of every factor of the window in one iteration
+        of the sweep, from the window's beliefs :obj:`belief` (its
+        space-time rows, step-major) and the previous :obj:`messages`
+        (:obj:`fresh` marks the message edges without one), and the rows'
+        :obj:`memory` after it: Gaussian BP's messages
+        (:meth:`GaussianBPConv.step_messages
+        <tg_nebp.nn.conv.GaussianBPConv.step_messages>`), the memory
+        (:obj:`None`) unchanged. A learned correction tempers them
+        (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`)."""
+        return self.conv.step_messages(
+            belief, window.links, window.link_attr, window.anchor,
+            window.factors, messages, generator, fresh), memory
+
+    @property
+    def rank_one(self) -> bool:
+        r"""Whether the window's messages are rank-one (the conv's
+        :attr:`~tg_nebp.nn.conv.GaussianBPConv.rank_one`, a range model's)
+        rather than general."""
+        return self.conv.rank_one
 
     def share(self, belief: GaussianBelief,
               covs: Tensor) -> Tuple[GaussianBelief, Tensor]:
@@ -1122,7 +1157,7 @@ class FixedLagGaussianBP(GaussianBP):
         if state.messages is not None:
             # the conv's kind of message (the template holds none)
             reach = len(self.measurement.scope(state_size))
-            shapes = ([(), (), (reach, )] if self.conv.rank_one else
+            shapes = ([(), (), (reach, )] if self.rank_one else
                       [(reach, reach), (reach, )])
             found = [tuple(m.shape[1:]) for m in state.messages]
             if found != shapes:
@@ -1173,6 +1208,7 @@ class FixedLagGaussianBP(GaussianBP):
         return state._replace(
             mean=state.mean[keep], cov=state.cov[keep],
             fresh=state.fresh[keep], predicted=state.predicted[keep],
+            memory=None if state.memory is None else state.memory[keep],
             window=state.window[keep], links=links,
             link_attr=state.link_attr[kept],
             control=None if state.control is None else state.control[keep],
@@ -1201,6 +1237,8 @@ class FixedLagGaussianBP(GaussianBP):
             mean=torch.cat([state.mean, joined.mean]),
             cov=torch.cat([state.cov, joined.cov]),
             fresh=torch.cat([state.fresh, joined.fresh]),
+            memory=None if state.memory is None else torch.cat(
+                [state.memory, joined.memory]),
             predicted=torch.cat([state.predicted, joined.predicted]),
             window=torch.cat([state.window, joined.mean.unsqueeze(1).expand(
                 -1, width, -1)]),

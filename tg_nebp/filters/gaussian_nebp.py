@@ -9,10 +9,88 @@ from tg_nebp.filters.gaussian_bp import GBP_RECOMMENDED, GaussianBP
 from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
 from tg_nebp.nn.conv import GaussianNEBPConv
 
-__all__ = ['GaussianNEBP']
+__all__ = ['GaussianNEBP', 'LearnedCorrection']
 
 
-class GaussianNEBP(GaussianBP):
+class LearnedCorrection:
+    r"""What a Gaussian tracker with the learned correction
+    (:class:`~tg_nebp.nn.conv.GaussianNEBPConv`, its attribute
+    :obj:`correction`) adds to its base, shared by :class:`GaussianNEBP` and
+    :class:`~tg_nebp.filters.FixedLagGaussianNEBP`: the check of the
+    realizations' position dimension, the correction's memory and
+    per-agent inflation (times the tracker's :obj:`inflation`), and the
+    configuration a checkpoint keeps and rebuilds."""
+
+    #: The entries of the tracker's :obj:`config()` that
+    #: :meth:`from_config` may replace: they do not size or feed the
+    #: network.
+    RUN_TIME_OPTIONS = ('num_iterations', 'tolerance')
+
+    def check(self, data: Realization) -> None:
+        r"""The realization checks of every tracker, and that its
+        positions have the dimension this correction was built (trained)
+        for."""
+        super().check(data)
+        dim = position_dim_of(data)
+        if dim != self.position_dim:
+            raise ValueError(f"this {type(self).__name__} was built for "
+                             f"{self.position_dim}-D positions, but the "
+                             f"realization's are {dim}-D")
+
+    def initial_memory(self, num_nodes: int, device=None) -> Tensor:
+        return self.correction.initial_memory(num_nodes, device)
+
+    def inflation_of(self, cov: Tensor, memory: Tensor,
+                     anchor: Tensor) -> Tensor:
+        r"""Every agent's learned inflation :math:`\kappa_i`
+        (:meth:`GaussianNEBPConv.inflation
+        <tg_nebp.nn.conv.GaussianNEBPConv.inflation>`) times the
+        tracker's :obj:`inflation`."""
+        return self.inflation * self.correction.inflation(cov, memory,
+                                                          anchor)
+
+    def correction_config(self) -> dict:
+        r"""The entries of :obj:`config()` of every corrected tracker:
+        :obj:`base` (:obj:`"gaussian"`) tells it from the particle
+        :class:`~tg_nebp.filters.NEBP`."""
+        correction = self.correction
+        return dict(base='gaussian', num_iterations=self.num_iterations,
+                    iteration_scale=correction.num_iterations,
+                    ends=correction.ends, damping=correction.damping,
+                    tolerance=self.tolerance,
+                    hidden_dim=correction.hidden_dim,
+                    position_dim=self.position_dim,
+                    motion=self.motion.config(),
+                    measurement=self.measurement.config())
+
+    @staticmethod
+    def upgraded_config(config: dict) -> dict:
+        r"""A configuration written before :obj:`iteration_scale` existed
+        with it at the value it meant (the iterations it was trained
+        with); a current one unchanged."""
+        return {'iteration_scale': config.get('num_iterations'), **config}
+
+    @classmethod
+    def from_config(cls, config: dict, **options):
+        r"""Rebuilds a tracker from its :obj:`config()`; :obj:`options` replace
+        the entries of :data:`RUN_TIME_OPTIONS` (:obj:`num_iterations`,
+        :obj:`tolerance`), which do not size or feed the network; another
+        option is a :class:`ValueError` naming it."""
+        for name in options:
+            if name not in cls.RUN_TIME_OPTIONS:
+                raise ValueError(f"'{name}' is fixed by the checkpoint; only "
+                                 f"{', '.join(cls.RUN_TIME_OPTIONS)} can be "
+                                 f"replaced")
+        config = {**cls.upgraded_config(config), **options}
+        if config.pop('base', None) != 'gaussian':
+            raise ValueError("not the configuration of a Gaussian NEBP")
+        motion = model_from_config(config.pop('motion', None), 'motion')
+        measurement = model_from_config(config.pop('measurement', None),
+                                        'measurement')
+        return cls(motion=motion, measurement=measurement, **config)
+
+
+class GaussianNEBP(LearnedCorrection, GaussianBP):
     r"""Neural Enhanced Gaussian BP: the time loop of
     :class:`~tg_nebp.filters.GaussianBP` (prediction, iterations, early
     stop per graph, float64 beliefs; shared, not copied) with
@@ -78,29 +156,16 @@ class GaussianNEBP(GaussianBP):
             iteration_scale)
         self.position_dim = check_position_dim(position_dim)
 
-    def check(self, data: Realization) -> None:
-        r"""The realization checks of every tracker, and that its
-        positions have the dimension this correction was built (trained)
-        for."""
-        super().check(data)
-        dim = position_dim_of(data)
-        if dim != self.position_dim:
-            raise ValueError(f"this Gaussian NEBP was built for "
-                             f"{self.position_dim}-D positions, but the "
-                             f"realization's are {dim}-D")
-
-    def initial_memory(self, num_nodes: int, device=None) -> Tensor:
-        return self.conv.initial_memory(num_nodes, device)
-
-    def inflation_of(self, cov: Tensor, memory: Tensor,
-                     anchor: Tensor) -> Tensor:
-        r"""Every agent's learned inflation :math:`\kappa_i`
-        (:meth:`GaussianNEBPConv.inflation
-        <tg_nebp.nn.conv.GaussianNEBPConv.inflation>`)."""
-        return self.conv.inflation(cov, memory, anchor)
+    @property
+    def correction(self) -> GaussianNEBPConv:
+        r"""The tracker's conv, which is the learned correction."""
+        return self.conv
 
     def iterate(self, prior, belief, edge_index, edge_attr, anchor,
                 messages, generator, factors, memory, iteration):
+        r"""One corrected iteration (:meth:`GaussianNEBPConv.forward
+        <tg_nebp.nn.conv.GaussianNEBPConv.forward>`): the new beliefs, the
+        tempered messages and the memory."""
         return self.conv(prior, belief, edge_index, edge_attr, anchor,
                          memory, messages, generator, factors, iteration,
                          validate=False)
@@ -149,46 +214,9 @@ class GaussianNEBP(GaussianBP):
 
     def config(self) -> dict:
         r"""Everything needed to rebuild this tracker (saved in
-        checkpoints); :obj:`base` tells it from the particle
-        :class:`~tg_nebp.filters.NEBP`."""
-        return dict(base='gaussian', num_iterations=self.num_iterations,
-                    iteration_scale=self.conv.num_iterations,
-                    ends=self.conv.bp.ends, damping=self.conv.bp.damping,
-                    tolerance=self.tolerance,
-                    hidden_dim=self.conv.hidden_dim,
-                    position_dim=self.position_dim,
-                    motion=self.motion.config(),
-                    measurement=self.measurement.config())
-
-    #: The entries of :meth:`config` that :meth:`from_config` may replace:
-    #: they do not size or feed the network.
-    RUN_TIME_OPTIONS = ('num_iterations', 'tolerance')
-
-    @staticmethod
-    def upgraded_config(config: dict) -> dict:
-        r"""A configuration written before :obj:`iteration_scale` existed
-        with it at the value it meant (the iterations it was trained
-        with); a current one unchanged."""
-        return {'iteration_scale': config.get('num_iterations'), **config}
-
-    @classmethod
-    def from_config(cls, config: dict, **options) -> 'GaussianNEBP':
-        r"""Rebuilds a tracker from :meth:`config`; :obj:`options` replace
-        the entries of :data:`RUN_TIME_OPTIONS` (:obj:`num_iterations`,
-        :obj:`tolerance`), which do not size or feed the network; another
-        option is a :class:`ValueError` naming it."""
-        for name in options:
-            if name not in cls.RUN_TIME_OPTIONS:
-                raise ValueError(f"'{name}' is fixed by the checkpoint; only "
-                                 f"{', '.join(cls.RUN_TIME_OPTIONS)} can be "
-                                 f"replaced")
-        config = {**cls.upgraded_config(config), **options}
-        if config.pop('base', None) != 'gaussian':
-            raise ValueError("not the configuration of a Gaussian NEBP")
-        motion = model_from_config(config.pop('motion', None), 'motion')
-        measurement = model_from_config(config.pop('measurement', None),
-                                        'measurement')
-        return cls(motion=motion, measurement=measurement, **config)
+        checkpoints, :meth:`LearnedCorrection.from_config
+        <tg_nebp.filters.LearnedCorrection.from_config>`)."""
+        return self.correction_config()
 
     def __repr__(self) -> str:
         return (f'{self.__class__.__name__}(num_iterations='

@@ -324,13 +324,15 @@ class GaussianNEBPConv(MessagePassing):
 
     def _corrected(self, belief: GaussianBelief, edge_index: Tensor,
                    edge_attr: Tensor, anchor: Tensor, memory: Tensor,
-                   messages, generator, factors: Factors, iteration: int):
-        # Gaussian BP's messages at the beliefs, the correction's features
-        # and its edge embeddings (what the weights are read from)
+                   messages, generator, factors: Factors, iteration: int,
+                   fresh: Optional[Tensor] = None):
+        # Gaussian BP's messages at the beliefs (those of the message
+        # edges 'fresh' had no previous one: not damped), the correction's
+        # features and its edge embeddings (what the weights are read from)
         linearization = self.bp.linearize(belief, edge_index, edge_attr,
                                           factors, generator)
         new = self.bp.messages(belief, anchor, factors, linearization,
-                               messages)
+                               messages, fresh)
         features = self.features(belief, anchor, factors, linearization,
                                  new, iteration, memory)
         source, target = factors.index
@@ -388,9 +390,30 @@ class GaussianNEBPConv(MessagePassing):
         prior, belief, edge_index, edge_attr, messages, factors = inputs
         if validate:
             self._check_memory(memory, belief.mean.size(0))
+        tempered, memory = self.corrected_messages(
+            belief, edge_index, edge_attr, anchor, memory, messages, factors,
+            iteration, generator)
+        return (self.bp.beliefs(prior, belief, tempered, factors, anchor),
+                tempered, memory)
+
+    def corrected_messages(self, belief: GaussianBelief, edge_index: Tensor,
+                           edge_attr: Tensor, anchor: Tensor, memory: Tensor,
+                           messages, factors: Factors, iteration: int,
+                           generator: Optional[torch.Generator] = None,
+                           fresh: Optional[Tensor] = None
+                           ) -> Tuple[FactorMessages, Tensor]:
+        r"""The tempered messages of one iteration and the memory after
+        it, without the beliefs (the first part of :meth:`forward`; its
+        inputs as :meth:`GaussianBPConv.prepare
+        <tg_nebp.nn.conv.GaussianBPConv.prepare>` gives them): what a
+        tracker that sums the messages into beliefs of its own uses
+        (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`, whose beliefs
+        are each agent's chain over the window). The message edges of the
+        mask :obj:`fresh` :math:`(M)` have no previous message (not
+        damped)."""
         new, features, edge = self._corrected(
             belief, edge_index, edge_attr, anchor, memory, messages,
-            generator, factors, iteration)
+            generator, factors, iteration, fresh)
         hidden = memory[:, :self.hidden_dim]
         node = features.node.to(edge)
         gathered = self.propagate(factors.index, edge=edge,
@@ -401,8 +424,7 @@ class GaussianNEBPConv(MessagePassing):
                                   new.eta * weight)
         memory = torch.cat([hidden, features.consistency.to(edge).view(
             -1, 1), memory[:, _HISTORY:]], -1)
-        return (self.bp.beliefs(prior, belief, tempered, factors, anchor),
-                tempered, memory)
+        return tempered, memory
 
     def _check_memory(self, memory: Tensor, num_nodes: int) -> None:
         # one row per node, in the parameters' dtype and on their device
