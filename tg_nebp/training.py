@@ -123,10 +123,12 @@ def gaussian_step_loss(step, batch: Batch) -> Tensor:
 def gaussian_window_loss(step, batch: Batch) -> Tensor:
     r""":func:`gaussian_step_loss` of every step of the window that a
     windowed tracker's step holds (its :obj:`window_mean` and
-    :obj:`window_cov`: the estimates of the window's steps after this
-    one), summed: the loss that trains a correction through the window
-    (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`), which changes the
-    past steps' estimates too. A step without a window: its own."""
+    :obj:`window_cov`: the estimates of steps :math:`t - W + 1, \dots, t`
+    after step :math:`t`), summed (so its value per agent-step is up to
+    :math:`W` times a filter's): the loss that trains a correction
+    through the window (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`),
+    which changes the past steps' estimates too. A step without a window:
+    its own."""
     if step.window_mean is None:
         return gaussian_step_loss(step, batch)
     width = step.window_mean.size(1)
@@ -228,8 +230,9 @@ def nebp_from_checkpoint(path: Union[str, Path],
     return _rebuilt(path, state, options)
 
 
-def gaussian_nebp_from_checkpoint(path: Union[str, Path],
-                                  **options) -> GaussianNEBP:
+def gaussian_nebp_from_checkpoint(path: Union[str, Path], **options
+                                  ) -> Union[GaussianNEBP,
+                                             FixedLagGaussianNEBP]:
     r"""Rebuilds a :class:`~tg_nebp.filters.GaussianNEBP` tracker (a
     :class:`~tg_nebp.filters.FixedLagGaussianNEBP` where it was trained
     in a window) from a checkpoint: a path or a name of :data:`PRETRAINED`

@@ -10,8 +10,9 @@ from tg_nebp.cli import main
 from tg_nebp.datasets import Scenario, load_scenario
 from tg_nebp.experiments.evaluate import evaluate_scenario, method_tracker
 from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS
-from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF, GaussianBP,
-                             GaussianNEBP, ParticleBP)
+from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
+                             FixedLagGaussianNEBP, GaussianBP, GaussianNEBP,
+                             ParticleBP)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
 
@@ -180,6 +181,14 @@ def test_gnebp_loads_a_checkpoint_with_its_run_time_options(scenario,
         method_tracker('gnebp', scenario, checkpoint=particle)
     with pytest.raises(ValueError, match='with --method gnebp'):
         method_tracker('nebp', scenario, checkpoint=checkpoint)
+    # the correction trained in a window: its own key, and no hybrid BP
+    # over it (that runs over one step)
+    window = tmp_path / 'w.pt'
+    save_checkpoint(window, FixedLagGaussianNEBP(lag=3, hidden_dim=4))
+    tracker, key = method_tracker('gnebp', scenario, checkpoint=window)
+    assert key == 'gnebp-lag3' and isinstance(tracker, FixedLagGaussianNEBP)
+    with pytest.raises(ValueError, match='inside a window of 3'):
+        method_tracker('hybrid', scenario, checkpoint=window)
 
 
 def test_cli_evaluates_a_shipped_gaussian_nebp_by_name(tmp_path, capsys):

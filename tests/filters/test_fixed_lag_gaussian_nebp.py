@@ -214,3 +214,28 @@ def test_a_window_of_one_step_is_gaussian_nebp():
         # and the correction did act
         plain = FixedLagGaussianBP(1)(data)
         assert (plain.mean - window(data).mean).abs().max() > 1e-3
+
+
+def test_the_consistency_history_follows_every_step():
+    # the agents' history of their newest rows' consistency, an
+    # exponential average over every step (GaussianNEBPConv.end_step),
+    # from the second step on: the window's steps before its first slide
+    # included
+    data = tiny_scenario(steps=6).generate(gen(5))
+    tracker = randomize(FixedLagGaussianNEBP.recommended(lag=4, hidden_dim=8),
+                        seed=2, scale=0.2)
+    state = tracker.initial_state(data)
+    history, consistency = [], []
+    with torch.no_grad():
+        for t, (edge_index, edge_attr) in enumerate(data.edges_by_step()):
+            _, state = tracker.step(state, edge_index, edge_attr,
+                                    data.anchor, t)
+            consistency.append(state.memory[:, -2])
+            history.append(state.memory[:, -1])
+    agents = ~data.anchor
+    assert bool((history[0] == 0).all())
+    for t in range(1, len(history)):
+        expected = torch.lerp(history[t - 1], consistency[t - 1], 0.2)
+        torch.testing.assert_close(history[t], expected, rtol=1e-6,
+                                   atol=1e-7)
+        assert bool((history[t][agents] > 0).all())

@@ -18,8 +18,9 @@ from tg_nebp.evaluation import evaluate_method
 from tg_nebp.experiments.options import WHOLE_SEQUENCE, MethodOptions
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
-                             GaussianBP, HybridBP, IncrementalSmoother,
-                             LinkSearch, ParticleBP, Smoothed, Tracker)
+                             FixedLagGaussianNEBP, GaussianBP, HybridBP,
+                             IncrementalSmoother, LinkSearch, ParticleBP,
+                             Smoothed, Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -235,8 +236,11 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
                        tolerance=options.tolerance)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
-        return checked_models(gaussian_nebp_from_checkpoint(
-            checkpoint, **given), scenario, checkpoint), 'gnebp'
+        tracker = checked_models(gaussian_nebp_from_checkpoint(
+            checkpoint, **given), scenario, checkpoint)
+        # the correction trained in a window: its filtered estimates
+        return tracker, 'gnebp' + (lag_key(tracker.lag) if isinstance(
+            tracker, FixedLagGaussianNEBP) else '')
     if method == 'hybrid':
         return _hybrid(scenario, models, checkpoint, options.particles, lag,
                        _given(num_iterations=iterations,
@@ -283,8 +287,13 @@ def _hybrid(scenario, models: dict, checkpoint: Optional[str],
                     f"NEBP checkpoint runs it as trained (one step, its "
                     f"learned inflation, its likelihood)")
         gaussian = checked_models(gaussian_nebp_from_checkpoint(
-            checkpoint, **given), scenario, checkpoint).relocate_with(
-                LinkSearch())
+            checkpoint, **given), scenario, checkpoint)
+        if isinstance(gaussian, FixedLagGaussianNEBP):
+            raise ValueError(
+                f"checkpoint '{checkpoint}' holds the correction inside a "
+                f"window of {gaussian.lag}: hybrid BP runs over a Gaussian "
+                f"NEBP of one step (evaluate it with --method gnebp)")
+        gaussian = gaussian.relocate_with(LinkSearch())
         key = 'hybrid-gnebp'
     elif lag is not None and lag > 1:
         gaussian = FixedLagGaussianBP.recommended(

@@ -43,8 +43,10 @@ class FixedLagGaussianNEBP(LearnedCorrection, FixedLagGaussianBP):
     <tg_nebp.nn.conv.GaussianNEBPConv.end_step>`) for the next step and
     for its inflation. Untrained (the output layers at zero) it is
     :meth:`FixedLagGaussianBP.recommended
-    <tg_nebp.filters.FixedLagGaussianBP.recommended>` at the same lag
-    exactly. Training (:func:`tg_nebp.training.train` with
+    <tg_nebp.filters.FixedLagGaussianBP.recommended>` at the same lag with
+    every step iterated (at lag 5 or less, the recommended window itself):
+    bit for bit its general messages, to rounding the rank-one ones of a
+    range model. Training (:func:`tg_nebp.training.train` with
     :func:`~tg_nebp.training.gaussian_window_loss`, Gaussian NEBP's loss
     summed over the window's steps) backpropagates through the unrolled
     iterations of every step; between steps the state is detached
@@ -125,10 +127,12 @@ class FixedLagGaussianNEBP(LearnedCorrection, FixedLagGaussianBP):
         r""":meth:`FixedLagGaussianBP.solve_step
         <tg_nebp.filters.FixedLagGaussianBP.solve_step>` from the state
         detached (training is truncated in time to one step), the last
-        step's consistency added to the agents' history unless every node
-        is fresh."""
+        step's consistency added to the agents' history after every step
+        (before the first, nothing)."""
         state = detached(state)
-        if not bool(state.fresh.all()):
+        # a window's Gaussian before it stays 'fresh' (the given prior)
+        # until its first slide: a step was taken once the window holds one
+        if state.window.size(1) > 0 or not bool(state.fresh.all()):
             state = state._replace(
                 memory=self.correction.end_step(state.memory))
         return super().solve_step(state, *args, **kwargs)
