@@ -31,7 +31,7 @@ __all__ = ['train', 'train_epoch', 'steps_per_epoch', 'adam', 'step_loss',
            'position_loss', 'save_checkpoint', 'load_checkpoint',
            'nebp_from_checkpoint', 'gaussian_nebp_from_checkpoint',
            'tracker_from_checkpoint', 'checkpoint_path', 'checkpoint_base',
-           'gaussian_step_loss', 'gaussian_window_loss',
+           'gaussian_step_loss', 'gaussian_window_loss', 'window_lag',
            'checkpoint_history', 'CHECKPOINT_VERSION', 'MAX_LR', 'BASES',
            'PRETRAINED']
 
@@ -186,12 +186,19 @@ def _load_base(path: Union[str, Path], base: Optional[str] = None) -> dict:
     return state
 
 
+def window_lag(config: dict) -> Optional[int]:
+    r"""The lag of the window a checkpoint's correction was trained in
+    (:class:`~tg_nebp.filters.FixedLagGaussianNEBP`), from its
+    configuration; :obj:`None` for a correction of one step."""
+    return config.get('lag') if base_of(config) == 'gaussian' else None
+
+
 def _rebuilt(path, state: dict, options: dict) -> Tracker:
     # the tracker of a checkpoint's base (the window's correction where it
     # has a lag), with its weights
-    base = base_of(state['config'])
-    tracker = (FixedLagGaussianNEBP if base == 'gaussian' and
-               'lag' in state['config'] else BASES[base])
+    tracker = (BASES[base_of(state['config'])]
+               if window_lag(state['config']) is None else
+               FixedLagGaussianNEBP)
     try:
         model = tracker.from_config(state['config'], **options)
         model.load_state_dict(state['model'])

@@ -104,7 +104,8 @@ def compare_methods(scenario: Scenario,
     :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
     hybrid BP over it (:obj:`"hybrid-lagL ..."`, filtered)."""
     from tg_nebp.training import (checkpoint_base, checkpoint_path,
-                                  load_checkpoint, tracker_from_checkpoint)
+                                  load_checkpoint, tracker_from_checkpoint,
+                                  window_lag)
 
     motion, own = scenario.motion_model, scenario.measurement_model
     methods = {BOUND: ('the posterior CRB: the floor, and an efficient '
@@ -227,7 +228,7 @@ def compare_methods(scenario: Scenario,
             raise ValueError(f"the NEBP checkpoint '{path}' does not exist")
         base = checkpoint_base(path)
         kind = CHECKPOINT_ROWS[base]
-        window = load_checkpoint(path)['config'].get('lag')
+        window = window_lag(load_checkpoint(path)['config'])
         if window is not None:
             # the correction inside a window: a smoother's two rows
             name = f'{kind}{lag_key(window)}'
