@@ -21,6 +21,9 @@ incremental smoother and fixed-lag Gaussian BP on sequence 6's stream
         --methods iekf --lag all --incremental --measurement student-t-range-bearing
     python benchmarks/track_latency.py --scenario mrclam-6 --root DIR \
         --methods gbp --lag 5 --measurement student-t-range-bearing
+
+and with a smoother's line holding the final step of its window alone
+(``--window final``, as ``tg-nebp track --window final``).
 """
 import argparse
 import gc
@@ -33,15 +36,17 @@ import torch
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.experiments.evaluate import method_tracker, scenario_of
 from tg_nebp.filters import TrackingSession
-from tg_nebp.live import estimate_line, parse_step, realization_lines
+from tg_nebp.live import (WINDOW_LINES, estimate_line, parse_step,
+                          realization_lines)
 
 # the options of every method (tg-nebp track's defaults otherwise)
 OPTIONS = {'bp': dict(), 'gnebp': dict(checkpoint='paper')}
 
 
-def replay(tracker, lines):
-    # every line's seconds: read, step, write (the estimate line), and the
-    # step's (the session's update) alone
+def replay(tracker, lines, window='all'):
+    # every line's seconds: read, step, write (the estimate line, with the
+    # smoother's window as --window writes it), and the step's (the
+    # session's update) alone
     session = TrackingSession(tracker)
     seconds, updates = [], []
     with torch.no_grad():
@@ -53,7 +58,7 @@ def replay(tracker, lines):
                                     step.time, step.join, step.leave,
                                     step.control)
             updates.append(time.perf_counter() - stepping)
-            estimate_line(session, output)
+            estimate_line(session, output, window)
             seconds.append(time.perf_counter() - start)
     return seconds, updates
 
@@ -70,6 +75,8 @@ def main():
                         help="as tg-nebp track's (a number, or 'all')")
     parser.add_argument('--incremental', action='store_true')
     parser.add_argument('--measurement', default=None)
+    parser.add_argument('--window', choices=list(WINDOW_LINES),
+                        default='all', help="as tg-nebp track's")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     scenario = scenario_of(args.scenario)
@@ -92,12 +99,13 @@ def main():
         # as tg-nebp track does: the objects made so far leave the
         # collector's full passes
         gc.freeze()
-        seconds, updates = replay(tracker.eval(), lines)
+        seconds, updates = replay(tracker.eval(), lines, args.window)
         gc.unfreeze()
         # the first line joins every node: apart
         ordered = sorted(seconds[1:])
         print(json.dumps(dict(
             method=method, scenario=args.scenario, lag=args.lag,
+            window=args.window,
             steps=len(seconds), threads=args.threads,
             first_ms=round(1e3 * seconds[0], 2),
             median_ms=round(1e3 * statistics.median(seconds[1:]), 2),

@@ -261,6 +261,50 @@ def test_a_smoothers_line_holds_its_revised_window():
     assert 'window' not in json.loads(plain[-1])
 
 
+def test_a_final_window_line_is_the_smoothed_step_and_none_drops_it():
+    # window='final': once the window is full a line holds the step that
+    # leaves it at the next step, bit for bit Smoothed's estimate of that
+    # step (the offline path), and nothing before; 'none' holds no
+    # window; both keep the line's own estimates; another value is refused
+    # before a line is read
+    from tg_nebp.filters import FixedLagGaussianBP, Smoothed
+    data = tiny_scenario(steps=6).generate(gen(2))
+    lines = {}
+    for window in ('all', 'final', 'none'):
+        lines[window] = []
+        track_lines(TrackingSession(FixedLagGaussianBP(3)),
+                    realization_lines(data), lines[window].append,
+                    window=window)
+    smoothed = {step.t: step for step in
+                Smoothed(FixedLagGaussianBP(3)).steps(data)}
+    agents = ~data.anchor
+    written = []
+    for t, text in enumerate(lines['final']):
+        window = json.loads(text).get('window', [])
+        assert [entry['t'] for entry in window] == ([t - 2] if t >= 2
+                                                    else [])
+        for entry in window:
+            step = smoothed[entry['t']]
+            assert torch.equal(torch.tensor(
+                [e['mean'] for e in entry['estimates']],
+                dtype=torch.float64), step.mean[agents])
+            assert torch.equal(torch.tensor(
+                [e['cov'] for e in entry['estimates']],
+                dtype=torch.float64), step.cov[agents])
+            written.append(entry['t'])
+    assert written == list(range(data.num_time_steps - 2))
+    for window in ('final', 'none'):
+        assert [json.loads(text)['estimates'] for text in lines[window]] \
+            == [json.loads(text)['estimates'] for text in lines['all']]
+    assert all('window' not in json.loads(text) for text in lines['none'])
+    read = []
+    with pytest.raises(ValueError, match="'window' must be one of"):
+        track_lines(TrackingSession(FixedLagGaussianBP(3)),
+                    (read.append(line) or line for line in
+                     realization_lines(data)), print, window='last')
+    assert read == []
+
+
 def test_the_window_line_leaves_out_an_agent_before_it_rejoined():
     # agent 0 leaves at step 2 and rejoins at step 3 with a new prior: the
     # window of fixed-lag Gaussian BP then holds its prior at the steps

@@ -24,7 +24,7 @@ from tg_nebp.filters.nebp import VARIANTS
 from tg_nebp.filters.particle_bp import MAX_BANDWIDTH
 from tg_nebp.filters.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
-from tg_nebp.live import ON_ERROR
+from tg_nebp.live import ON_ERROR, WINDOW_LINES
 from tg_nebp.models import MODELS
 from tg_nebp.threads import threads_in_force
 from tg_nebp.training import MAX_LR, PRETRAINED
@@ -510,6 +510,12 @@ def _track_command(sub) -> None:
                     'MRCLAM sequence)')
     tk.add_argument('--seed', type=_non_negative, default=0,
                     help='seed of the session\'s draws (default: 0)')
+    tk.add_argument('--window', choices=list(WINDOW_LINES), default='all',
+                    help='what a smoother\'s line holds of its window: '
+                    'every earlier step revised (all), the step that '
+                    'leaves the full window at the next step (final: a '
+                    'line that does not grow with the lag) or none '
+                    '(default: all)')
     _add_method_options(tk)
     _add_common(tk, root=False)
     tk.set_defaults(run=run_track)

@@ -108,7 +108,8 @@ def run_track(args) -> int:
     counts = track_stream(args.method, args.input, args.output,
                           args.scenario, args.on_error, args.save_state,
                           args.resume, args.seed, args.device,
-                          options=MethodOptions.of(args))
+                          options=MethodOptions.of(args),
+                          window=args.window)
     if counts['skipped']:
         sys.stderr.write(f"{counts['skipped']} bad line(s) skipped\n")
     return 0

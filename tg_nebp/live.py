@@ -46,11 +46,24 @@ from tg_nebp.io import first_line
 
 __all__ = ['StreamStep', 'parse_step', 'estimate_line', 'realization_lines',
            'truth_lines', 'track_lines', 'score', 'read_lines', 'ON_ERROR',
-           'StreamInterrupted']
+           'WINDOW_LINES', 'StreamInterrupted']
 
 #: What :func:`track_lines` does with a bad line: report it and go on
 #: (:obj:`"skip"`) or end the run (:obj:`"stop"`).
 ON_ERROR = ('skip', 'stop')
+
+#: What a smoother's estimate line holds of its window
+#: (:func:`estimate_line`, :obj:`tg-nebp track --window`): every earlier
+#: step, revised at this step (:obj:`"all"`); the final one alone, the step
+#: that leaves the full window at the next step (:obj:`"final"`: a line
+#: whose length does not grow with the lag); or none (:obj:`"none"`).
+WINDOW_LINES = ('all', 'final', 'none')
+
+
+def _check_window(window: str) -> None:
+    if window not in WINDOW_LINES:
+        raise ValueError(f"'window' must be one of {list(WINDOW_LINES)}, "
+                         f"got {window!r}")
 _KEYS = ('dt', 'time', 'join', 'leave', 'links', 'control')
 
 
@@ -126,7 +139,8 @@ def parse_step(text: str) -> StreamStep:
                       _list(line.get('leave', []), "'leave'"), control)
 
 
-def estimate_line(session: TrackingSession, output: StepOutput) -> str:
+def estimate_line(session: TrackingSession, output: StepOutput,
+                  window: str = 'all') -> str:
     r"""The estimate line of a step's :obj:`output`: its time index, the
     session's time and every agent's mean and covariance (floats written
     exactly: they read back bit for bit); a smoother's
@@ -134,7 +148,11 @@ def estimate_line(session: TrackingSession, output: StepOutput) -> str:
     estimates of the earlier steps of its window, oldest first,
     :obj:`"window": [{"t": ..., "estimates": [...]}, ...]` (the oldest is
     final: it leaves the window at the next step; an agent that joined
-    since a step has no estimate there)."""
+    since a step has no estimate there). :obj:`window`
+    (:data:`WINDOW_LINES`) keeps all of them, only the final one (once the
+    window is full: the step that leaves it at the next step, with its
+    estimate as :class:`~tg_nebp.filters.Smoothed` gives it), or none."""
+    _check_window(window)
     agents = ~session.anchor
     ids = session.agent_ids
 
@@ -146,11 +164,15 @@ def estimate_line(session: TrackingSession, output: StepOutput) -> str:
     line = dict(t=output.t, time=session.time,
                 estimates=estimates(output.mean[agents].tolist(),
                                     output.cov[agents].tolist()))
-    if output.window_mean is not None and output.window_mean.size(1) > 1:
-        width = output.window_mean.size(1)
-        # one conversion of the whole window: steps first
-        means = output.window_mean[agents, :-1].transpose(0, 1).tolist()
-        covs = output.window_cov[agents, :-1].transpose(0, 1).tolist()
+    width = 0 if output.window_mean is None else output.window_mean.size(1)
+    full = width > 1 and width == getattr(session.tracker, 'lag', None)
+    # the earlier steps written: all, the oldest of a full window, none
+    count = {'all': width - 1, 'final': int(full), 'none': 0}[window]
+    if count > 0:
+        # one conversion of the steps written: steps first
+        means = output.window_mean[agents, :count].transpose(0,
+                                                             1).tolist()
+        covs = output.window_cov[agents, :count].transpose(0, 1).tolist()
         # an agent that joined (or rejoined) within the window has no
         # estimate of the steps before it: left out of theirs
         start = ([0] * len(ids) if output.window_start is None else
@@ -159,7 +181,7 @@ def estimate_line(session: TrackingSession, output: StepOutput) -> str:
             dict(t=output.t - width + 1 + k,
                  estimates=estimates(means[k], covs[k],
                                      [first <= k for first in start]))
-            for k in range(width - 1)]
+            for k in range(count)]
     return json.dumps(line)
 
 
@@ -266,7 +288,8 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
                 report: Callable[[str], None] = print,
                 save_state: Optional[str] = None, done: int = 0,
                 written: int = 0,
-                digests: Optional[Dict[str, str]] = None) -> dict:
+                digests: Optional[Dict[str, str]] = None,
+                window: str = 'all') -> dict:
     r"""Tracks a stream of measurement lines: every line is read
     (:func:`parse_step`), stepped (:meth:`TrackingSession.update
     <tg_nebp.filters.TrackingSession.update>`) and its estimate line
@@ -288,15 +311,17 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
     :class:`ValueError` naming the lines where it first differs (between
     two saved digests). Blank lines are ignored. An interrupt (Ctrl-C) is
     a :class:`StreamInterrupted` saying where the stream stopped (what was
-    saved and written before it stays whole). Returns the counts:
-    :obj:`lines`, :obj:`written`, :obj:`skipped`."""
+    saved and written before it stays whole). A smoother's lines hold
+    its :obj:`window` as :func:`estimate_line` writes it. Returns the
+    counts: :obj:`lines`, :obj:`written`, :obj:`skipped`."""
     if on_error not in ON_ERROR:
         raise ValueError(f"'on_error' must be one of {list(ON_ERROR)}, got "
                          f"{on_error!r}")
+    _check_window(window)
     progress = dict(lines=done, written=written, skipped=0)
     try:
         return _tracked(session, lines, write, on_error, report, save_state,
-                        done, digests, progress)
+                        done, digests, progress, window)
     except KeyboardInterrupt:
         saved = (f"; the saved state holds lines 1-{progress['lines']}"
                  if save_state is not None else '')
@@ -308,7 +333,7 @@ def track_lines(session: TrackingSession, lines: Iterable[str],
 
 
 def _tracked(session, lines, write, on_error, report, save_state, done,
-             digests, progress) -> dict:
+             digests, progress, window) -> dict:
     # the loop of track_lines, keeping 'progress' (the lines done, the
     # estimate lines written, the lines skipped) as it goes
     skipped, number, matched, written = 0, 0, 0, progress['written']
@@ -342,7 +367,7 @@ def _tracked(session, lines, write, on_error, report, save_state, done,
             else:
                 for _, why in session.refused_links:
                     report(f"line {number}: left out {why}")
-                write(estimate_line(session, output))
+                write(estimate_line(session, output, window))
                 written += 1
         if save_state is not None:
             session.save(save_state, progress=dict(

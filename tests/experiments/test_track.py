@@ -335,6 +335,30 @@ def test_hybrid_tracks_live(recorded, tmp_path):
         assert lines['hybrid'] == lines['gbp']
 
 
+def test_track_window_final_writes_the_step_leaving_the_window(recorded,
+                                                              tmp_path):
+    # --window final: fixed-lag Gaussian BP's line holds the oldest step of
+    # its full window alone, as --window all writes it, and the same
+    # estimates; nothing of the window before it is full
+    measurements = tmp_path / 'm.jsonl'
+    measurements.write_text('\n'.join(recorded['lines']) + '\n')
+    lines = {}
+    for window in ('all', 'final'):
+        out = tmp_path / f'{window}.jsonl'
+        assert main(['track', '--method', 'gbp', '--lag', '3', '--scenario',
+                     str(recorded['scenario']), '--input', str(measurements),
+                     '--output', str(out), '--window', window]) == 0
+        lines[window] = [json.loads(line) for line in
+                         out.read_text().split('\n')[:-1]]
+    assert len(lines['final']) == len(recorded['lines']) == STEPS
+    for every, final in zip(lines['all'], lines['final']):
+        assert final['estimates'] == every['estimates']
+        full = len(every.get('window', [])) == 2
+        assert final.get('window') == (every['window'][:1] if full else
+                                       None)
+    assert sum('window' in line for line in lines['final']) == STEPS - 2
+
+
 def test_the_incremental_smoother_tracks_live_and_resumes(recorded,
                                                           tmp_path):
     # the incremental smoother through the live path: a line out per line

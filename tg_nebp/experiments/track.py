@@ -55,7 +55,7 @@ def track_stream(method: str, input: str = '-', output: str = '-',
                  device: str = 'cpu',
                  report: Optional[Callable[[str], None]] = None,
                  options: Optional[MethodOptions] = None,
-                 **given) -> dict:
+                 window: str = 'all', **given) -> dict:
     r"""Tracks a stream of measurement lines (:mod:`tg_nebp.live`) from
     :obj:`input` (a path, or :obj:`"-"`: standard input, read line by
     line as it arrives) with :obj:`method`'s tracker
@@ -71,8 +71,10 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     ends as an uninterrupted run's. A bad line ends the run with a
     :class:`ValueError` naming its line number (:obj:`on_error="stop"`) or
     is reported by :obj:`report` (standard error by default) and skipped
-    (:obj:`"skip"`). Returns the counts of
-    :func:`~tg_nebp.live.track_lines`."""
+    (:obj:`"skip"`). A smoother's lines hold its :obj:`window`
+    (:data:`~tg_nebp.live.WINDOW_LINES`: every earlier step revised, the
+    final one alone, or none; :func:`~tg_nebp.live.estimate_line`).
+    Returns the counts of :func:`~tg_nebp.live.track_lines`."""
     if method not in LIVE_METHODS:
         raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
                          f"(the bound does not track), got {method!r}")
@@ -117,7 +119,7 @@ def track_stream(method: str, input: str = '-', output: str = '-',
             with torch.no_grad():
                 return track_lines(session, read_lines(source), write,
                                    on_error, report, save_state, done,
-                                   written, digests)
+                                   written, digests, window)
         finally:
             gc.unfreeze()
 
