@@ -7,7 +7,8 @@ step's as it leaves the window, the rest from the last window; the
 incremental smoother's from its last step). Methods: ``incremental``
 (:class:`~tg_nebp.filters.IncrementalSmoother`), ``batch``
 (:class:`~tg_nebp.filters.CentralizedSmoother` over the whole sequence: its
-steps are already smoothed) and ``gbp-lagL`` (fixed-lag Gaussian BP,
+steps are already smoothed), ``batch-lagL`` (the centralized smoother over
+a window of L steps) and ``gbp-lagL`` (fixed-lag Gaussian BP,
 recommended), each with the scenario's likelihood.
 
     python benchmarks/smoother_errors.py --scenario mrclam-6-range \
@@ -33,6 +34,8 @@ def tracker_of(method: str, scenario):
         return IncrementalSmoother(**models)
     if method == 'batch':
         return CentralizedSmoother(None, **models)
+    if method.startswith('batch-lag'):
+        return CentralizedSmoother(int(method[9:]), **models)
     if method.startswith('gbp-lag'):
         return FixedLagGaussianBP.recommended(lag=int(method[7:]), **models)
     raise SystemExit(f'unknown method {method!r}')
