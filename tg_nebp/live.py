@@ -60,11 +60,14 @@ ON_ERROR = ('skip', 'stop')
 WINDOW_LINES = ('all', 'final', 'none')
 
 
+_KEYS = ('dt', 'time', 'join', 'leave', 'links', 'control')
+
+
 def _check_window(window: str) -> None:
+    # a value of WINDOW_LINES, else a ValueError naming it
     if window not in WINDOW_LINES:
         raise ValueError(f"'window' must be one of {list(WINDOW_LINES)}, "
                          f"got {window!r}")
-_KEYS = ('dt', 'time', 'join', 'leave', 'links', 'control')
 
 
 class StreamStep(NamedTuple):
