@@ -1,15 +1,17 @@
 r"""Seconds per time step and peak memory of Gaussian BP, fixed-lag Gaussian
-BP (gbp-lag5: a window of 5 steps; gbp-lag5-residual: with residual
-scheduling), its learned correction, Gaussian BP with the relocation of
-lost agents (gbp-relocation), hybrid BP (hybrid, hybrid-lag3) and particle
-BP
-on the paper's test network grown to many agents
+BP (gbp-lagL: the recommended window of L steps, e.g. gbp-lag5;
+gbp-lag5-residual: with residual scheduling), its learned correction,
+Gaussian BP with the relocation of lost agents (gbp-relocation), hybrid BP
+(hybrid, hybrid-lag3) and particle BP on the paper's test network grown to
+many agents
 (Scenario.grown, the same density), each measurement in a fresh process:
 the figures of the docs' pages on Gaussian BP and Gaussian NEBP.
 
     python benchmarks/gbp_scaling.py --agents 10000 --methods gbp bp
     python benchmarks/gbp_scaling.py --agents 100 10000 --methods gbp \
         gbp-lag5 --steps 8      # a full window from the fifth step on
+    python benchmarks/gbp_scaling.py --agents 10000 --methods gbp-lag20 \
+        --steps 24              # 5 steps iterated, 15 settled
     python benchmarks/gbp_scaling.py --agents 100 10000 --methods gbp \
         gnebp:paper     # a Gaussian NEBP checkpoint: a path or shipped name
     python benchmarks/gbp_scaling.py --agents 100 1000 10000 --methods gbp \
@@ -37,13 +39,17 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
     generation = time.perf_counter() - start
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model)
+    # gbp-lagL: fixed-lag Gaussian BP's recommended window of L steps
+    # (settled steps beyond 5), gbp-lagL-residual with residual scheduling
+    window, _, residual = (method[len('gbp-lag'):].partition('-') if
+                           method.startswith('gbp-lag') else ('', '', ''))
     tracker = {
         'gbp': lambda: GaussianBP.recommended(**models),
         'gbp-plain': lambda: GaussianBP.recommended(inflation=1.0,
                                                     **models),
-        'gbp-lag5': lambda: FixedLagGaussianBP.recommended(lag=5, **models),
-        'gbp-lag5-residual': lambda: FixedLagGaussianBP.recommended(
-            lag=5, schedule='residual', **models),
+        'gbp-lag': lambda: FixedLagGaussianBP.recommended(
+            lag=int(window), **(dict(schedule='residual') if residual
+                                else {}), **models),
         'gbp-relocation': lambda: GaussianBP.recommended(
             relocation=LinkSearch(), **models),
         'hybrid': lambda: HybridBP.recommended(**models),
@@ -52,7 +58,7 @@ def measure(method: str, agents: int, steps: int, queue) -> None:
         'bp-recommended': lambda: ParticleBP.recommended(**models),
         'gnebp': lambda: gaussian_nebp_from_checkpoint(
             method.partition(':')[2]),
-    }[method.partition(':')[0]]()
+    }['gbp-lag' if window else method.partition(':')[0]]()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times, start = [], time.perf_counter()
     with torch.no_grad():
