@@ -108,6 +108,12 @@ def _renumbered(index: Tensor, num: int, num_new: int,
     # space-time indices (2, E) of 'num' nodes per step, k num + i, as
     # (k - shift) num_new + map[i]; the mask of the columns kept (both
     # ends at a step and node kept)
+    if node_map is None and num_new == num:
+        # the same nodes (a slide): k num + i - shift num, no division (a
+        # long window's links and message edges are millions at scale)
+        moved = index - shift * num
+        keep = (moved >= 0).all(0)
+        return moved[:, keep], keep
     slot, node = torch.div(index, num, rounding_mode='floor'), index % num
     if node_map is not None:
         node = node_map[node]
@@ -494,9 +500,10 @@ class FixedLagGaussianBP(GaussianBP):
         cached = None if held == 0 else (
             state.settled_mean[agents, :held],
             state.settled_cov[agents, :held])
+        # the forward pass reads the sums of the steps after the held ones
         chain = self._filtered(window, points, self._sums(
-            window, messages, agents, num, width), agents, split, cached,
-            settled=True)
+            window, messages, agents, num, width, held), agents, split,
+            cached, settled=True)
         newest = self._newest(window, chain, agents, split)
         rows = torch.arange(width * num, device=anchor.device) >= split * num
         kept = rows[window.factors.index[1]]
@@ -794,16 +801,22 @@ class FixedLagGaussianBP(GaussianBP):
                                       info.view(-1, size, size)), cov)
 
     def _sums(self, window: _Window, messages, rows: Tensor, num: int,
-              width: int) -> Tensor:
+              width: int, first: int = 0) -> Tensor:
         # every node's summed messages at every window step (W, N, R^2 + R)
-        # (only the rows' steps where they are few)
+        # (only the rows' where they are few, and zero before step 'first':
+        # a kept forward pass reads only the steps after it)
         factors = window.factors
+        into = None
         if 2 * rows.numel() < num:
             solved = torch.zeros(num, dtype=torch.bool, device=rows.device)
             solved[rows] = True
-            into_rows = solved.repeat(width)[factors.index[1]]
-            messages = type(messages)(*(m[into_rows] for m in messages))
-            factors = factors._replace(index=factors.index[:, into_rows])
+            into = solved.repeat(width)[factors.index[1]]
+        if first > 0:
+            later = factors.index[1] >= first * num
+            into = later if into is None else into & later
+        if into is not None:
+            messages = type(messages)(*(m[into] for m in messages))
+            factors = factors._replace(index=factors.index[:, into])
         return self.conv.message_sums(as_factor_messages(messages), factors,
                                       num * width).view(width, num, -1)
 
