@@ -16,6 +16,7 @@ from tg_nebp.cli_commands import (run_compare, run_evaluate, run_fit,
                                   run_frontier, run_record, run_reproduce,
                                   run_score, run_track, run_train)
 from tg_nebp.datasets.mrclam import FIT_HORIZON
+from tg_nebp.datasets.uwb import UWB_FIT_HORIZON
 from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.options import METHODS, WHOLE_SEQUENCE
 from tg_nebp.experiments.reproduce import PRESET_NAMES
@@ -141,7 +142,12 @@ def _add_samples(parser: argparse.ArgumentParser, default):
 _REAL_SCENARIOS = ('; mrclam-N with options, e.g. mrclam-6 or '
                    'mrclam-6-range-no-odometry: a UTIAS MRCLAM sequence '
                    'read from --root (the folder holding MRCLAM_DatasetN.zip '
-                   'or MRCLAM_DatasetN/; downloaded there where absent)')
+                   'or MRCLAM_DatasetN/; downloaded there where absent); '
+                   'tiers-uwb-testN with options (ros1, raw, first-half, '
+                   'second-half), e.g. tiers-uwb-test3-second-half: a run of '
+                   'the TIERS UWB dataset\'s case 4 read from --root (the '
+                   'folder holding case_4/); or a scenario file naming a ROS '
+                   'bag and its topics')
 
 
 def _add_test_data(parser: argparse.ArgumentParser, realizations: int,
@@ -549,25 +555,39 @@ def _record_command(sub) -> None:
 def _fit_command(sub) -> None:
     # the 'fit' command and its options
     ft = sub.add_parser(
-        'fit', help='fit the noise models of a UTIAS MRCLAM sequence and '
-        'write them as a scenario', description='Fits the range and bearing '
+        'fit', help='fit the noise models of a real recording (a UTIAS '
+        'MRCLAM sequence, a UWB recording) and write them as a scenario',
+        description='MRCLAM (--sequence N): fits the range and bearing '
         'noise (robust scales, the Student-t tail, the range bias against '
         'the distance) and the odometry noise on the ground truth of a '
         'sequence\'s test protocol (600 s from the first time all five '
-        'robots have ground truth and odometry, steps of 0.5 s) and writes '
-        'the scenario file that evaluate, compare, train, track and record '
-        'read (--scenario FILE); every mrclam-N name uses the ones fitted '
-        'on sequence 6.')
+        'robots have ground truth and odometry, steps of 0.5 s); every '
+        'mrclam-N name uses the ones fitted on sequence 6. A UWB recording '
+        '(--scenario tiers-uwb-testN with options, or a scenario file naming '
+        'a bag): fits each pair\'s range bias, the range noise (a robust '
+        'Student-t, its long-run spread) and the constant-velocity motion '
+        'noise on the truth of the scenario\'s part (for example '
+        'tiers-uwb-test3-first-half, or the static run tiers-uwb-test1); '
+        'every tiers-uwb name uses the ones fitted on the first half of '
+        'test3. Writes the scenario file that evaluate, compare, train, '
+        'track and record read (--scenario FILE).')
     ft.add_argument('--sequence', type=int, choices=range(1, 10), default=6,
-                    metavar='N', help='the sequence, 1 to 9 (default: 6)')
+                    metavar='N', help='the MRCLAM sequence, 1 to 9 '
+                    '(default: 6)')
+    ft.add_argument('--scenario', default=None, metavar='NAME|FILE',
+                    help='a UWB recording\'s scenario instead of an MRCLAM '
+                    'sequence: tiers-uwb-testN with options, or a scenario '
+                    'file with a "recording"')
     ft.add_argument('--root', default='datasets',
                     help='the folder holding MRCLAM_DatasetN.zip or '
-                    'MRCLAM_DatasetN/; downloaded there where absent '
-                    '(default: datasets)')
-    ft.add_argument('--horizon', type=_positive, default=FIT_HORIZON,
+                    'MRCLAM_DatasetN/ (downloaded there where absent), or '
+                    'the UWB dataset\'s folder (for TIERS the one holding '
+                    'case_4/) (default: datasets)')
+    ft.add_argument('--horizon', type=_positive, default=None,
                     metavar='H', help='steps over which the long-run noise '
                     'variances are fitted (1: the one-step variances; '
-                    f'default: {FIT_HORIZON}, 20 s)')
+                    f'default: {FIT_HORIZON}, 20 s, for MRCLAM; '
+                    f'{UWB_FIT_HORIZON}, 5 s, for a UWB recording)')
     ft.add_argument('--output', required=True, metavar='FILE.json',
                     help='the scenario file written')
     ft.set_defaults(run=run_fit, threads=None, device='cpu')

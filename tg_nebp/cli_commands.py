@@ -7,7 +7,9 @@ from typing import Callable
 
 from tqdm import tqdm
 
-from tg_nebp.datasets import fitted_scenario
+from tg_nebp.datasets import (FIT_HORIZON, UWB_FIT_HORIZON,
+                              RecordingScenario, fitted_recording_scenario,
+                              fitted_scenario, load_scenario)
 from tg_nebp.datasets.mrclam_dataset import sequence_source
 from tg_nebp.experiments.compare import compare
 from tg_nebp.experiments.evaluate import evaluate_scenario
@@ -127,9 +129,25 @@ def run_fit(args) -> int:
     # the output checked before the fit's work (and its own refusals)
     if Path(args.output).is_dir():
         raise ValueError(f"--output '{args.output}' is a folder, not a file")
-    source = sequence_source(args.root, args.sequence)
-    scenario, report = fitted_scenario(source, args.sequence,
-                                       horizon=args.horizon)
+    if args.scenario is not None:
+        # a recording (tiers-uwb-testN, a scenario file naming a bag): its
+        # models and range calibration fitted on its own part
+        recorded = load_scenario(args.scenario)
+        if not isinstance(recorded, RecordingScenario):
+            raise ValueError(f"--scenario '{args.scenario}' is not a "
+                             f"recording (tiers-uwb-testN or a scenario file "
+                             f"with a 'recording'); MRCLAM sequences are "
+                             f"fitted with --sequence N")
+        horizon = (UWB_FIT_HORIZON if args.horizon is None
+                   else args.horizon)
+        scenario, report = fitted_recording_scenario(
+            recorded, args.root, name=Path(args.output).stem,
+            horizon=horizon)
+    else:
+        source = sequence_source(args.root, args.sequence)
+        scenario, report = fitted_scenario(
+            source, args.sequence, horizon=(FIT_HORIZON if args.horizon is
+                                            None else args.horizon))
     scenario.save(args.output)
     print(f"motion: {scenario.motion_model}\nmeasurement: "
           f"{scenario.measurement_model}\nfit: {report}\n-> {args.output} "

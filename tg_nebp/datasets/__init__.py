@@ -4,6 +4,12 @@ from .mrclam import (FIT_HORIZON, MRCLAMSequence, fit_models,
                      mrclam_realization, read_mrclam)
 from .mrclam_dataset import (MRCLAM, PARTS, MRCLAMScenario, fitted_scenario,
                              range_part, sequence_source, MRCLAM_URL)
+from .recording import (Recording, RangeCalibration, recording_realization,
+                        recording_report)
+from .rosbag import BagTopics, TIERS_TOPICS, read_bag
+from .uwb import (RecordingScenario, RecordingDataset, fit_range_models,
+                  fitted_recording_scenario, read_recording, RECORDING_PARTS,
+                  UWB_FIT_HORIZON)
 from .cooperative_localization import (CooperativeLocalizationDataset,
                                        load_datasets, load_scenario)
 
@@ -12,4 +18,9 @@ __all__ = ['Scenario', 'CooperativeLocalizationDataset', 'load_datasets',
            'range_part', 'MRCLAMSequence', 'read_mrclam',
            'mrclam_realization', 'integrate_odometry', 'interpolate_pose',
            'fit_models', 'long_run_factor', 'FIT_HORIZON', 'PARTS',
-           'sequence_source', 'MRCLAM_URL']
+           'sequence_source', 'MRCLAM_URL', 'Recording', 'RangeCalibration',
+           'recording_realization', 'recording_report', 'BagTopics',
+           'TIERS_TOPICS', 'read_bag', 'RecordingScenario',
+           'RecordingDataset', 'fit_range_models',
+           'fitted_recording_scenario', 'read_recording', 'RECORDING_PARTS',
+           'UWB_FIT_HORIZON']

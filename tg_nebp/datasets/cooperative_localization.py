@@ -13,6 +13,7 @@ from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_positive_int, check_realization,
                                      is_integer)
 from tg_nebp.datasets.mrclam_dataset import MRCLAM, MRCLAMScenario
+from tg_nebp.datasets.uwb import RecordingDataset, RecordingScenario
 from tg_nebp.datasets.scenario import Scenario
 from tg_nebp.io import atomic_write, first_line, read_json
 from tg_nebp.utils import derive_seed, process_group
@@ -232,11 +233,17 @@ def load_scenario(name_or_path: Union[str, os.PathLike]
     text = str(name_or_path)
     if text.startswith('mrclam-') and not text.endswith('.json'):
         return MRCLAMScenario.load(text)
+    if text.startswith('tiers-uwb-') and not text.endswith('.json'):
+        return RecordingScenario.load(text)
     if text.endswith('.json') and os.path.isfile(text):
-        # read once: a real sequence's file has a 'sequence' field
+        # read once: a real sequence's file has a 'sequence' field, a
+        # recording's a 'recording' field
         fields = read_json(text)
-        kind = (MRCLAMScenario if isinstance(fields, dict)
-                and 'sequence' in fields else Scenario)
+        kind = Scenario
+        if isinstance(fields, dict) and 'sequence' in fields:
+            kind = MRCLAMScenario
+        elif isinstance(fields, dict) and 'recording' in fields:
+            kind = RecordingScenario
         return kind.from_fields(fields, text)
     return Scenario.load(name_or_path)
 
@@ -259,6 +266,8 @@ def load_datasets(root: str, *specs: Tuple[Union[str, Scenario], Optional[
             scenario = load_scenario(scenario)
         if isinstance(scenario, MRCLAMScenario):
             return MRCLAM(root, scenario, count, log=False)
+        if isinstance(scenario, RecordingScenario):
+            return RecordingDataset(root, scenario, count, log=False)
         return CooperativeLocalizationDataset(root, scenario, count, seed,
                                               log=False)
 

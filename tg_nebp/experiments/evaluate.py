@@ -12,8 +12,8 @@ from typing import Callable, Optional, Tuple, Union
 
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.data.validation import check_positive_int
-from tg_nebp.datasets import (MRCLAMScenario, Scenario, load_datasets,
-                              load_scenario)
+from tg_nebp.datasets import (MRCLAMScenario, RecordingScenario, Scenario,
+                              load_datasets, load_scenario)
 from tg_nebp.evaluation import evaluate_method
 from tg_nebp.experiments.options import WHOLE_SEQUENCE, MethodOptions
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
@@ -29,7 +29,7 @@ from tg_nebp.utils import check_device, process_group
 __all__ = ['method_tracker',
            'tracker_measurement', 'evaluate_scenario', 'scenario_of',
            'check_run', 'realizations_of', 'checked_models',
-           'SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key']
+           'SCENARIO_TYPES', 'REAL_SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key']
 
 def lag_key(lag) -> str:
     r"""The suffix of a smoother's :obj:`metrics.json` key:
@@ -49,7 +49,10 @@ def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
 
 
 #: The scenarios of a run, a simulated network or a real sequence.
-SCENARIO_TYPES = (Scenario, MRCLAMScenario)
+SCENARIO_TYPES = (Scenario, MRCLAMScenario, RecordingScenario)
+#: The scenarios of real data: their realizations are what was recorded
+#: (every window), the same for every seed.
+REAL_SCENARIO_TYPES = (MRCLAMScenario, RecordingScenario)
 
 
 def scenario_of(spec: Union[str, os.PathLike, Scenario, MRCLAMScenario],
@@ -76,7 +79,7 @@ def realizations_of(scenario: Union[Scenario, MRCLAMScenario],
     :obj:`None` (every window) for a real sequence."""
     if realizations is not None:
         return realizations
-    return None if isinstance(scenario, MRCLAMScenario) else default
+    return None if isinstance(scenario, REAL_SCENARIO_TYPES) else default
 
 
 def check_run(realizations: Optional[int], batch_size: int,

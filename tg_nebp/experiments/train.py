@@ -11,7 +11,8 @@ import torch
 
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
-from tg_nebp.experiments.evaluate import (realizations_of, scenario_of,
+from tg_nebp.experiments.evaluate import (REAL_SCENARIO_TYPES,
+                                          realizations_of, scenario_of,
                                           tracker_measurement)
 from tg_nebp.filters import (NEBP, FixedLagGaussianNEBP, GaussianNEBP,
                              Tracker)
@@ -186,7 +187,7 @@ def train_scenario(scenario: Union[str, Scenario, Sequence], out: str,
         raise ValueError("'scenario' is an empty list")
     if val_scenario is None:
         real = next((s for s in scenarios
-                     if isinstance(s, MRCLAMScenario)), None)
+                     if isinstance(s, REAL_SCENARIO_TYPES)), None)
         if real is not None:
             raise ValueError(
                 f"the windows of the real sequence '{real.name}' are the "

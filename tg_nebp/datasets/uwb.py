@@ -1,0 +1,549 @@
+r"""Real UWB ranging as scenarios and datasets: a :class:`RecordingScenario`
+names a recording (a ROS bag with its topics; the TIERS dataset's runs by
+name), the step, which nodes are anchors, the range calibration and the
+models; :class:`RecordingDataset` (PyG's
+:class:`~torch_geometric.data.InMemoryDataset`) reads it into
+:class:`~tg_nebp.data.Realization`\ s (:func:`~tg_nebp.datasets.recording_realization`),
+so that every tracker, metric and command takes it as it takes simulated
+data; :func:`fit_range_models` calibrates the models on a recording's
+truth."""
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Tuple, Union
+
+import numpy as np
+import torch
+from torch_geometric.data import InMemoryDataset
+
+from tg_nebp.data.realization import Realization
+from tg_nebp.data.validation import check_positive_int, check_realization
+from tg_nebp.datasets.mrclam import _scale, long_run_factor
+from tg_nebp.datasets.recording import (RangeCalibration, Recording,
+                                        recording_realization,
+                                        recording_report)
+from tg_nebp.datasets.rosbag import TIERS_TOPICS, BagTopics, read_bag
+from tg_nebp.datasets.scenario import scenario_from_fields
+from tg_nebp.io import read_json, write_text
+from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config)
+
+__all__ = ['RecordingScenario', 'RecordingDataset', 'fit_range_models',
+           'fitted_recording_scenario', 'RECORDING_PARTS', 'UWB_FIT_HORIZON',
+           'read_recording']
+
+LOG = logging.getLogger('tg_nebp.datasets')
+
+#: The parts of a recording a scenario covers: all of the span in which
+#: every node has truth, or its first or second half (to fit or train on
+#: one half and test on the other).
+RECORDING_PARTS = ('all', 'first-half', 'second-half')
+#: The steps over which :func:`fit_range_models` fits the ranges' long-run
+#: spread by default (10 steps of 0.5 s: a UWB pair's error holds for
+#: seconds while the robots move).
+UWB_FIT_HORIZON = 10
+#: The readers a scenario names.
+READERS = ('rosbag', )
+
+# tiers-uwb-testN and its options
+_TIERS = re.compile(r'tiers-uwb-(test[0-9]+)((?:-[a-z0-9]+)*)\Z')
+_TIERS_OPTIONS = {
+    'ros1': dict(ros1=True),
+    'raw': dict(raw=True),
+    'first-half': dict(part='first-half'),
+    'second-half': dict(part='second-half'),
+}
+# the models fitted on the first half of TIERS case 4 test3, shipped
+_FITTED = 'tiers-uwb.json'
+
+
+def _positive(value) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value) and value > 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordingScenario:
+    r"""A recording of ranges between nodes, binned into steps
+    (:func:`~tg_nebp.datasets.recording_realization`), and the models the
+    trackers read: what :class:`RecordingDataset` reads and what
+    :obj:`--scenario tiers-uwb-testN` or a JSON file names.
+
+    By name (:meth:`load`): :obj:`"tiers-uwb-testN"` is run :math:`N` of
+    the TIERS UWB dataset's case 4 (its ROS 2 bag
+    :obj:`case_4/ros2/testN` under the root), turtlebots 1 and 2 declared
+    anchors (they stand still in every run), nodes :obj:`n_1` to
+    :obj:`n_7` (:obj:`n_8` has no truth), 2-D, steps of 0.5 s, with the
+    models and the range calibration fitted on the first half of
+    :obj:`test3` (shipped). Options follow the name: :obj:`ros1` (the ROS 1
+    copy :obj:`case_4/ros1/testN.bag`), :obj:`raw` (no range calibration),
+    :obj:`first-half` or :obj:`second-half`.
+
+    Args:
+        name (str): Name.
+        recording (str): The recording, a path under the dataset's root
+            (or absolute).
+        topics (dict): Its :class:`~tg_nebp.datasets.BagTopics` fields.
+        motion (dict or MotionModel): The motion model (its configuration).
+        measurement (dict or MeasurementModel): The likelihood of a range.
+        reader (str, optional): :obj:`"rosbag"`. (default: :obj:`"rosbag"`)
+        position_dim (int, optional): 2 or 3. (default: :obj:`2`)
+        anchors (list, optional): Names of nodes declared anchors (standing
+            still: their truth at the start is their surveyed position).
+            (default: none)
+        calibration (dict, optional): The
+            :class:`~tg_nebp.datasets.RangeCalibration` fields.
+            (default: none)
+        dt (float, optional): Step, seconds. (default: :obj:`0.5`)
+        part (str, optional): One of :data:`RECORDING_PARTS`.
+            (default: :obj:`"all"`)
+        duration (float, optional): Seconds from the part's start;
+            :obj:`None` for the whole part (filled in when the recording is
+            read: :meth:`resolved`). (default: :obj:`None`)
+        prior_std (float, optional): The prior's position standard
+            deviation around the truth, metres. (default: :obj:`0.5`)
+        velocity_std (float, optional): The prior's velocity standard
+            deviation, metres per second. (default: :obj:`0.3`)
+        symmetric (bool, optional): Both directions of a pair are one
+            two-way range (merged within a step). (default: :obj:`True`)
+        description (str, optional): Free text, not part of the
+            fingerprint. (default: :obj:`""`)
+    """
+    name: str
+    recording: str
+    topics: Dict[str, Any]
+    motion: Dict[str, Any]
+    measurement: Dict[str, Any]
+    reader: str = 'rosbag'
+    position_dim: int = 2
+    anchors: Tuple[str, ...] = ()
+    calibration: Optional[Dict[str, Any]] = None
+    dt: float = 0.5
+    part: str = 'all'
+    duration: Optional[float] = None
+    prior_std: float = 0.5
+    velocity_std: float = 0.3
+    symmetric: bool = True
+    description: str = ''
+
+    def __post_init__(self):
+        fix = object.__setattr__  # frozen: normalize once
+        for key in ('motion', 'measurement'):
+            value = getattr(self, key)
+            if isinstance(value, (MotionModel, MeasurementModel)):
+                fix(self, key, value.config())
+        if isinstance(self.topics, BagTopics):
+            fix(self, 'topics', self.topics.to_fields())
+        if isinstance(self.calibration, RangeCalibration):
+            fix(self, 'calibration', self.calibration.to_fields())
+        if isinstance(self.anchors, list):
+            fix(self, 'anchors', tuple(self.anchors))
+        self._check()
+
+    def _check(self):
+        for key in ('name', 'recording'):
+            if not isinstance(getattr(self, key), str) or \
+                    not getattr(self, key):
+                raise ValueError(f"'{key}' must be a non-empty string, got "
+                                 f"{getattr(self, key)!r}")
+        if self.reader not in READERS:
+            raise ValueError(f"'reader' must be one of {list(READERS)}, got "
+                             f"{self.reader!r}")
+        if not isinstance(self.topics, dict):
+            raise ValueError(f"'topics' must be an object, got "
+                             f"{self.topics!r}")
+        try:
+            BagTopics(**self.topics)
+        except TypeError as e:
+            raise ValueError(f"'topics': {e}") from None
+        except ValueError as e:
+            raise ValueError(f"'topics': {e}") from None
+        if self.position_dim not in (2, 3) or isinstance(self.position_dim,
+                                                         bool):
+            raise ValueError(f"'position_dim' must be 2 or 3, got "
+                             f"{self.position_dim!r}")
+        if not isinstance(self.anchors, tuple) or not all(
+                isinstance(a, str) for a in self.anchors):
+            raise ValueError(f"'anchors' must be a list of node names, got "
+                             f"{self.anchors!r}")
+        RangeCalibration.from_fields(self.calibration, 'calibration')
+        for key in ('dt', 'prior_std', 'velocity_std', 'duration'):
+            if key == 'duration' and self.duration is None:
+                continue
+            if not _positive(getattr(self, key)):
+                raise ValueError(f"'{key}' must be a positive number, got "
+                                 f"{getattr(self, key)!r}")
+        if self.part not in RECORDING_PARTS:
+            raise ValueError(f"'part' must be one of {list(RECORDING_PARTS)}"
+                             f", got {self.part!r}")
+        if not isinstance(self.symmetric, bool):
+            raise ValueError(f"'symmetric' must be true or false, got "
+                             f"{self.symmetric!r}")
+        motion, measurement = self.motion_model, self.measurement_model
+        if tuple(measurement.features) != ('range', ):
+            raise ValueError(f"'measurement' ({measurement.name}) must be a "
+                             f"range likelihood, reads "
+                             f"{list(measurement.features)}")
+        if motion.state_dim not in (None, 2 * self.position_dim):
+            raise ValueError(f"'motion' ({motion.name}) must move "
+                             f"[p, v] states of {2 * self.position_dim} "
+                             f"entries")
+
+    @classmethod
+    def load(cls, name_or_path: Union[str, os.PathLike]
+             ) -> 'RecordingScenario':
+        r"""A scenario by name (:obj:`"tiers-uwb-testN"` with options,
+        see the class) or from a JSON file of its fields."""
+        text = str(name_or_path)
+        match = _TIERS.match(text)
+        if match is not None and not text.endswith('.json'):
+            run, rest = match.group(1), match.group(2)
+            chosen: Dict[str, Any] = {}
+            while rest:  # the longest option first: 'first-half'
+                token = next((t for t in sorted(_TIERS_OPTIONS, key=len,
+                                                reverse=True)
+                              if rest.startswith('-' + t)
+                              and rest[len(t) + 1:len(t) + 2] in ('', '-')),
+                             None)
+                if token is None:
+                    raise ValueError(
+                        f"scenario '{text}': unknown option "
+                        f"'{rest[1:].split('-')[0]}'; the options of "
+                        f"tiers-uwb-testN are {sorted(_TIERS_OPTIONS)}")
+                for key, value in _TIERS_OPTIONS[token].items():
+                    if key in chosen:
+                        raise ValueError(f"scenario '{text}': the option "
+                                         f"'{token}' repeats or contradicts "
+                                         f"another")
+                    chosen[key] = value
+                rest = rest[len(token) + 1:]
+            recording = (f'case_4/ros1/{run}.bag' if chosen.get('ros1')
+                         else f'case_4/ros2/{run}')
+            changes = dict(name=text, recording=recording,
+                           part=chosen.get('part', 'all'))
+            if chosen.get('raw'):
+                changes['calibration'] = None
+            return _shipped().replace(**changes)
+        path = Path(name_or_path)
+        if path.suffix != '.json':
+            raise ValueError(f"unknown scenario '{text}'; a UWB recording is "
+                             f"tiers-uwb-testN with the options "
+                             f"{sorted(_TIERS_OPTIONS)}, or a .json file")
+        if not path.is_file():
+            raise ValueError(f"scenario file '{path}' does not exist")
+        return cls.from_fields(read_json(path), str(path))
+
+    @classmethod
+    def from_fields(cls, fields: Any, where: str) -> 'RecordingScenario':
+        r"""A scenario from the fields of a JSON object, every problem a
+        :class:`ValueError` that names :obj:`where` and the field."""
+        return scenario_from_fields(cls, fields, where)
+
+    def to_fields(self) -> dict:
+        r"""The fields as a JSON object (:meth:`from_fields` reads it)."""
+        fields = dataclasses.asdict(self)
+        fields['anchors'] = list(self.anchors)
+        return fields
+
+    def save(self, path: Union[str, os.PathLike]) -> None:
+        r"""Writes the fields to the JSON file :obj:`path` (written whole
+        or not at all)."""
+        write_text(path, json.dumps(self.to_fields(), indent=2) + '\n')
+
+    def replace(self, **changes) -> 'RecordingScenario':
+        r"""A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+    def __hash__(self) -> int:  # the model configurations are dicts
+        return hash(self.fingerprint())
+
+    def fingerprint(self) -> str:
+        r"""A short hash of every field but the description."""
+        fields = self.to_fields()
+        del fields['description']
+        blob = json.dumps(fields, sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:10]
+
+    @property
+    def motion_model(self) -> MotionModel:
+        return model_from_config(self.motion, 'motion')
+
+    @property
+    def measurement_model(self) -> MeasurementModel:
+        return model_from_config(self.measurement, 'measurement')
+
+    @property
+    def range_calibration(self) -> RangeCalibration:
+        return RangeCalibration.from_fields(self.calibration, self.name)
+
+    @property
+    def num_steps(self) -> Optional[int]:
+        r"""The steps of the realization; :obj:`None` before the recording
+        is read when it is a whole part (:meth:`resolved`)."""
+        if self.duration is None:
+            return None
+        return int(math.floor(self.duration / self.dt + 1e-9))
+
+    def resolved(self, recording: Recording) -> 'RecordingScenario':
+        r"""This scenario with the :obj:`duration` of a whole part filled
+        in from the read :obj:`recording` (itself otherwise); a part too
+        short for the duration, or for one step, is a
+        :class:`ValueError`."""
+        # the binning starts one step in (the prior's time before it)
+        length = self.span(recording)[1] - self.dt
+        duration = length if self.duration is None else self.duration
+        steps = int(math.floor(duration / self.dt + 1e-9))
+        if steps < 1 or duration > length + 1e-6:
+            raise ValueError(
+                f"scenario '{self.name}': the {self.part} part of "
+                f"'{recording.source}' ({length:.3f} s) holds no "
+                f"{duration:g} s in steps of {self.dt} s")
+        return self.replace(duration=steps * self.dt)
+
+    def path(self, root: Union[str, os.PathLike]) -> Path:
+        r"""Where the recording lies under :obj:`root`."""
+        return Path(root) / self.recording
+
+    def read(self, root: Union[str, os.PathLike]) -> Recording:
+        r"""The recording under :obj:`root`, read
+        (:func:`read_recording`)."""
+        return read_recording(self.path(root), self.reader,
+                              BagTopics(**self.topics), self.position_dim)
+
+    def span(self, recording: Recording) -> Tuple[float, float]:
+        r"""The part's start and length in seconds from the first time
+        every node with truth has it."""
+        begin, end = recording.span()
+        half = 0.5 * (end - begin)
+        return {'all': (0.0, end - begin), 'first-half': (0.0, half),
+                'second-half': (half, end - begin - half)}[self.part]
+
+    def realization(self, recording: Recording
+                    ) -> Tuple[Realization, Dict[str, int]]:
+        r"""The part of the read :obj:`recording`, binned, and what was
+        dropped or merged."""
+        start = self.span(recording)[0]
+        return recording_realization(
+            recording, self.dt, start, self.resolved(recording).duration,
+            self.anchors,
+            self.range_calibration, self.prior_std, self.velocity_std,
+            self.symmetric)
+
+
+def read_recording(path: Union[str, os.PathLike], reader: str = 'rosbag',
+                   topics: Optional[BagTopics] = None,
+                   position_dim: int = 2) -> Recording:
+    r"""The recording at :obj:`path` read by :obj:`reader` (one of
+    :data:`READERS`; a bag's :obj:`topics`, the TIERS layout by
+    default)."""
+    if reader not in READERS:
+        raise ValueError(f"'reader' must be one of {list(READERS)}, got "
+                         f"{reader!r}")
+    return read_bag(path, topics or TIERS_TOPICS, position_dim)
+
+
+def _shipped() -> RecordingScenario:
+    path = resources.files('tg_nebp.datasets') / 'fitted' / _FITTED
+    return RecordingScenario.from_fields(read_json(path), _FITTED)
+
+
+def _distances(data: Realization) -> np.ndarray:
+    # every link's true distance at its step, float64
+    src, dst = data.edge_index
+    dim = data.states.size(-1) // 2
+    states = data.states.double()
+    t = data.edge_time
+    return (states[src, t, :dim] - states[dst, t, :dim]).norm(
+        dim=-1).numpy()
+
+
+def fit_range_models(data: Realization, nodes: List[str], dt: float,
+                     horizon: int = UWB_FIT_HORIZON,
+                     max_range: float = 50.0,
+                     sigma_a: float = 0.05
+                     ) -> Tuple[MotionModel, MeasurementModel,
+                                RangeCalibration, Dict[str, Any]]:
+    r"""The models of a recording, fitted on its truth: :obj:`data` a
+    realization of :func:`~tg_nebp.datasets.recording_realization` in steps
+    of :obj:`dt` seconds binned without a calibration, whose nodes are
+    named :obj:`nodes`.
+
+    * **Range calibration**: each pair's bias, the median of its links'
+      residuals :math:`z - \|\mathbf{p}_j - \mathbf{p}_i\|`; a pair not
+      seen gets the median of the pairs' biases.
+    * **Range noise**: the residuals less their pair's bias; a Student-t
+      (:obj:`max_range` its communication range) whose scale is robust
+      (1.4826 times the median absolute deviation) times the square root of
+      the :func:`~tg_nebp.datasets.long_run_factor` of each pair's residual
+      series over :obj:`horizon` steps (a UWB pair's error holds for
+      seconds: a filter that averages the ranges as independent would be
+      overconfident), and whose :math:`\nu` is the maximum-likelihood one
+      on a grid (2, 3, 4, 6, 8, 16, 32) at the one-step scale.
+    * **Motion**: a constant-velocity model whose acceleration noise
+      :math:`\sigma_a` is the root mean square of the true accelerations
+      of the agents that move (the change of the truth's velocity over a
+      step divided by the step), over every axis; in a recording in which
+      no agent moves (a calibration run) :obj:`sigma_a` is kept, and the
+      report says so.
+
+    Returns the :class:`~tg_nebp.models.ConstantVelocity`, the
+    :class:`~tg_nebp.models.StudentTRange`, the
+    :class:`~tg_nebp.datasets.RangeCalibration` and a report of the
+    figures. Fewer than 3 links is a :class:`ValueError`."""
+    from tg_nebp.models import ConstantVelocity, StudentTRange
+    horizon = check_positive_int(horizon, 'horizon')
+    links = int(data.edge_index.size(1))
+    if links < 3:
+        raise ValueError(f"the recording has {links} links; fitting the "
+                         f"range noise needs at least 3")
+    residual = data.edge_attr[:, 0].double().numpy() - _distances(data)
+    src, dst = data.edge_index.numpy()
+    count = int(data.num_nodes)
+    pairs, row = np.unique(dst * count + src, return_inverse=True)
+    biases = np.array([np.median(residual[row == k])
+                       for k in range(len(pairs))])
+    default = float(np.median(biases))
+    calibration = RangeCalibration(
+        {f'{nodes[int(k) // count]}->{nodes[int(k) % count]}': float(b)
+         for k, b in zip(pairs, biases)}, default)
+    centred = residual - biases[row]
+    sigma = _scale(centred)
+    series = np.full((len(pairs), int(data.num_steps)), np.nan)
+    series[row, data.edge_time.numpy()] = np.clip(centred / sigma, -3, 3)
+    factor = long_run_factor(series, horizon)
+    best, best_nu = -np.inf, None
+    for nu in (2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 32.0):
+        value = float(StudentTRange(sigma, nu).log_likelihood_of_distance(
+            torch.from_numpy(centred).view(-1, 1),
+            torch.zeros(len(centred), 1, dtype=torch.float64)).sum())
+        if value > best:
+            best, best_nu = value, nu
+    report = dict(links=links, pairs=int(len(pairs)),
+                  bias_median=default, bias_min=float(biases.min()),
+                  bias_max=float(biases.max()),
+                  range_sigma_one_step=sigma, range_long_run_factor=factor,
+                  range_beyond_3_sigma=float(np.mean(np.abs(centred) >
+                                                     3 * sigma)),
+                  nu=best_nu, horizon=horizon)
+    dim = data.states.size(-1) // 2
+    velocity = data.states[~data.anchor, :, dim:].double()
+    moving = velocity.norm(dim=-1).amax(-1) > 0.05
+    if bool(moving.any()) and velocity.size(1) > 1:
+        acceleration = (velocity[moving, 1:] - velocity[moving, :-1]) / dt
+        sigma_a = float(acceleration.square().mean().sqrt())
+        report['sigma_a'] = sigma_a
+    else:
+        report['sigma_a'] = f'kept at {sigma_a} (no agent moves)'
+    motion = ConstantVelocity(sigma_a, dt)
+    measurement = StudentTRange(sigma * math.sqrt(factor), best_nu,
+                                max_range)
+    return motion, measurement, calibration, report
+
+
+def fitted_recording_scenario(scenario: RecordingScenario,
+                              root: Union[str, os.PathLike],
+                              name: Optional[str] = None,
+                              horizon: int = UWB_FIT_HORIZON
+                              ) -> Tuple[RecordingScenario, Dict[str, Any]]:
+    r""":obj:`scenario` with its models and range calibration fitted
+    (:func:`fit_range_models`) on its own part of its recording under
+    :obj:`root` (binned without a calibration), and the fit's report: what
+    :obj:`tg-nebp fit` writes and prints."""
+    recording = scenario.read(root)
+    data, counts = scenario.replace(calibration=None).realization(recording)
+    LOG.info(recording_report(f"'{recording.source}' (the fit's part)",
+                              [counts], [data.num_edges], scenario.dt))
+    old = scenario.measurement_model
+    motion, measurement, calibration, report = fit_range_models(
+        data, recording.nodes, scenario.dt, horizon, old.max_range,
+        getattr(scenario.motion_model, 'sigma_a', 0.05))
+    fitted = scenario.replace(
+        name=name or scenario.name, motion=motion, measurement=measurement,
+        calibration=calibration,
+        description=(f"{scenario.name}: the models and the range calibration "
+                     f"fitted on its {report['links']} links ("
+                     f"{report['pairs']} pairs; long-run spread over "
+                     f"{horizon} steps)"))
+    return fitted, report
+
+
+class RecordingDataset(InMemoryDataset):
+    r"""A real recording of ranges between nodes (UWB two-way ranging in a
+    ROS bag; the TIERS UWB dataset's runs by name) as one
+    :class:`~tg_nebp.data.Realization` of its scenario's part: the
+    recording is read from :obj:`root` (:meth:`RecordingScenario.path`),
+    binned into steps (:func:`~tg_nebp.datasets.recording_realization`),
+    and what was kept, merged and dropped is reported.
+
+    Args:
+        root (str): The dataset's folder (laid out as the dataset is: for
+            TIERS, the folder that holds :obj:`case_4/`).
+        scenario (str or RecordingScenario): A name, a JSON file or one.
+        num_realizations (int, optional): 1 or :obj:`None` (a recording is
+            one realization). (default: :obj:`None`)
+        transform (callable, optional): Applied on every access.
+            (default: :obj:`None`)
+
+    Attributes:
+        scenario (RecordingScenario): The scenario.
+        nodes (list): The nodes' names, in node order.
+        counts (list): What was dropped or merged.
+        report (str): One line on it (logged to :obj:`tg_nebp.datasets`).
+    """
+    def __init__(self, root: str,
+                 scenario: Union[str, RecordingScenario],
+                 num_realizations: Optional[int] = None,
+                 transform: Optional[Callable] = None, log: bool = True):
+        if isinstance(scenario, (str, os.PathLike)):
+            scenario = RecordingScenario.load(scenario)
+        if not isinstance(scenario, RecordingScenario):
+            raise TypeError(f"'scenario' must be a name, a path or a "
+                            f"RecordingScenario, got {scenario!r}")
+        if num_realizations is not None:
+            check_positive_int(num_realizations, 'num_realizations')
+            if num_realizations > 1:
+                raise ValueError(f"scenario '{scenario.name}' is one "
+                                 f"recording: one realization, not "
+                                 f"{num_realizations}")
+        self.scenario = scenario
+        super().__init__(str(root), transform, log=log)
+        path = scenario.path(root)
+        if not path.exists():
+            raise ValueError(f"scenario '{scenario.name}': its recording "
+                             f"'{path}' does not exist (give --root, the "
+                             f"folder laid out as the dataset is)")
+        recording = scenario.read(root)
+        data, counts = scenario.realization(recording)
+        check_realization(data, ('range', ), negative_ranges=True)
+        self.scenario = scenario.resolved(recording)
+        self.nodes = list(recording.nodes)
+        self.counts = [counts]
+        self.report = recording_report(
+            f"'{recording.source}' ('{scenario.name}')", self.counts,
+            [data.num_edges], scenario.dt)
+        self.data, self.slices = self.collate([data])
+        LOG.info(self.report)
+
+    @property
+    def raw_dir(self) -> str:
+        return self.root
+
+    @property
+    def raw_file_names(self) -> List[str]:
+        return []
+
+    @property
+    def processed_file_names(self) -> List[str]:
+        return []  # read in seconds: nothing is cached
+
+    def download(self):
+        pass
+
+    def __repr__(self) -> str:
+        return (f'{self.__class__.__name__}({len(self)}, scenario='
+                f'{self.scenario.name})')
