@@ -146,8 +146,11 @@ _REAL_SCENARIOS = ('; mrclam-N with options, e.g. mrclam-6 or '
                    'tiers-uwb-testN with options (ros1, raw, first-half, '
                    'second-half), e.g. tiers-uwb-test3-second-half: a run of '
                    'the TIERS UWB dataset\'s case 4 read from --root (the '
-                   'folder holding case_4/); or a scenario file naming a ROS '
-                   'bag and its topics')
+                   'folder holding case_4/); miluv-EXPERIMENT with options '
+                   '(no-height, first-half, second-half), e.g. '
+                   'miluv-cirObstacles_1_random3_0: a MILUV experiment read '
+                   'from --root (the folder holding config/ and data/); or a '
+                   'scenario file naming a ROS bag and its topics')
 
 
 def _add_test_data(parser: argparse.ArgumentParser, realizations: int,

@@ -67,7 +67,7 @@ def test_a_written_bag_reads_back_to_the_numbers_written(tmp_path, storage):
         np.testing.assert_array_equal(rows[:, 1:], expected)  # float64
         np.testing.assert_allclose(rows[:, 0], START + np.arange(121) / 30,
                                    rtol=0, atol=1e-9)  # nanosecond stamps
-    t, receiver, sender, z = recording.ranges.T
+    t, receiver, sender, z, _ = recording.ranges.T
     assert len(t) == 120 and bool((np.diff(t) >= 0).all())
     for k in range(len(t)):
         a, b = recording.nodes[int(receiver[k])][2:], \
@@ -93,7 +93,7 @@ def test_binning_is_the_mean_of_each_steps_ranges_less_the_bias(tmp_path):
     assert int(data.num_steps) == steps == 7
     assert data.anchor.tolist() == [True, False, False]
     expected = {}
-    for time, receiver, sender, z in recording.ranges:
+    for time, receiver, sender, z, _ in recording.ranges:
         if not t0 < time <= t0 + steps * dt:
             continue
         k = int(math.ceil((time - t0) / dt)) - 1

@@ -42,7 +42,7 @@ def simulated(biases, sigma=0.05, seconds=120.0, seed=0):
         for (a, b), bias in biases.items():
             z = np.linalg.norm(_position(a, t) - _position(b, t)) + bias + \
                 sigma * rng.standard_normal()
-            rows += [(t, a, b, z), (t, b, a, z)]
+            rows += [(t, a, b, z, 0), (t, b, a, z, 0)]
     return Recording(source='simulated', nodes=['a', 'b', 'c', 'd'],
                      position_dim=2, ranges=np.array(rows), truth=truth)
 
@@ -64,9 +64,9 @@ def test_fitted_biases_recover_the_simulated_ones():
     assert calibration.default == pytest.approx(np.median(list(
         biases.values())), abs=0.01)
     # a step's mean of 5 independent ranges: sigma / sqrt(5)
-    assert report['range_sigma_one_step'] == pytest.approx(
+    assert report['uwb']['sigma_one_step'] == pytest.approx(
         0.05 / math.sqrt(5), rel=0.1)
-    assert isinstance(measurement, StudentTRange) and measurement.nu >= 8
+    assert isinstance(measurement, StudentTRange) and report["uwb"]["nu_at_truth"] >= 8
     # a circle at constant speed: |a| = v^2 / r, each axis its 1/sqrt(2)
     assert isinstance(motion, ConstantVelocity) and motion.dt == 0.5
     assert motion.sigma_a == pytest.approx(SPEED**2 / RADIUS / math.sqrt(2),
@@ -115,9 +115,9 @@ def test_names_options_and_files(tmp_path):
     full.replace(name='mine').save(path)
     assert load_scenario(str(path)) == full.replace(name='mine')
     fields = full.to_fields()
-    fields['topics'] = dict(fields['topics'], ranges='/uwb/(?P<a>.*)')
+    fields['options'] = dict(fields['options'], ranges='/uwb/(?P<a>.*)')
     path.write_text(json.dumps(fields))
-    with pytest.raises(ValueError, match="mine.json': 'topics': 'ranges' "
+    with pytest.raises(ValueError, match="mine.json': 'options': 'ranges' "
                        ".* has no named group 'receiver'"):
         load_scenario(str(path))
     fields = full.to_fields()
@@ -154,7 +154,7 @@ def _bag(tmp_path):
 def test_a_users_bag_through_fit_evaluate_record_and_track(tmp_path):
     bag = _bag(tmp_path)
     scenario = RecordingScenario(
-        name='mine', recording='run/bag', topics=TIERS_TOPICS,
+        name='mine', recording='run/bag', options=TIERS_TOPICS,
         motion=ConstantVelocity(0.1, 0.5), measurement=StudentTRange(0.1),
         anchors=('n_1', 'n_2'))
     scenario.save(tmp_path / 'mine.json')

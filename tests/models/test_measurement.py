@@ -5,7 +5,8 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from tg_nebp.models import GaussianRange, NLOSRange, StudentTRange
+from tg_nebp.models import (GaussianRange, NLOSRange, StudentTRange,
+                            model_from_config)
 
 from helpers import gen
 
@@ -548,3 +549,35 @@ def test_closed_form_weights_equal_the_generic_ones():
         for a, b in zip(closed.robust_weights(z, distances),
                         generic.robust_weights(z, distances)):
             torch.testing.assert_close(a, b)
+
+
+def test_range_by_sensor_is_each_links_own_sensor_model():
+    # every piece (likelihood, robust weights, Fisher information) is the
+    # named sensor's StudentTRange's, link by link, written as a plain loop
+    from tg_nebp.models import StudentTRangeBySensor
+    sigma, nu = [0.1, 0.02, 0.3], [3.0, 32.0, 8.0]
+    model = StudentTRangeBySensor(sigma, nu, max_range=40.0)
+    generator = torch.Generator().manual_seed(0)
+    sensor = torch.randint(0, 3, (50, ), generator=generator).double()
+    z = torch.stack([5 + torch.rand(50, generator=generator,
+                                    dtype=torch.float64), sensor], 1)
+    distances = 5 + torch.rand(50, 4, generator=generator,
+                               dtype=torch.float64)
+    log_lik = model.log_likelihood_of_distance(z, distances)
+    score, weights = model.robust_weights(z, distances)
+    information = model.range_information(z, distances[:, 0])
+    for e in range(50):
+        own = StudentTRange(sigma[int(sensor[e])], nu[int(sensor[e])])
+        torch.testing.assert_close(log_lik[e], own.log_likelihood_of_distance(
+            z[e:e + 1], distances[e:e + 1])[0])
+        s, w = own.robust_weights(z[e:e + 1], distances[e:e + 1])
+        torch.testing.assert_close((score[e], weights[e]), (s[0], w[0]))
+        torch.testing.assert_close(information[e], own.range_information(
+            z[e:e + 1], distances[e:e + 1, 0])[0])
+    assert model_from_config(model.config(), 'measurement') == model
+    with pytest.raises(ValueError, match='link 0 names sensor 3.0; the '
+                       'model has sensors 0 to 2'):
+        model.log_likelihood_of_distance(torch.tensor([[1.0, 3.0]]),
+                                         torch.ones(1, 1))
+    with pytest.raises(ValueError, match="lists of one entry per sensor"):
+        StudentTRangeBySensor([0.1, 0.2], [3.0])

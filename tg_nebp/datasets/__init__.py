@@ -7,8 +7,9 @@ from .mrclam_dataset import (MRCLAM, PARTS, MRCLAMScenario, fitted_scenario,
 from .recording import (Recording, RangeCalibration, recording_realization,
                         recording_report)
 from .rosbag import BagTopics, TIERS_TOPICS, read_bag
+from .miluv import read_miluv, miluv_experiments
 from .uwb import (RecordingScenario, RecordingDataset, fit_range_models,
-                  fitted_recording_scenario, read_recording, RECORDING_PARTS,
+                  fitted_recording_scenario, READERS, RECORDING_PARTS,
                   UWB_FIT_HORIZON)
 from .cooperative_localization import (CooperativeLocalizationDataset,
                                        load_datasets, load_scenario)
@@ -22,5 +23,5 @@ __all__ = ['Scenario', 'CooperativeLocalizationDataset', 'load_datasets',
            'recording_realization', 'recording_report', 'BagTopics',
            'TIERS_TOPICS', 'read_bag', 'RecordingScenario',
            'RecordingDataset', 'fit_range_models',
-           'fitted_recording_scenario', 'read_recording', 'RECORDING_PARTS',
-           'UWB_FIT_HORIZON']
+           'fitted_recording_scenario', 'READERS', 'RECORDING_PARTS',
+           'UWB_FIT_HORIZON', 'read_miluv', 'miluv_experiments']

@@ -233,7 +233,8 @@ def load_scenario(name_or_path: Union[str, os.PathLike]
     text = str(name_or_path)
     if text.startswith('mrclam-') and not text.endswith('.json'):
         return MRCLAMScenario.load(text)
-    if text.startswith('tiers-uwb-') and not text.endswith('.json'):
+    if text.startswith(('tiers-uwb-', 'miluv-')) and \
+            not text.endswith('.json'):
         return RecordingScenario.load(text)
     if text.endswith('.json') and os.path.isfile(text):
         # read once: a real sequence's file has a 'sequence' field, a

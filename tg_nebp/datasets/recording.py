@@ -54,17 +54,19 @@ class Recording:
         source (str): The file or folder it was read from.
         nodes (list): The nodes' names, in node order.
         position_dim (int): :math:`D`, 2 or 3.
-        ranges (numpy.ndarray): :math:`(M, 4)` float64 rows :math:`[t,
-            \text{receiver}, \text{sender}, z]` in time order: node
+        ranges (numpy.ndarray): :math:`(M, 5)` float64 rows :math:`[t,
+            \text{receiver}, \text{sender}, z, k]` in time order: node
             :obj:`receiver` measured its range :math:`z` (metres) to node
-            :obj:`sender` at time :math:`t` (seconds).
+            :obj:`sender` at time :math:`t` (seconds) with sensor :math:`k`
+            (an index into :obj:`sensors`).
         truth (dict): Node index to its ground truth :math:`(P, 1 + D)`,
             rows :math:`[t, \mathbf{p}]` in time order.
         surveyed (dict): Node index to a fixed position :math:`(D)` (an
             anchor of a constellation surveyed beforehand).
-        heights (numpy.ndarray, optional): :math:`(H, 3)` rows :math:`[t,
-            \text{node}, h]` of a height sensor (:obj:`None` without one).
-        counts (dict): What the reader dropped (:data:`READ_COUNTS`).
+        sensors (list): The names of the sensors that measured the ranges
+            (one: every range is a UWB two-way range).
+        counts (dict): What the reader dropped (:data:`READ_COUNTS`), and
+            what else it counts (a reader's own kinds of rows).
     """
     source: str
     nodes: List[str]
@@ -72,7 +74,7 @@ class Recording:
     ranges: np.ndarray
     truth: Dict[int, np.ndarray]
     surveyed: Dict[int, np.ndarray] = dataclasses.field(default_factory=dict)
-    heights: Optional[np.ndarray] = None
+    sensors: List[str] = dataclasses.field(default_factory=lambda: ['uwb'])
     counts: Dict[str, int] = dataclasses.field(
         default_factory=lambda: dict.fromkeys(READ_COUNTS, 0))
 
@@ -242,8 +244,10 @@ def recording_realization(recording: Recording, dt: float,
             prior[node] = states[node, 0]
     counts = dict(recording.counts, **dict.fromkeys(BIN_COUNTS, 0))
     sums: Dict[Tuple[int, int, int], List[float]] = {}
-    t, receiver, sender, z = (recording.ranges[:, c] for c in range(4))
+    t, receiver, sender, z, sensor = (recording.ranges[:, c]
+                                      for c in range(5))
     receiver, sender = receiver.astype(np.int64), sender.astype(np.int64)
+    sensor = sensor.astype(np.int64)
     inside = (t > t0) & (t <= t0 + steps * dt)
     counts['outside'] = int((~inside).sum())
     step = np.minimum(np.ceil((t - t0) / dt).astype(np.int64) - 1,
@@ -260,14 +264,18 @@ def recording_realization(recording: Recording, dt: float,
         rx, tx = pair[::-1] if anchor[pair[0]] else pair
         if symmetric and not anchor[tx] and tx < rx:
             rx, tx = tx, rx
-        sums.setdefault((int(step[k]), rx, tx), []).append(
+        sums.setdefault((int(step[k]), rx, tx, int(sensor[k])), []).append(
             float(z[k]) - bias[pair])
     counts['merged'] = sum(len(v) - 1 for v in sums.values())
     keys = sorted(sums)
     edge_index = torch.tensor([[k[2] for k in keys], [k[1] for k in keys]],
                               dtype=torch.long).view(2, -1)
-    edge_attr = torch.tensor([float(np.mean(sums[k])) for k in keys],
-                             dtype=torch.float32).view(-1, 1)
+    # with several sensors, each link names its own (the likelihood's
+    # second feature, StudentTRangeBySensor's)
+    several = len(recording.sensors) > 1
+    edge_attr = torch.tensor(
+        [[float(np.mean(sums[k]))] + [float(k[3])] * several for k in keys],
+        dtype=torch.float32).view(-1, 1 + several)
     edge_time = torch.tensor([k[0] for k in keys], dtype=torch.long)
     size = 2 * recording.position_dim
     variance = [prior_std**2] * recording.position_dim + \
@@ -292,6 +300,10 @@ def recording_report(what: str, counts: Sequence[Dict[str, int]],
     :func:`recording_realization` gives them)."""
     total = {key: sum(c.get(key, 0) for c in counts)
              for key in READ_COUNTS + BIN_COUNTS}
+    # a reader's own counts (MILUV's rigid and height rows), said as they are
+    own = sorted({key for c in counts for key in c} - set(total))
+    extra = ''.join(f"; {key.replace('_', ' ')}: "
+                    f"{sum(c.get(key, 0) for c in counts):,}" for key in own)
     return (f"{what}: steps of {dt:g} s, {sum(links):,} links kept; ranges "
             f"dropped: {total['not_finite']:,} not finite, "
             f"{total['negative']:,} negative, {total['absurd']:,} beyond "
@@ -299,4 +311,4 @@ def recording_report(what: str, counts: Sequence[Dict[str, int]],
             f"without truth, {total['outside']:,} outside the span, "
             f"{total['between_anchors']:,} between anchors; "
             f"{total['merged']:,} repeated within a step merged (the mean "
-            f"of the step's ranges kept)")
+            f"of the step's ranges kept){extra}")

@@ -259,8 +259,8 @@ def _read(reader, path, topics, range_pattern, truth_pattern,
         elif value > topics.max_range:
             counts['absurd'] += 1
         else:
-            kept.append((time, index[receiver], index[sender], value))
-    table = np.array(kept, dtype=np.float64).reshape(-1, 4)
+            kept.append((time, index[receiver], index[sender], value, 0))
+    table = np.array(kept, dtype=np.float64).reshape(-1, 5)
     return Recording(source=str(path), nodes=nodes,
                      position_dim=position_dim, ranges=table,
                      truth=truth_arrays, counts=counts)

@@ -1,6 +1,6 @@
 r"""Real UWB ranging as scenarios and datasets: a :class:`RecordingScenario`
-names a recording (a ROS bag with its topics; the TIERS dataset's runs by
-name), the step, which nodes are anchors, the range calibration and the
+names a recording (a ROS bag with its topics, the TIERS dataset's runs by
+name; a MILUV experiment by name), the step, which nodes are anchors, the range calibration and the
 models; :class:`RecordingDataset` (PyG's
 :class:`~torch_geometric.data.InMemoryDataset`) reads it into
 :class:`~tg_nebp.data.Realization`\ s (:func:`~tg_nebp.datasets.recording_realization`),
@@ -28,14 +28,15 @@ from tg_nebp.datasets.mrclam import _scale, long_run_factor
 from tg_nebp.datasets.recording import (RangeCalibration, Recording,
                                         recording_realization,
                                         recording_report)
-from tg_nebp.datasets.rosbag import TIERS_TOPICS, BagTopics, read_bag
+from tg_nebp.datasets.miluv import read_miluv
+from tg_nebp.datasets.rosbag import BagTopics, read_bag
 from tg_nebp.datasets.scenario import scenario_from_fields
 from tg_nebp.io import read_json, write_text
 from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config)
 
 __all__ = ['RecordingScenario', 'RecordingDataset', 'fit_range_models',
            'fitted_recording_scenario', 'RECORDING_PARTS', 'UWB_FIT_HORIZON',
-           'read_recording']
+           'READERS', 'UWB_MIN_NU']
 
 LOG = logging.getLogger('tg_nebp.datasets')
 
@@ -48,7 +49,7 @@ RECORDING_PARTS = ('all', 'first-half', 'second-half')
 #: seconds while the robots move).
 UWB_FIT_HORIZON = 10
 #: The readers a scenario names.
-READERS = ('rosbag', )
+READERS = ('rosbag', 'miluv')
 
 # tiers-uwb-testN and its options
 _TIERS = re.compile(r'tiers-uwb-(test[0-9]+)((?:-[a-z0-9]+)*)\Z')
@@ -58,8 +59,39 @@ _TIERS_OPTIONS = {
     'first-half': dict(part='first-half'),
     'second-half': dict(part='second-half'),
 }
-# the models fitted on the first half of TIERS case 4 test3, shipped
-_FITTED = 'tiers-uwb.json'
+# miluv-EXPERIMENT and its options
+_MILUV = re.compile(r'miluv-([A-Za-z0-9_]+)((?:-[a-z0-9]+)*)\Z')
+_MILUV_OPTIONS = {
+    'no-height': dict(height=False),
+    'first-half': dict(part='first-half'),
+    'second-half': dict(part='second-half'),
+}
+# the models fitted on the first half of TIERS case 4 test3 and of MILUV's
+# cirObstacles_1_random3_0, shipped
+_FITTED = {'tiers': 'tiers-uwb.json', 'miluv': 'miluv.json'}
+
+
+def _options(text: str, rest: str, known: Dict[str, dict],
+             family: str) -> Dict[str, Any]:
+    # the options after a name, each after a hyphen, the longest first
+    # ('first-half' before 'first'); one that repeats or contradicts
+    # another is refused
+    chosen: Dict[str, Any] = {}
+    while rest:
+        token = next((t for t in sorted(known, key=len, reverse=True)
+                      if rest.startswith('-' + t)
+                      and rest[len(t) + 1:len(t) + 2] in ('', '-')), None)
+        if token is None:
+            raise ValueError(f"scenario '{text}': unknown option "
+                             f"'{rest[1:].split('-')[0]}'; the options of "
+                             f"{family} are {sorted(known)}")
+        for key, value in known[token].items():
+            if key in chosen:
+                raise ValueError(f"scenario '{text}': the option '{token}' "
+                                 f"repeats or contradicts another")
+            chosen[key] = value
+        rest = rest[len(token) + 1:]
+    return chosen
 
 
 def _positive(value) -> bool:
@@ -74,7 +106,12 @@ class RecordingScenario:
     trackers read: what :class:`RecordingDataset` reads and what
     :obj:`--scenario tiers-uwb-testN` or a JSON file names.
 
-    By name (:meth:`load`): :obj:`"tiers-uwb-testN"` is run :math:`N` of
+    By name (:meth:`load`): :obj:`"miluv-EXPERIMENT"` is MILUV's experiment
+    of that name under the root (:func:`~tg_nebp.datasets.read_miluv`: its
+    tags as nodes, 3-D, the height sensor read), steps of 0.5 s, with the
+    models and the calibration fitted on the first half of
+    :obj:`cirObstacles_1_random3_0` (shipped); options: :obj:`no-height`,
+    :obj:`first-half`, :obj:`second-half`. :obj:`"tiers-uwb-testN"` is run :math:`N` of
     the TIERS UWB dataset's case 4 (its ROS 2 bag
     :obj:`case_4/ros2/testN` under the root), turtlebots 1 and 2 declared
     anchors (they stand still in every run), nodes :obj:`n_1` to
@@ -88,11 +125,16 @@ class RecordingScenario:
         name (str): Name.
         recording (str): The recording, a path under the dataset's root
             (or absolute).
-        topics (dict): Its :class:`~tg_nebp.datasets.BagTopics` fields.
+        options (dict): What the reader is told: a bag's
+            :class:`~tg_nebp.datasets.BagTopics` fields; MILUV's
+            :obj:`{"height": true}` (the height sensor read, or not).
         motion (dict or MotionModel): The motion model (its configuration).
         measurement (dict or MeasurementModel): The likelihood of a range.
-        reader (str, optional): :obj:`"rosbag"`. (default: :obj:`"rosbag"`)
-        position_dim (int, optional): 2 or 3. (default: :obj:`2`)
+        reader (str, optional): One of :data:`READERS`: :obj:`"rosbag"`
+            (the recording a bag's path under the root) or :obj:`"miluv"`
+            (the recording an experiment's name, the root MILUV's).
+            (default: :obj:`"rosbag"`)
+        position_dim (int, optional): 2 or 3 (MILUV: 3). (default: :obj:`2`)
         anchors (list, optional): Names of nodes declared anchors (standing
             still: their truth at the start is their surveyed position).
             (default: none)
@@ -116,7 +158,7 @@ class RecordingScenario:
     """
     name: str
     recording: str
-    topics: Dict[str, Any]
+    options: Dict[str, Any]
     motion: Dict[str, Any]
     measurement: Dict[str, Any]
     reader: str = 'rosbag'
@@ -137,8 +179,8 @@ class RecordingScenario:
             value = getattr(self, key)
             if isinstance(value, (MotionModel, MeasurementModel)):
                 fix(self, key, value.config())
-        if isinstance(self.topics, BagTopics):
-            fix(self, 'topics', self.topics.to_fields())
+        if isinstance(self.options, BagTopics):
+            fix(self, 'options', self.options.to_fields())
         if isinstance(self.calibration, RangeCalibration):
             fix(self, 'calibration', self.calibration.to_fields())
         if isinstance(self.anchors, list):
@@ -154,15 +196,16 @@ class RecordingScenario:
         if self.reader not in READERS:
             raise ValueError(f"'reader' must be one of {list(READERS)}, got "
                              f"{self.reader!r}")
-        if not isinstance(self.topics, dict):
-            raise ValueError(f"'topics' must be an object, got "
-                             f"{self.topics!r}")
+        if not isinstance(self.options, dict):
+            raise ValueError(f"'options' must be an object, got "
+                             f"{self.options!r}")
         try:
-            BagTopics(**self.topics)
-        except TypeError as e:
-            raise ValueError(f"'topics': {e}") from None
-        except ValueError as e:
-            raise ValueError(f"'topics': {e}") from None
+            _reader_options(self.reader, self.options)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"'options': {e}") from None
+        if self.reader == 'miluv' and self.position_dim != 3:
+            raise ValueError(f"'position_dim' of a MILUV experiment is 3, "
+                             f"got {self.position_dim!r}")
         if self.position_dim not in (2, 3) or isinstance(self.position_dim,
                                                          bool):
             raise ValueError(f"'position_dim' must be 2 or 3, got "
@@ -185,10 +228,11 @@ class RecordingScenario:
             raise ValueError(f"'symmetric' must be true or false, got "
                              f"{self.symmetric!r}")
         motion, measurement = self.motion_model, self.measurement_model
-        if tuple(measurement.features) != ('range', ):
+        if tuple(measurement.features) not in (('range', ),
+                                               ('range', 'sensor')):
             raise ValueError(f"'measurement' ({measurement.name}) must be a "
-                             f"range likelihood, reads "
-                             f"{list(measurement.features)}")
+                             f"range likelihood (of one sensor or named "
+                             f"sensors), reads {list(measurement.features)}")
         if motion.state_dim not in (None, 2 * self.position_dim):
             raise ValueError(f"'motion' ({motion.name}) must move "
                              f"[p, v] states of {2 * self.position_dim} "
@@ -202,38 +246,31 @@ class RecordingScenario:
         text = str(name_or_path)
         match = _TIERS.match(text)
         if match is not None and not text.endswith('.json'):
-            run, rest = match.group(1), match.group(2)
-            chosen: Dict[str, Any] = {}
-            while rest:  # the longest option first: 'first-half'
-                token = next((t for t in sorted(_TIERS_OPTIONS, key=len,
-                                                reverse=True)
-                              if rest.startswith('-' + t)
-                              and rest[len(t) + 1:len(t) + 2] in ('', '-')),
-                             None)
-                if token is None:
-                    raise ValueError(
-                        f"scenario '{text}': unknown option "
-                        f"'{rest[1:].split('-')[0]}'; the options of "
-                        f"tiers-uwb-testN are {sorted(_TIERS_OPTIONS)}")
-                for key, value in _TIERS_OPTIONS[token].items():
-                    if key in chosen:
-                        raise ValueError(f"scenario '{text}': the option "
-                                         f"'{token}' repeats or contradicts "
-                                         f"another")
-                    chosen[key] = value
-                rest = rest[len(token) + 1:]
+            run = match.group(1)
+            chosen = _options(text, match.group(2), _TIERS_OPTIONS,
+                              'tiers-uwb-testN')
             recording = (f'case_4/ros1/{run}.bag' if chosen.get('ros1')
                          else f'case_4/ros2/{run}')
             changes = dict(name=text, recording=recording,
                            part=chosen.get('part', 'all'))
             if chosen.get('raw'):
                 changes['calibration'] = None
-            return _shipped().replace(**changes)
+            return _shipped('tiers').replace(**changes)
+        match = _MILUV.match(text)
+        if match is not None and not text.endswith('.json'):
+            chosen = _options(text, match.group(2), _MILUV_OPTIONS,
+                              'miluv-EXPERIMENT')
+            return _shipped('miluv').replace(
+                name=text, recording=match.group(1),
+                part=chosen.get('part', 'all'),
+                options=dict(height=chosen.get('height', True)))
         path = Path(name_or_path)
         if path.suffix != '.json':
             raise ValueError(f"unknown scenario '{text}'; a UWB recording is "
                              f"tiers-uwb-testN with the options "
-                             f"{sorted(_TIERS_OPTIONS)}, or a .json file")
+                             f"{sorted(_TIERS_OPTIONS)}, miluv-EXPERIMENT "
+                             f"with the options {sorted(_MILUV_OPTIONS)}, or "
+                             f"a .json file")
         if not path.is_file():
             raise ValueError(f"scenario file '{path}' does not exist")
         return cls.from_fields(read_json(path), str(path))
@@ -307,13 +344,17 @@ class RecordingScenario:
 
     def path(self, root: Union[str, os.PathLike]) -> Path:
         r"""Where the recording lies under :obj:`root`."""
+        if self.reader == 'miluv':
+            return Path(root) / 'data' / self.recording
         return Path(root) / self.recording
 
     def read(self, root: Union[str, os.PathLike]) -> Recording:
-        r"""The recording under :obj:`root`, read
-        (:func:`read_recording`)."""
-        return read_recording(self.path(root), self.reader,
-                              BagTopics(**self.topics), self.position_dim)
+        r"""The recording under :obj:`root`, read by the scenario's
+        reader."""
+        options = _reader_options(self.reader, self.options)
+        if self.reader == 'miluv':
+            return read_miluv(root, self.recording, **options)
+        return read_bag(self.path(root), options, self.position_dim)
 
     def span(self, recording: Recording) -> Tuple[float, float]:
         r"""The part's start and length in seconds from the first time
@@ -335,21 +376,24 @@ class RecordingScenario:
             self.symmetric)
 
 
-def read_recording(path: Union[str, os.PathLike], reader: str = 'rosbag',
-                   topics: Optional[BagTopics] = None,
-                   position_dim: int = 2) -> Recording:
-    r"""The recording at :obj:`path` read by :obj:`reader` (one of
-    :data:`READERS`; a bag's :obj:`topics`, the TIERS layout by
-    default)."""
-    if reader not in READERS:
-        raise ValueError(f"'reader' must be one of {list(READERS)}, got "
-                         f"{reader!r}")
-    return read_bag(path, topics or TIERS_TOPICS, position_dim)
+def _reader_options(reader: str, options: Dict[str, Any]):
+    # the reader's own options from a scenario's: a bag's topics, MILUV's
+    # keyword arguments
+    if reader == 'rosbag':
+        return BagTopics(**options)
+    unknown = set(options) - {'height'}
+    if unknown:
+        raise ValueError(f"MILUV's options are 'height', got "
+                         f"{sorted(unknown)}")
+    if not isinstance(options.get('height', True), bool):
+        raise ValueError(f"'height' must be true or false, got "
+                         f"{options['height']!r}")
+    return dict(options)
 
 
-def _shipped() -> RecordingScenario:
-    path = resources.files('tg_nebp.datasets') / 'fitted' / _FITTED
-    return RecordingScenario.from_fields(read_json(path), _FITTED)
+def _shipped(family: str) -> RecordingScenario:
+    path = resources.files('tg_nebp.datasets') / 'fitted' / _FITTED[family]
+    return RecordingScenario.from_fields(read_json(path), _FITTED[family])
 
 
 def _distances(data: Realization) -> np.ndarray:
@@ -362,59 +406,30 @@ def _distances(data: Realization) -> np.ndarray:
         dim=-1).numpy()
 
 
-def fit_range_models(data: Realization, nodes: List[str], dt: float,
-                     horizon: int = UWB_FIT_HORIZON,
-                     max_range: float = 50.0,
-                     sigma_a: float = 0.05
-                     ) -> Tuple[MotionModel, MeasurementModel,
-                                RangeCalibration, Dict[str, Any]]:
-    r"""The models of a recording, fitted on its truth: :obj:`data` a
-    realization of :func:`~tg_nebp.datasets.recording_realization` in steps
-    of :obj:`dt` seconds binned without a calibration, whose nodes are
-    named :obj:`nodes`.
+#: The smallest Student-t :math:`\nu` that :func:`fit_range_models` gives a
+#: sensor. Chosen on the fit halves (validation) of both recordings: the
+#: maximum-likelihood :math:`\nu` at the truth is 2-3 for UWB, and with it
+#: the filters lose MILUV's drone (1 to 2 UWB ranges a tag a step, each
+#: easily discounted as an outlier once the estimate is off: IEKF 1.07 m,
+#: Gaussian BP 2.04 m on the first half), while :math:`\nu` = 4, 8, 32
+#: give 0.61, 0.40, 0.35 m (Gaussian BP 0.55, 0.46, 0.42 m); on TIERS's
+#: test3 every :math:`\nu` gives 0.148-0.150 m.
+UWB_MIN_NU = 32.0
+#: The smallest range scale that :func:`fit_range_models` gives a sensor,
+#: metres (a link known exactly, a rigid body's, still gets a likelihood
+#: whose precision a float32 linearization can hold).
+MIN_SIGMA = 0.01
 
-    * **Range calibration**: each pair's bias, the median of its links'
-      residuals :math:`z - \|\mathbf{p}_j - \mathbf{p}_i\|`; a pair not
-      seen gets the median of the pairs' biases.
-    * **Range noise**: the residuals less their pair's bias; a Student-t
-      (:obj:`max_range` its communication range) whose scale is robust
-      (1.4826 times the median absolute deviation) times the square root of
-      the :func:`~tg_nebp.datasets.long_run_factor` of each pair's residual
-      series over :obj:`horizon` steps (a UWB pair's error holds for
-      seconds: a filter that averages the ranges as independent would be
-      overconfident), and whose :math:`\nu` is the maximum-likelihood one
-      on a grid (2, 3, 4, 6, 8, 16, 32) at the one-step scale.
-    * **Motion**: a constant-velocity model whose acceleration noise
-      :math:`\sigma_a` is the root mean square of the true accelerations
-      of the agents that move (the change of the truth's velocity over a
-      step divided by the step), over every axis; in a recording in which
-      no agent moves (a calibration run) :obj:`sigma_a` is kept, and the
-      report says so.
 
-    Returns the :class:`~tg_nebp.models.ConstantVelocity`, the
-    :class:`~tg_nebp.models.StudentTRange`, the
-    :class:`~tg_nebp.datasets.RangeCalibration` and a report of the
-    figures. Fewer than 3 links is a :class:`ValueError`."""
-    from tg_nebp.models import ConstantVelocity, StudentTRange
-    horizon = check_positive_int(horizon, 'horizon')
-    links = int(data.edge_index.size(1))
-    if links < 3:
-        raise ValueError(f"the recording has {links} links; fitting the "
-                         f"range noise needs at least 3")
-    residual = data.edge_attr[:, 0].double().numpy() - _distances(data)
-    src, dst = data.edge_index.numpy()
-    count = int(data.num_nodes)
-    pairs, row = np.unique(dst * count + src, return_inverse=True)
-    biases = np.array([np.median(residual[row == k])
-                       for k in range(len(pairs))])
-    default = float(np.median(biases))
-    calibration = RangeCalibration(
-        {f'{nodes[int(k) // count]}->{nodes[int(k) % count]}': float(b)
-         for k, b in zip(pairs, biases)}, default)
-    centred = residual - biases[row]
-    sigma = _scale(centred)
-    series = np.full((len(pairs), int(data.num_steps)), np.nan)
-    series[row, data.edge_time.numpy()] = np.clip(centred / sigma, -3, 3)
+def _sensor_noise(centred: np.ndarray, row: np.ndarray, times: np.ndarray,
+                  pairs: int, steps: int, horizon: int
+                  ) -> Tuple[float, float, float]:
+    # a sensor's one-step robust scale, long-run factor and the Student-t
+    # nu of the largest likelihood at the truth
+    from tg_nebp.models import StudentTRange
+    sigma = max(_scale(centred), MIN_SIGMA)
+    series = np.full((pairs, steps), np.nan)
+    series[row, times] = np.clip(centred / sigma, -3, 3)
     factor = long_run_factor(series, horizon)
     best, best_nu = -np.inf, None
     for nu in (2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 32.0):
@@ -423,13 +438,89 @@ def fit_range_models(data: Realization, nodes: List[str], dt: float,
             torch.zeros(len(centred), 1, dtype=torch.float64)).sum())
         if value > best:
             best, best_nu = value, nu
-    report = dict(links=links, pairs=int(len(pairs)),
-                  bias_median=default, bias_min=float(biases.min()),
-                  bias_max=float(biases.max()),
-                  range_sigma_one_step=sigma, range_long_run_factor=factor,
-                  range_beyond_3_sigma=float(np.mean(np.abs(centred) >
-                                                     3 * sigma)),
-                  nu=best_nu, horizon=horizon)
+    return sigma, factor, best_nu
+
+
+def fit_range_models(data: Realization, nodes: List[str], dt: float,
+                     horizon: int = UWB_FIT_HORIZON,
+                     max_range: float = 50.0,
+                     sigma_a: float = 0.05,
+                     sensors: Tuple[str, ...] = ('uwb', ),
+                     min_nu: float = UWB_MIN_NU
+                     ) -> Tuple[MotionModel, MeasurementModel,
+                                RangeCalibration, Dict[str, Any]]:
+    r"""The models of a recording, fitted on its truth: :obj:`data` a
+    realization of :func:`~tg_nebp.datasets.recording_realization` in steps
+    of :obj:`dt` seconds binned without a calibration, whose nodes are
+    named :obj:`nodes` and whose links were measured by :obj:`sensors`
+    (with more than one, each link's second feature names its sensor).
+
+    * **Range calibration**: each pair's bias, the median of its links'
+      residuals :math:`z - \|\mathbf{p}_j - \mathbf{p}_i\|`; a pair not
+      seen gets the median of the pairs' biases.
+    * **Range noise**, per sensor: the residuals less their pair's bias; a
+      Student-t (:obj:`max_range` its communication range) whose scale is
+      robust (1.4826 times the median absolute deviation, at least
+      :data:`MIN_SIGMA`) times the square root of the
+      :func:`~tg_nebp.datasets.long_run_factor` of each pair's residual
+      series over :obj:`horizon` steps (a UWB pair's error holds for
+      seconds: a filter that averages the ranges as independent would be
+      overconfident), and whose :math:`\nu` is the maximum-likelihood one on
+      a grid (2, 3, 4, 6, 8, 16, 32) at the one-step scale (reported), at
+      least :obj:`min_nu` (:data:`UWB_MIN_NU`: a tracker whose estimate is
+      off must not discount the few ranges that would correct it).
+    * **Motion**: a constant-velocity model whose acceleration noise
+      :math:`\sigma_a` is the root mean square of the true accelerations
+      of the agents that move (the change of the truth's velocity over a
+      step divided by the step), over every axis; in a recording in which
+      no agent moves (a calibration run) :obj:`sigma_a` is kept, and the
+      report says so.
+
+    Returns the :class:`~tg_nebp.models.ConstantVelocity`, the
+    :class:`~tg_nebp.models.StudentTRange` (one sensor) or
+    :class:`~tg_nebp.models.StudentTRangeBySensor`, the
+    :class:`~tg_nebp.datasets.RangeCalibration` and a report of the
+    figures. A sensor with fewer than 3 links is a :class:`ValueError`."""
+    from tg_nebp.models import (ConstantVelocity, StudentTRange,
+                                StudentTRangeBySensor)
+    horizon = check_positive_int(horizon, 'horizon')
+    residual = data.edge_attr[:, 0].double().numpy() - _distances(data)
+    sensor = (data.edge_attr[:, 1].round().long().numpy()
+              if len(sensors) > 1 else np.zeros(len(residual), np.int64))
+    src, dst = data.edge_index.numpy()
+    count = int(data.num_nodes)
+    pairs, row = np.unique(dst * count + src, return_inverse=True)
+    biases = np.array([np.median(residual[row == k])
+                       for k in range(len(pairs))])
+    calibration = RangeCalibration(
+        {f'{nodes[int(k) // count]}->{nodes[int(k) % count]}': float(b)
+         for k, b in zip(pairs, biases)},
+        float(np.median(biases[np.unique(row[sensor == 0])]))
+        if (sensor == 0).any() else 0.0)
+    centred = residual - biases[row]
+    report: Dict[str, Any] = dict(links=int(len(residual)),
+                                  pairs=int(len(pairs)), horizon=horizon)
+    scales, nus = [], []
+    for k, name in enumerate(sensors):
+        mine = sensor == k
+        if mine.sum() < 3:
+            raise ValueError(f"the recording has {int(mine.sum())} links of "
+                             f"the sensor '{name}'; fitting its noise needs "
+                             f"at least 3")
+        sigma, factor, nu = _sensor_noise(
+            centred[mine], row[mine], data.edge_time.numpy()[mine],
+            len(pairs), int(data.num_steps), horizon)
+        scales.append(sigma * math.sqrt(factor))
+        nus.append(max(nu, min_nu))
+        mine_biases = biases[np.unique(row[mine])]
+        report[name] = dict(
+            links=int(mine.sum()), pairs=int(len(mine_biases)),
+            bias_median=float(np.median(mine_biases)),
+            bias_min=float(mine_biases.min()),
+            bias_max=float(mine_biases.max()), sigma_one_step=sigma,
+            long_run_factor=factor, nu_at_truth=nu, nu=nus[-1],
+            beyond_3_sigma=float(np.mean(np.abs(centred[mine]) >
+                                         3 * sigma)))
     dim = data.states.size(-1) // 2
     velocity = data.states[~data.anchor, :, dim:].double()
     moving = velocity.norm(dim=-1).amax(-1) > 0.05
@@ -440,8 +531,10 @@ def fit_range_models(data: Realization, nodes: List[str], dt: float,
     else:
         report['sigma_a'] = f'kept at {sigma_a} (no agent moves)'
     motion = ConstantVelocity(sigma_a, dt)
-    measurement = StudentTRange(sigma * math.sqrt(factor), best_nu,
-                                max_range)
+    if len(sensors) == 1:
+        measurement = StudentTRange(scales[0], nus[0], max_range)
+    else:
+        measurement = StudentTRangeBySensor(scales, nus, max_range)
     return motion, measurement, calibration, report
 
 
@@ -461,13 +554,15 @@ def fitted_recording_scenario(scenario: RecordingScenario,
     old = scenario.measurement_model
     motion, measurement, calibration, report = fit_range_models(
         data, recording.nodes, scenario.dt, horizon, old.max_range,
-        getattr(scenario.motion_model, 'sigma_a', 0.05))
+        getattr(scenario.motion_model, 'sigma_a', 0.05),
+        tuple(recording.sensors))
     fitted = scenario.replace(
         name=name or scenario.name, motion=motion, measurement=measurement,
         calibration=calibration,
         description=(f"{scenario.name}: the models and the range calibration "
                      f"fitted on its {report['links']} links ("
-                     f"{report['pairs']} pairs; long-run spread over "
+                     f"{report['pairs']} pairs of "
+                     f"{', '.join(recording.sensors)}; long-run spread over "
                      f"{horizon} steps)"))
     return fitted, report
 
@@ -519,7 +614,8 @@ class RecordingDataset(InMemoryDataset):
                              f"folder laid out as the dataset is)")
         recording = scenario.read(root)
         data, counts = scenario.realization(recording)
-        check_realization(data, ('range', ), negative_ranges=True)
+        check_realization(data, scenario.measurement_model.features,
+                          negative_ranges=True)
         self.scenario = scenario.resolved(recording)
         self.nodes = list(recording.nodes)
         self.counts = [counts]

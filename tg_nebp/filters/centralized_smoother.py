@@ -47,6 +47,11 @@ class _Pass(NamedTuple):
     smoothed: List[Tuple[Tensor, Tensor]]
 
 
+#: The Gauss-Newton iterations of the whole sequence's smoother by default
+#: (it stops early at its tolerance).
+WHOLE_SEQUENCE_ITERATIONS = 50
+
+
 class CentralizedSmoother(CentralizedIEKF):
     r"""The centralized Gauss-Newton smoother over a window of steps, the
     reference that fixed-lag Gaussian BP
@@ -101,7 +106,12 @@ class CentralizedSmoother(CentralizedIEKF):
         lag (int, optional): Steps in the window :math:`L` (the newest
             counted), or :obj:`None` for all. (default: :obj:`5`)
         num_iterations (int, optional): Gauss-Newton iterations per time
-            step (per sequence with :obj:`lag=None`). (default: :obj:`5`)
+            step (per sequence with :obj:`lag=None`); :obj:`None` for 5 per
+            step in a window and 50 for the whole sequence (which stop
+            early at the :obj:`tolerance`: a whole sequence's iterations
+            move every step at once, and 5 of them can leave a stretch of
+            it far from the optimum, as on MILUV's drone).
+            (default: :obj:`None`)
         motion (MotionModel, optional): Motion model with an
             additive-Gaussian-noise form.
             (default: :obj:`ConstantVelocityDrag()`)
@@ -123,13 +133,17 @@ class CentralizedSmoother(CentralizedIEKF):
     #: live (:class:`~tg_nebp.filters.TrackingSession` refuses it).
     state_type = None
 
-    def __init__(self, lag: Optional[int] = 5, num_iterations: int = 5,
+    def __init__(self, lag: Optional[int] = 5,
+                 num_iterations: Optional[int] = None,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
                  max_halvings: int = 10, tolerance: float = 1e-6):
+        lag = check_lag(lag)
+        if num_iterations is None:
+            num_iterations = WHOLE_SEQUENCE_ITERATIONS if lag is None else 5
         super().__init__(num_iterations, motion, measurement,
                          max_halvings=max_halvings, tolerance=tolerance)
-        self.lag = check_lag(lag)
+        self.lag = lag
 
     def initial_state(self, data, generator=None):
         raise NotImplementedError(

@@ -3,7 +3,8 @@ from .registry import MODELS, Model, model_from_config, model_like
 from .base import (LinkPairRange, MeasurementModel, MotionModel, RangeModel,
                    links_within_range, redraw_negative)
 from .motion import ConstantVelocity, ConstantVelocityDrag, UnicycleOdometry
-from .measurement import GaussianRange, NLOSRange, StudentTRange
+from .measurement import (GaussianRange, NLOSRange, StudentTRange,
+                          StudentTRangeBySensor)
 from .range_bearing import (GaussianRangeBearing, RangeBearingModel,
                             StudentTRangeBearing)
 from .defaults import resolve_models
@@ -25,6 +26,7 @@ __all__ = [
     'GaussianRange',
     'StudentTRange',
     'NLOSRange',
+    'StudentTRangeBySensor',
     'StateLayout',
     'wrap_angle',
     'inputs',

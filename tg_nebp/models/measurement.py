@@ -14,7 +14,8 @@ from torch import Tensor
 from tg_nebp.data.validation import check_number
 from tg_nebp.models.base import LOG_SQRT_2PI, RangeModel, redraw_negative
 
-__all__ = ['GaussianRange', 'StudentTRange', 'NLOSRange']
+__all__ = ['GaussianRange', 'StudentTRange', 'NLOSRange',
+           'StudentTRangeBySensor']
 
 
 #: The range noise scales :math:`\sigma` (metres) the range models accept.
@@ -403,3 +404,86 @@ class NLOSRange(RangeModel, name='nlos'):
 
         ranges = redraw_negative(noise, distances + bias)
         return torch.stack([ranges, nlos.to(ranges.dtype)], dim=1)
+
+
+class StudentTRangeBySensor(RangeModel, name='student-t-by-sensor'):
+    r"""Ranges from several sensors, each with its own Student-t noise: a
+    link's second feature :obj:`"sensor"` names which (0, 1, ...), and its
+    likelihood is that sensor's :class:`StudentTRange`,
+
+    .. math::
+        \log p(z, k | d) = \log \mathrm{St}\big(z - d; \sigma_k,
+        \nu_k\big),
+
+    for real recordings whose links are measured by different means: UWB
+    two-way ranges, the known distance between two tags of one rigid body,
+    a height sensor read as a range to a point far below (MILUV's, in
+    :func:`~tg_nebp.datasets.read_miluv`). Every piece a method needs (the
+    Fisher information, the robust weights) is the named sensor's own.
+
+    Args:
+        sigma (list): Each sensor's scale :math:`\sigma_k`, metres.
+        nu (list): Each sensor's degrees of freedom :math:`\nu_k`.
+        max_range (float, optional): Communication range in metres.
+            (default: :obj:`20.0`)
+
+    Shapes:
+        - **input:** link features :math:`(E, 2)` (range, sensor),
+          distances :math:`(E, K)`
+        - **output:** log-likelihoods :math:`(E, K)`
+    """
+    features = ('range', 'sensor')
+    generated_features = ('range', 'sensor')
+
+    def __init__(self, sigma=(1.0, ), nu=(3.0, ), max_range: float = 20.0):
+        super().__init__(max_range)
+        if not isinstance(sigma, (list, tuple)) or not isinstance(
+                nu, (list, tuple)) or len(sigma) != len(nu) or not sigma:
+            raise ValueError(f"'sigma' and 'nu' must be lists of one entry "
+                             f"per sensor, got {sigma!r} and {nu!r}")
+        self.sensors = [StudentTRange(s, n, max_range)
+                        for s, n in zip(sigma, nu)]
+
+    def params(self) -> dict:
+        return dict(sigma=[s.sigma for s in self.sensors],
+                    nu=[s.nu for s in self.sensors],
+                    max_range=self.max_range)
+
+    def _sensor(self, z: Tensor) -> Tensor:
+        # each link's sensor index (E, 1); one the model does not know is
+        # refused naming the link
+        index = z[:, 1:2].round().long()
+        bad = (index < 0) | (index >= len(self.sensors)) | \
+            (z[:, 1:2] != index)
+        if bool(bad.any()):
+            e = int(bad.view(-1).nonzero()[0])
+            raise ValueError(f"link {e} names sensor {float(z[e, 1])!r}; "
+                             f"the model has sensors 0 to "
+                             f"{len(self.sensors) - 1}")
+        return index
+
+    def _each(self, z: Tensor, values) -> Tensor:
+        # the named sensor's value of every link: values (S, E, ...)
+        stacked = torch.stack(values)
+        index = self._sensor(z).view((1, -1) + (1, ) * (stacked.dim() - 2))
+        return stacked.gather(0, index.expand((1, ) + stacked.shape[1:])
+                              ).squeeze(0)
+
+    def log_likelihood_of_distance(self, z: Tensor,
+                                   distances: Tensor) -> Tensor:
+        return self._each(z, [s.log_likelihood_of_distance(z, distances)
+                              for s in self.sensors])
+
+    def distance_information(self, z: Tensor, distances: Tensor) -> Tensor:
+        r"""The named sensor's closed-form Fisher information (see
+        :meth:`StudentTRange.distance_information`)."""
+        return self._each(z, [s.distance_information(z, distances)
+                              for s in self.sensors])
+
+    def distance_weights(self, z: Tensor,
+                         distances: Tensor) -> Tuple[Tensor, Tensor]:
+        r"""The named sensor's closed-form scores and weights (see
+        :meth:`StudentTRange.distance_weights`)."""
+        pieces = [s.distance_weights(z, distances) for s in self.sensors]
+        return (self._each(z, [p[0] for p in pieces]),
+                self._each(z, [p[1] for p in pieces]))
