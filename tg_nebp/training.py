@@ -62,10 +62,11 @@ _METHOD_OF_BASE = {'particle': 'nebp', 'gaussian': 'gnebp'}
 #: :obj:`"mrclam"`), and inside the window of 5 steps of fixed-lag Gaussian
 #: BP on the paper's, sparse and wide-prior training networks
 #: (:obj:`"window"`, a :class:`~tg_nebp.filters.FixedLagGaussianNEBP`) and
-#: on the 3-D one (:obj:`"window3d"`).
+#: on the 3-D one (:obj:`"window3d"`), and on real UWB ranges (the first
+#: half of the TIERS dataset's test3, :obj:`"tiers"`).
 #: The commands that made them are in :obj:`tg_nebp/pretrained/README.md`.
 PRETRAINED = ('paper', 'nlos', 'mix', 'box3d', 'robots', 'mrclam', 'window',
-              'window3d')
+              'window3d', 'tiers')
 
 
 def checkpoint_path(checkpoint: Union[str, Path]) -> Path:

@@ -119,6 +119,11 @@ def compare_methods(scenario: Scenario,
         methods[f'{BOUND}{RANGE_ONLY}'] = (
             'the posterior CRB of the ranges alone (no bearing)',
             lambda: PosteriorCRB(motion, range_only))
+    elif len(own.features) > 1:
+        # a likelihood that reads more than the range (each link's sensor,
+        # StudentTRangeBySensor's): no one-scale alternative describes its
+        # links, so its own rows alone
+        likelihoods = []
     else:
         likelihoods = ['gaussian', 'student-t']
     if own.name not in likelihoods:
