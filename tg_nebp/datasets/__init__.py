@@ -4,13 +4,13 @@ from .mrclam import (FIT_HORIZON, MRCLAMSequence, fit_models,
                      mrclam_realization, read_mrclam)
 from .mrclam_dataset import (MRCLAM, PARTS, MRCLAMScenario, fitted_scenario,
                              range_part, sequence_source, MRCLAM_URL)
-from .recording import (Recording, RangeCalibration, recording_realization,
-                        recording_report)
-from .rosbag import BagTopics, TIERS_TOPICS, read_bag
+from .recording import (BIN_COUNTS, READ_COUNTS, Recording, RangeCalibration,
+                        recording_realization, recording_report)
+from .rosbag import RANGE_TYPES, BagTopics, TIERS_TOPICS, read_bag
 from .miluv import read_miluv, miluv_experiments
 from .uwb import (RecordingScenario, RecordingDataset, fit_range_models,
-                  fitted_recording_scenario, READERS, RECORDING_PARTS,
-                  UWB_FIT_HORIZON)
+                  fitted_recording_scenario, MIN_SIGMA, READERS,
+                  RECORDING_PARTS, UWB_FIT_HORIZON, UWB_MIN_NU)
 from .cooperative_localization import (CooperativeLocalizationDataset,
                                        load_datasets, load_scenario)
 
@@ -24,4 +24,6 @@ __all__ = ['Scenario', 'CooperativeLocalizationDataset', 'load_datasets',
            'TIERS_TOPICS', 'read_bag', 'RecordingScenario',
            'RecordingDataset', 'fit_range_models',
            'fitted_recording_scenario', 'READERS', 'RECORDING_PARTS',
-           'UWB_FIT_HORIZON', 'read_miluv', 'miluv_experiments']
+           'UWB_FIT_HORIZON', 'read_miluv', 'miluv_experiments',
+           'READ_COUNTS', 'BIN_COUNTS', 'RANGE_TYPES', 'MIN_SIGMA',
+           'UWB_MIN_NU']

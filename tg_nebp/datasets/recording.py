@@ -37,12 +37,12 @@ from tg_nebp.data.realization import Realization
 __all__ = ['Recording', 'RangeCalibration', 'recording_realization',
            'READ_COUNTS', 'BIN_COUNTS', 'recording_report']
 
-#: What a reader drops and counts: ranges that are not finite, negative or
-#: beyond the reader's :obj:`max_range` (absurd), and ranges of a node
-#: that is not tracked (no truth and not surveyed).
+#: The ranges a reader drops and counts (those not finite, negative or
+#: beyond the reader's :obj:`max_range`, absurd, and those of a node that is
+#: not tracked, without truth and not surveyed).
 READ_COUNTS = ('not_finite', 'negative', 'absurd', 'untracked')
-#: What the binning drops or merges: ranges outside the span, between two
-#: anchors, and repeated within a step (merged into their mean).
+#: The ranges the binning drops or merges (outside the span, between two
+#: anchors, and repeated within a step, merged into their mean).
 BIN_COUNTS = ('outside', 'between_anchors', 'merged')
 
 
@@ -65,7 +65,8 @@ class Recording:
             anchor of a constellation surveyed beforehand).
         sensors (list): The names of the sensors that measured the ranges
             (one: every range is a UWB two-way range).
-        counts (dict): What the reader dropped (:data:`READ_COUNTS`), and
+        counts (dict): What the reader dropped
+            (:data:`~tg_nebp.datasets.recording.READ_COUNTS`), and
             what else it counts (a reader's own kinds of rows).
     """
     source: str
@@ -187,8 +188,8 @@ def recording_realization(recording: Recording, dt: float,
     from :obj:`start` seconds after the first time every node with truth has
     it, for :obj:`duration` seconds (to the end of the truth's span with
     :obj:`None`), under the binning of the module docstring; and what was
-    dropped or merged (:data:`BIN_COUNTS`, after the reader's
-    :data:`READ_COUNTS`).
+    dropped or merged (:data:`~tg_nebp.datasets.recording.BIN_COUNTS`, after the
+    reader's :data:`~tg_nebp.datasets.recording.READ_COUNTS`).
 
     Nodes: the recording's, in its order; the :obj:`anchors` (names of
     nodes with truth, or surveyed nodes, which are anchors always) static at

@@ -55,7 +55,8 @@ class BagTopics:
         node (str, optional): The node's name made of a group's value
             (:obj:`"{}"` the value itself). (default: :obj:`"{}"`)
         range_field (str, optional): The field that holds the range of a
-            message type not in :data:`RANGE_TYPES` (a user's own; dotted
+            message type not in
+            :data:`~tg_nebp.datasets.rosbag.RANGE_TYPES` (a user's own; dotted
             for a nested field). (default: :obj:`"range"`)
         max_range (float, optional): A range beyond is absurd: dropped and
             counted. (default: :obj:`1000.0`)
@@ -91,7 +92,7 @@ class BagTopics:
         return dataclasses.asdict(self)
 
 
-#: The TIERS dataset's topics: :obj:`/uwb/tof/n_I/n_J/distance` (node
+#: The topics of the TIERS dataset, :obj:`/uwb/tof/n_I/n_J/distance` (node
 #: :obj:`n_I` measured its range to :obj:`n_J`) and
 #: :obj:`/vrpn_client_node/turtlebotI/pose` (node :obj:`n_I` rides on
 #: turtlebot :math:`I`).
@@ -132,7 +133,7 @@ def read_bag(path: Union[str, Path], topics: BagTopics,
 
     A node with a range topic but no ground truth is left out, its ranges
     counted as :obj:`"untracked"`; a range that is not finite, negative or
-    beyond :attr:`BagTopics.max_range` is dropped and counted. Refused,
+    beyond the topics' :obj:`max_range` is dropped and counted. Refused,
     each with a :class:`ValueError` naming the file and the topic: a bag
     that cannot be read (missing, truncated, damaged), patterns that match
     no topic (the topics found listed), a message type that holds no range

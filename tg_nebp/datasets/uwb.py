@@ -34,19 +34,19 @@ from tg_nebp.datasets.scenario import scenario_from_fields
 from tg_nebp.io import read_json, write_text
 from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config)
 
-__all__ = ['RecordingScenario', 'RecordingDataset', 'fit_range_models',
+__all__ = ['MIN_SIGMA', 'RecordingScenario', 'RecordingDataset', 'fit_range_models',
            'fitted_recording_scenario', 'RECORDING_PARTS', 'UWB_FIT_HORIZON',
            'READERS', 'UWB_MIN_NU']
 
 LOG = logging.getLogger('tg_nebp.datasets')
 
-#: The parts of a recording a scenario covers: all of the span in which
-#: every node has truth, or its first or second half (to fit or train on
-#: one half and test on the other).
+#: The parts of a recording that a scenario covers (all of the span in
+#: which every node has truth, or its first or second half, to fit or train
+#: on one half and test on the other).
 RECORDING_PARTS = ('all', 'first-half', 'second-half')
-#: The steps over which :func:`fit_range_models` fits the ranges' long-run
-#: spread by default (10 steps of 0.5 s: a UWB pair's error holds for
-#: seconds while the robots move).
+#: The steps over which :func:`~tg_nebp.datasets.fit_range_models` fits the
+#: ranges' long-run spread by default (10 steps of 0.5 s; a UWB pair's
+#: error holds for seconds while the robots move).
 UWB_FIT_HORIZON = 10
 #: The readers a scenario names.
 READERS = ('rosbag', 'miluv')
@@ -130,7 +130,8 @@ class RecordingScenario:
             :obj:`{"height": true}` (the height sensor read, or not).
         motion (dict or MotionModel): The motion model (its configuration).
         measurement (dict or MeasurementModel): The likelihood of a range.
-        reader (str, optional): One of :data:`READERS`: :obj:`"rosbag"`
+        reader (str, optional): One of
+            :data:`~tg_nebp.datasets.uwb.READERS`: :obj:`"rosbag"`
             (the recording a bag's path under the root) or :obj:`"miluv"`
             (the recording an experiment's name, the root MILUV's).
             (default: :obj:`"rosbag"`)
@@ -142,7 +143,8 @@ class RecordingScenario:
             :class:`~tg_nebp.datasets.RangeCalibration` fields.
             (default: none)
         dt (float, optional): Step, seconds. (default: :obj:`0.5`)
-        part (str, optional): One of :data:`RECORDING_PARTS`.
+        part (str, optional): One of
+            :data:`~tg_nebp.datasets.uwb.RECORDING_PARTS`.
             (default: :obj:`"all"`)
         duration (float, optional): Seconds from the part's start;
             :obj:`None` for the whole part (filled in when the recording is
@@ -406,8 +408,9 @@ def _distances(data: Realization) -> np.ndarray:
         dim=-1).numpy()
 
 
-#: The smallest Student-t :math:`\nu` that :func:`fit_range_models` gives a
-#: sensor. Chosen on the fit halves (validation) of both recordings: the
+#: The smallest Student-t :math:`\nu` that
+#: :func:`~tg_nebp.datasets.fit_range_models` gives a
+#: sensor. Chosen on the fit halves (validation) of both recordings; the
 #: maximum-likelihood :math:`\nu` at the truth is 2-3 for UWB, and with it
 #: the filters lose MILUV's drone (1 to 2 UWB ranges a tag a step, each
 #: easily discounted as an outlier once the estimate is off: IEKF 1.07 m,
@@ -415,8 +418,8 @@ def _distances(data: Realization) -> np.ndarray:
 #: give 0.61, 0.40, 0.35 m (Gaussian BP 0.55, 0.46, 0.42 m); on TIERS's
 #: test3 every :math:`\nu` gives 0.148-0.150 m.
 UWB_MIN_NU = 32.0
-#: The smallest range scale that :func:`fit_range_models` gives a sensor,
-#: metres (a link known exactly, a rigid body's, still gets a likelihood
+#: The smallest range scale that :func:`~tg_nebp.datasets.fit_range_models`
+#: gives a sensor, in metres (a link known exactly, a rigid body's, still gets a likelihood
 #: whose precision a float32 linearization can hold).
 MIN_SIGMA = 0.01
 
@@ -461,13 +464,14 @@ def fit_range_models(data: Realization, nodes: List[str], dt: float,
     * **Range noise**, per sensor: the residuals less their pair's bias; a
       Student-t (:obj:`max_range` its communication range) whose scale is
       robust (1.4826 times the median absolute deviation, at least
-      :data:`MIN_SIGMA`) times the square root of the
+      :data:`~tg_nebp.datasets.uwb.MIN_SIGMA`) times the square root of the
       :func:`~tg_nebp.datasets.long_run_factor` of each pair's residual
       series over :obj:`horizon` steps (a UWB pair's error holds for
       seconds: a filter that averages the ranges as independent would be
       overconfident), and whose :math:`\nu` is the maximum-likelihood one on
       a grid (2, 3, 4, 6, 8, 16, 32) at the one-step scale (reported), at
-      least :obj:`min_nu` (:data:`UWB_MIN_NU`: a tracker whose estimate is
+      least :obj:`min_nu`
+      (:data:`~tg_nebp.datasets.uwb.UWB_MIN_NU`: a tracker whose estimate is
       off must not discount the few ranges that would correct it).
     * **Motion**: a constant-velocity model whose acceleration noise
       :math:`\sigma_a` is the root mean square of the true accelerations

@@ -50,7 +50,7 @@ def tracker_measurement(scenario: Scenario, measurement: Optional[str]):
 
 #: The scenarios of a run, a simulated network or a real sequence.
 SCENARIO_TYPES = (Scenario, MRCLAMScenario, RecordingScenario)
-#: The scenarios of real data: their realizations are what was recorded
+#: The scenarios of real data, whose realizations are what was recorded
 #: (every window), the same for every seed.
 REAL_SCENARIO_TYPES = (MRCLAMScenario, RecordingScenario)
 
