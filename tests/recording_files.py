@@ -31,11 +31,12 @@ _TYPES = {'range': 'sensor_msgs/msg/Range',
           'pose': 'geometry_msgs/msg/PoseStamped'}
 
 
-def write_bag(path, messages, storage='sqlite3'):
+def write_bag(path, messages, storage='sqlite3', empty=()):
     r"""Writes :obj:`messages` (time in seconds, topic, :obj:`"range"` or
     :obj:`"pose"`, value) as a ROS 2 bag (:obj:`storage` :obj:`"sqlite3"`
     or :obj:`"mcap"`, the folder :obj:`path`) or a ROS 1 bag
-    (:obj:`"ros1"`, the file :obj:`path.bag`); returns the path to read.
+    (:obj:`"ros1"`, the file :obj:`path.bag`), and the topics
+    :obj:`empty` (topic, kind) without a message; returns the path to read.
     The ROS 2 bags carry no message definitions, as the TIERS bags do not."""
     from rosbags.typesys import Stores, get_typestore
     typestore = get_typestore(Stores.ROS2_HUMBLE)
@@ -55,6 +56,9 @@ def write_bag(path, messages, storage='sqlite3'):
         store = typestore
     connections = {}
     with writer:
+        for topic, kind in empty:
+            connections[topic] = writer.add_connection(topic, _TYPES[kind],
+                                                       typestore=store)
         for time, topic, kind, value in messages:
             msgtype = _TYPES[kind]
             if topic not in connections:

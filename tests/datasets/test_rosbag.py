@@ -172,6 +172,19 @@ def test_bad_bags_and_topics_are_refused_naming_what(tmp_path):
                        "turtlebot5/pose' holds sensor_msgs/msg/Range"):
         read_bag(write_bag(tmp_path / 'wrong', wrong, 'sqlite3'),
                  TIERS_TOPICS)
+    # a range topic that holds poses
+    posed = messages([(START + 0.5, '/uwb/tof/n_1/n_2/distance', 'pose',
+                       (1.0, 2.0, 3.0))])
+    with pytest.raises(ValueError, match="topic '/uwb/tof/n_1/n_2/distance' "
+                       "holds geometry_msgs/msg/PoseStamped, not ranges"):
+        read_bag(write_bag(tmp_path / 'posed', posed, 'sqlite3'),
+                 TIERS_TOPICS)
+    # a truth topic without messages
+    silent = write_bag(tmp_path / 'silent', messages(), 'sqlite3', empty=[
+        ('/vrpn_client_node/turtlebot6/pose', 'pose')])
+    with pytest.raises(ValueError, match="truth topic '/vrpn_client_node/"
+                       "turtlebot6/pose' holds no message"):
+        read_bag(silent, TIERS_TOPICS)
 
 
 @pytest.mark.parametrize('storage', ['sqlite3', 'ros1'])
