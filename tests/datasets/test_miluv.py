@@ -3,7 +3,6 @@ numbers written (tags carried by their arms, rigid links, the height as a
 range to the floor node), every damage refused naming the file and row, and
 the shipped experiment where ../shared has it."""
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +10,7 @@ import pytest
 
 from tg_nebp.datasets import (RecordingDataset, load_scenario, read_miluv,
                               recording_realization)
-from tg_nebp.datasets.miluv import (FLOOR_DEPTH, HEIGHT, HEIGHT_FLOOR, RIGID,
-                                    UWB)
+from tg_nebp.datasets.miluv import FLOOR_DEPTH, HEIGHT, RIGID, UWB
 
 MILUV = Path(__file__).resolve().parents[2].parent / 'shared' / 'data' / \
     'uwb' / 'miluv'

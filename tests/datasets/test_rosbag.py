@@ -3,7 +3,6 @@ SQLite and MCAP, ROS 1) read back to the numbers written, every bad input
 refused or counted, and the TIERS runs where ../shared has them (the ROS 1
 and the ROS 2 copy of test1 the same realization)."""
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tg_nebp.cli import main
-from tg_nebp.datasets import (TIERS_TOPICS, RangeCalibration, Recording,
+from tg_nebp.datasets import (TIERS_TOPICS, Recording,
                               RecordingDataset, RecordingScenario,
                               fit_range_models, load_scenario,
                               recording_realization)
@@ -152,7 +152,7 @@ def _bag(tmp_path):
 
 
 def test_a_users_bag_through_fit_evaluate_record_and_track(tmp_path):
-    bag = _bag(tmp_path)
+    _bag(tmp_path)
     scenario = RecordingScenario(
         name='mine', recording='run/bag', options=TIERS_TOPICS,
         motion=ConstantVelocity(0.1, 0.5), measurement=StudentTRange(0.1),

@@ -6,8 +6,6 @@ downloaded where absent, or its folder) and holds its windows as
 :class:`~tg_nebp.data.Realization`\ s, so that every tracker, metric and
 command takes real robots as it takes simulated ones."""
 import dataclasses
-import hashlib
-import json
 import logging
 import math
 import os
@@ -23,8 +21,8 @@ from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_positive_int, check_realization
 from tg_nebp.datasets.mrclam import (FIT_HORIZON, LINKS, fit_models,
                                      mrclam_realization, read_mrclam)
-from tg_nebp.datasets.scenario import scenario_from_fields
-from tg_nebp.io import read_json, write_text
+from tg_nebp.datasets.scenario import RecordedScenarioFields
+from tg_nebp.io import read_json
 from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config,
                             model_like)
 
@@ -61,7 +59,7 @@ _RANGE_ONLY = {'student-t-range-bearing': 'student-t',
 
 
 @dataclasses.dataclass(frozen=True)
-class MRCLAMScenario:
+class MRCLAMScenario(RecordedScenarioFields):
     r"""A part of a UTIAS MRCLAM sequence under the test protocol
     (:func:`~tg_nebp.datasets.mrclam_realization`) and the models the
     trackers read: what :class:`MRCLAM` makes realizations of, and what
@@ -233,38 +231,7 @@ class MRCLAMScenario:
         fields = read_json(path)
         return cls.from_fields(fields, str(path))
 
-    @classmethod
-    def from_fields(cls, fields: Any, where: str) -> 'MRCLAMScenario':
-        r"""A scenario from the fields of a JSON object, every problem a
-        :class:`ValueError` that names :obj:`where` and the field, as
-        :meth:`Scenario.from_fields
-        <tg_nebp.datasets.Scenario.from_fields>`."""
-        return scenario_from_fields(cls, fields, where)
-
-    def to_fields(self) -> dict:
-        r"""The fields as a JSON object (:meth:`from_fields` reads it)."""
-        fields = dataclasses.asdict(self)
-        fields['features'] = list(self.features)
-        return fields
-
-    def save(self, path: Union[str, os.PathLike]) -> None:
-        r"""Writes the fields to the JSON file :obj:`path` (written whole
-        or not at all)."""
-        write_text(path, json.dumps(self.to_fields(), indent=2) + '\n')
-
-    def replace(self, **changes) -> 'MRCLAMScenario':
-        r"""A copy with some fields changed."""
-        return dataclasses.replace(self, **changes)
-
-    def __hash__(self) -> int:  # the model configurations are dicts
-        return hash(self.fingerprint())
-
-    def fingerprint(self) -> str:
-        r"""A short hash of every field but the description."""
-        fields = self.to_fields()
-        del fields['description']
-        blob = json.dumps(fields, sort_keys=True).encode()
-        return hashlib.sha256(blob).hexdigest()[:10]
+    __hash__ = RecordedScenarioFields.__hash__
 
     @property
     def motion_model(self) -> MotionModel:

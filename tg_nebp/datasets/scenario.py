@@ -12,13 +12,13 @@ import torch
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import is_integer, magnitude_limit
-from tg_nebp.io import read_json
+from tg_nebp.io import read_json, write_text
 from tg_nebp.utils import free_memory_bytes
 from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, Model, MotionModel,
                             model_from_config, resolve_models, wrap_angle)
 
-__all__ = ['Scenario']
+__all__ = ['Scenario', 'RecordedScenarioFields']
 
 _FILE_NAME = re.compile(r'[A-Za-z0-9_+-][A-Za-z0-9_.+-]*\Z')
 
@@ -46,6 +46,47 @@ def scenario_from_fields(cls, fields: Any, where: str):
         return cls(**fields)
     except (TypeError, ValueError) as e:
         raise ValueError(f"scenario '{where}': {e}") from None
+
+
+class RecordedScenarioFields:
+    r"""What the scenarios of real data (:class:`~tg_nebp.datasets.MRCLAMScenario`,
+    :class:`~tg_nebp.datasets.RecordingScenario`, frozen dataclasses of
+    JSON fields) share: their JSON object, file, copies and fingerprint. A
+    subclass keeps ``__hash__ = RecordedScenarioFields.__hash__`` in its own
+    body (a frozen dataclass would otherwise hash its dict fields)."""
+
+    @classmethod
+    def from_fields(cls, fields: Any, where: str):
+        r"""A scenario from the fields of a JSON object, every problem a
+        :class:`ValueError` that names :obj:`where` and the field, as
+        :meth:`Scenario.from_fields
+        <tg_nebp.datasets.Scenario.from_fields>`."""
+        return scenario_from_fields(cls, fields, where)
+
+    def to_fields(self) -> dict:
+        r"""The fields as a JSON object (:meth:`from_fields` reads it;
+        tuples as lists)."""
+        return {key: list(value) if isinstance(value, tuple) else value
+                for key, value in dataclasses.asdict(self).items()}
+
+    def save(self, path: Union[str, Path]) -> None:
+        r"""Writes the fields to the JSON file :obj:`path` (written whole
+        or not at all)."""
+        write_text(path, json.dumps(self.to_fields(), indent=2) + '\n')
+
+    def replace(self, **changes):
+        r"""A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+    def __hash__(self) -> int:  # the model configurations are dicts
+        return hash(self.fingerprint())
+
+    def fingerprint(self) -> str:
+        r"""A short hash of every field but the description."""
+        fields = self.to_fields()
+        del fields['description']
+        blob = json.dumps(fields, sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:10]
 
 
 def _is_real(value) -> bool:

@@ -8,8 +8,6 @@ so that every tracker, metric and command takes it as it takes simulated
 data; :func:`fit_range_models` calibrates the models on a recording's
 truth."""
 import dataclasses
-import hashlib
-import json
 import logging
 import math
 import os
@@ -30,8 +28,8 @@ from tg_nebp.datasets.recording import (RangeCalibration, Recording,
                                         recording_report)
 from tg_nebp.datasets.miluv import read_miluv
 from tg_nebp.datasets.rosbag import BagTopics, read_bag
-from tg_nebp.datasets.scenario import scenario_from_fields
-from tg_nebp.io import read_json, write_text
+from tg_nebp.datasets.scenario import RecordedScenarioFields
+from tg_nebp.io import read_json
 from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config)
 
 __all__ = ['MIN_SIGMA', 'RecordingScenario', 'RecordingDataset', 'fit_range_models',
@@ -100,7 +98,7 @@ def _positive(value) -> bool:
 
 
 @dataclasses.dataclass(frozen=True)
-class RecordingScenario:
+class RecordingScenario(RecordedScenarioFields):
     r"""A recording of ranges between nodes, binned into steps
     (:func:`~tg_nebp.datasets.recording_realization`), and the models the
     trackers read: what :class:`RecordingDataset` reads and what
@@ -277,36 +275,7 @@ class RecordingScenario:
             raise ValueError(f"scenario file '{path}' does not exist")
         return cls.from_fields(read_json(path), str(path))
 
-    @classmethod
-    def from_fields(cls, fields: Any, where: str) -> 'RecordingScenario':
-        r"""A scenario from the fields of a JSON object, every problem a
-        :class:`ValueError` that names :obj:`where` and the field."""
-        return scenario_from_fields(cls, fields, where)
-
-    def to_fields(self) -> dict:
-        r"""The fields as a JSON object (:meth:`from_fields` reads it)."""
-        fields = dataclasses.asdict(self)
-        fields['anchors'] = list(self.anchors)
-        return fields
-
-    def save(self, path: Union[str, os.PathLike]) -> None:
-        r"""Writes the fields to the JSON file :obj:`path` (written whole
-        or not at all)."""
-        write_text(path, json.dumps(self.to_fields(), indent=2) + '\n')
-
-    def replace(self, **changes) -> 'RecordingScenario':
-        r"""A copy with some fields changed."""
-        return dataclasses.replace(self, **changes)
-
-    def __hash__(self) -> int:  # the model configurations are dicts
-        return hash(self.fingerprint())
-
-    def fingerprint(self) -> str:
-        r"""A short hash of every field but the description."""
-        fields = self.to_fields()
-        del fields['description']
-        blob = json.dumps(fields, sort_keys=True).encode()
-        return hashlib.sha256(blob).hexdigest()[:10]
+    __hash__ = RecordedScenarioFields.__hash__
 
     @property
     def motion_model(self) -> MotionModel:
