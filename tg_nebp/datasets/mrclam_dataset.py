@@ -23,8 +23,7 @@ from tg_nebp.datasets.mrclam import (FIT_HORIZON, LINKS, fit_models,
                                      mrclam_realization, read_mrclam)
 from tg_nebp.datasets.scenario import RecordedScenarioFields
 from tg_nebp.io import read_json
-from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config,
-                            model_like)
+from tg_nebp.models import MeasurementModel, MotionModel, model_like
 
 __all__ = ['MRCLAMScenario', 'MRCLAM', 'PARTS', 'fitted_scenario',
            'range_part', 'sequence_source', 'MRCLAM_URL']
@@ -232,14 +231,6 @@ class MRCLAMScenario(RecordedScenarioFields):
         return cls.from_fields(fields, str(path))
 
     __hash__ = RecordedScenarioFields.__hash__
-
-    @property
-    def motion_model(self) -> MotionModel:
-        return model_from_config(self.motion, 'motion')
-
-    @property
-    def measurement_model(self) -> MeasurementModel:
-        return model_from_config(self.measurement, 'measurement')
 
     @property
     def position_dim(self) -> int:

@@ -88,6 +88,16 @@ class RecordedScenarioFields:
         blob = json.dumps(fields, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:10]
 
+    @property
+    def motion_model(self) -> MotionModel:
+        r"""The motion model of the :obj:`motion` field."""
+        return model_from_config(self.motion, 'motion')
+
+    @property
+    def measurement_model(self) -> MeasurementModel:
+        r"""The likelihood of the :obj:`measurement` field."""
+        return model_from_config(self.measurement, 'measurement')
+
 
 def _is_real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)

@@ -30,9 +30,10 @@ from tg_nebp.datasets.miluv import read_miluv
 from tg_nebp.datasets.rosbag import BagTopics, read_bag
 from tg_nebp.datasets.scenario import RecordedScenarioFields
 from tg_nebp.io import read_json
-from tg_nebp.models import (MeasurementModel, MotionModel, model_from_config)
+from tg_nebp.models import MeasurementModel, MotionModel
 
-__all__ = ['MIN_SIGMA', 'RecordingScenario', 'RecordingDataset', 'fit_range_models',
+__all__ = ['MIN_SIGMA', 'RecordingScenario', 'RecordingDataset',
+           'fit_range_models',
            'fitted_recording_scenario', 'RECORDING_PARTS', 'UWB_FIT_HORIZON',
            'READERS', 'UWB_MIN_NU']
 
@@ -276,14 +277,6 @@ class RecordingScenario(RecordedScenarioFields):
         return cls.from_fields(read_json(path), str(path))
 
     __hash__ = RecordedScenarioFields.__hash__
-
-    @property
-    def motion_model(self) -> MotionModel:
-        return model_from_config(self.motion, 'motion')
-
-    @property
-    def measurement_model(self) -> MeasurementModel:
-        return model_from_config(self.measurement, 'measurement')
 
     @property
     def range_calibration(self) -> RangeCalibration:
