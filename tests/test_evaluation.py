@@ -22,8 +22,12 @@ def test_results_do_not_depend_on_the_batch_size():
         assert torch.equal(one['realization'], other['realization'])
         assert torch.allclose(one['errors'], other['errors'], atol=1e-5)
         assert torch.allclose(one['nees'], other['nees'], rtol=1e-4)
-    assert torch.equal(one['first_mean'], track_dataset(
-        tracker, data, batch_size=2, seed=7)['first_mean'])
+    # the first realization's float32 estimates, to the errors' 1e-5 m:
+    # particle BP does not promise a batch bit for bit (a batch's kernels
+    # may sum in another order than one graph's alone)
+    torch.testing.assert_close(one['first_mean'], track_dataset(
+        tracker, data, batch_size=2, seed=7)['first_mean'], rtol=0,
+        atol=1e-5)
 
 
 def test_progress_counts_realization_steps_and_realizations_are_named():

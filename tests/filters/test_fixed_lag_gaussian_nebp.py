@@ -32,7 +32,10 @@ def _assert_same(a, b, atol):
 def test_untrained_is_the_recommended_window(lag):
     # bit for bit the window of general messages, to rounding the
     # rank-one ones of the range model; filtered and smoothed, and on a
-    # batch
+    # batch (bit for bit on every CPU path: an untrained correction's log
+    # weight is sigmoid(c) - sigmoid(c) over two tensors of one shape, the
+    # same kernel on the same value at every element, so exactly 0; its
+    # weights are exactly 1 and its inflation adds exactly 0)
     scenario = tiny_scenario(steps=7)
     graphs = [scenario.replace(num_agents=n).generate(gen(seed))
               for n, seed in ((3, 1), (5, 2))]

@@ -116,6 +116,7 @@ def test_smoothing_ranges_beats_filtering():
 
 
 def test_each_graph_of_a_batch_converges_on_its_own():
+    # bit for bit on every CPU path: see assert_batch_equals_alone
     assert_batch_equals_alone(FixedLagGaussianBP.recommended(lag=3), rtol=0,
                               atol=0)
     assert_batch_equals_alone(Smoothed(FixedLagGaussianBP.recommended(

@@ -132,7 +132,8 @@ def test_a_lost_agent_is_relocated_from_its_links(third):
 def test_consistent_agents_are_never_relocated():
     # several tiny networks, no agent off: every agent with links searched
     # in turn, none relocated, and the reports are Gaussian BP's bit for
-    # bit
+    # bit (the same Gaussian arithmetic runs inside: the particles and the
+    # search only read its beliefs)
     searched, moved = 0, 0
     for seed in range(4):
         data = tiny_scenario(steps=15).generate(gen(40 + seed))

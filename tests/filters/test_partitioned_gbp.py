@@ -80,6 +80,10 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
         assert part['halo'] > 0  # the borders are crossed
         assert part['moves'].tolist() == [ranks - 1.0]
         nodes = part['nodes']
+        # bit for bit on every CPU path, for the reason a batch is each
+        # graph alone (see assert_batch_equals_alone): a rank runs the same
+        # operations on its nodes' rows, every node's messages summed in
+        # the same order as in one process
         assert torch.equal(part['mean'], expected.mean[nodes])
         assert torch.equal(part['cov'], expected.cov[nodes])
         for name, (mean, cov) in part['windowed'].items():

@@ -451,6 +451,8 @@ def test_sorted_edge_index_uses_segment_sum(monkeypatch, chunk):
     expected_ptr = torch.zeros(n + 1, dtype=torch.long)
     expected_ptr[1:] = torch.bincount(ei_sorted[1], minlength=n).cumsum(0)
     assert torch.equal(calls[0].long(), expected_ptr)
+    # the sums run in another order (to rounding); the messages are the
+    # same operations on the same edges before either sum: bit for bit
     torch.testing.assert_close(out, plain_out, atol=1e-5, rtol=1e-6)
     torch.testing.assert_close(msg, plain_msg, atol=0, rtol=0)
     assert torch.equal(out, out2)  # deterministic
