@@ -93,6 +93,7 @@ def test_a_written_experiment_reads_back_to_the_numbers_written(tmp_path):
     assert recording.position_dim == 3
     assert recording.sensors == ['uwb', 'rigid', 'height']
     for k, xyz in enumerate(ANCHORS.values()):
+        # decimal text parsed to float64: correctly rounded on every CPU
         np.testing.assert_array_equal(recording.surveyed[k], xyz)
     # the tags' truth: the pose carried by the arm (turning with the yaw)
     for node, tag in ((4, '10'), (5, '11')):
