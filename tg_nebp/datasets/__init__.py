@@ -4,8 +4,9 @@ from .mrclam import (FIT_HORIZON, MRCLAMSequence, fit_models,
                      mrclam_realization, read_mrclam)
 from .mrclam_dataset import (MRCLAM, PARTS, MRCLAMScenario, fitted_scenario,
                              range_part, sequence_source, MRCLAM_URL)
-from .recording import (BIN_COUNTS, READ_COUNTS, Recording, RangeCalibration,
-                        recording_realization, recording_report)
+from .recording import (BIN_COUNTS, MERGES, READ_COUNTS, Links, Recording,
+                        RangeCalibration, merge_links, recording_realization,
+                        recording_report, step_of)
 from .rosbag import RANGE_TYPES, BagTopics, TIERS_TOPICS, read_bag
 from .miluv import read_miluv, miluv_experiments
 from .uwb import (RecordingScenario, RecordingDataset, fit_range_models,
@@ -26,4 +27,4 @@ __all__ = ['Scenario', 'RecordedScenarioFields', 'CooperativeLocalizationDataset
            'fitted_recording_scenario', 'READERS', 'RECORDING_PARTS',
            'UWB_FIT_HORIZON', 'read_miluv', 'miluv_experiments',
            'READ_COUNTS', 'BIN_COUNTS', 'RANGE_TYPES', 'MIN_SIGMA',
-           'UWB_MIN_NU']
+           'UWB_MIN_NU', 'step_of', 'merge_links', 'Links', 'MERGES']

@@ -14,7 +14,11 @@ Vicon ground truth.
 first time :math:`t_0` at which all five robots have ground truth and odometry,
 :obj:`duration` seconds in steps of :obj:`dt`; step :math:`k` holds the
 measurements in :math:`(t_0 + (k - 1) \Delta, t_0 + k \Delta]`; a robot's
-repeated measurement of one subject within a step: the latest; a barcode not in
+repeated measurement of one subject within a step: the latest (the binning
+of every real dataset, :func:`~tg_nebp.datasets.recording.step_of` and
+:func:`~tg_nebp.datasets.recording.merge_links`; a bearing is not averaged
+across a turn, so MRCLAM merges by the latest where the UWB recordings take
+the mean); a barcode not in
 :obj:`Barcodes.dat` (or a subject without ground truth) is dropped and counted;
 landmarks are anchors at their surveyed positions; the robots' states
 :math:`[x, y, \theta]` are the ground truth interpolated at the step times (for
@@ -37,6 +41,7 @@ import torch
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_positive_int, magnitude_limit
+from tg_nebp.datasets.recording import merge_links, step_of
 
 __all__ = ['MRCLAMSequence', 'read_mrclam', 'mrclam_realization',
            'integrate_odometry', 'interpolate_pose', 'fit_models',
@@ -316,42 +321,37 @@ def mrclam_realization(sequence: MRCLAMSequence, dt: float = 0.5,
     for s in landmark_ids:
         poses[node_of[s], :, :2] = sequence.landmarks[s]
     counts = dict(unknown_barcodes=0, repeated=0, outside=0)
-    latest = {}  # (step, receiver, sender) -> (time, range, bearing)
-    for r in range(NUM_ROBOTS):
-        for row, (time, barcode, rng, bearing) in enumerate(
-                sequence.measurements[r]):
-            subject = sequence.barcodes.get(int(barcode))
-            if subject is None or subject not in node_of \
-                    or subject == r + 1:
-                counts['unknown_barcodes'] += 1
-                continue
-            if not t0 < time <= times[-1]:
-                counts['outside'] += 1
-                continue
-            to_robot = subject <= NUM_ROBOTS
-            if (links == 'landmarks' and to_robot) or \
-                    (links == 'robots' and not to_robot):
-                continue
-            if rng < 0 and not negative_ranges:
-                raise ValueError(
-                    f"'Robot{r + 1}_Measurement.dat': data row {row + 1} "
-                    f"gives a negative range ({float(rng)!r} m), which the "
-                    f"likelihood does not take (its ranges are "
-                    f"non-negative)")
-            step = min(int(math.ceil((time - t0) / dt)) - 1, steps - 1)
-            key = (step, r, node_of[subject])
-            if key in latest:
-                counts['repeated'] += 1
-                if latest[key][0] > time:
-                    continue
-            latest[key] = (time, rng, bearing)
-    keys = sorted(latest, key=lambda k: (k[0], k[1], k[2]))
     width = len(tuple(features))
-    edge_index = torch.tensor([[k[2] for k in keys], [k[1] for k in keys]],
-                              dtype=torch.long).view(2, -1)
-    edge_attr = torch.tensor([latest[k][1:1 + width] for k in keys],
-                             dtype=torch.float32).view(-1, width)
-    edge_time = torch.tensor([k[0] for k in keys], dtype=torch.long)
+    kept = []  # per robot: (times, receivers, senders, features)
+    for r in range(NUM_ROBOTS):
+        rows = sequence.measurements[r]
+        subject = np.array([sequence.barcodes.get(int(b), -1)
+                            for b in rows[:, 1]], dtype=np.int64)
+        known = np.isin(subject, list(node_of)) & (subject != r + 1)
+        counts['unknown_barcodes'] += int((~known).sum())
+        step = step_of(rows[:, 0], t0, dt, steps)
+        counts['outside'] += int((known & (step < 0)).sum())
+        to_robot = subject <= NUM_ROBOTS
+        use = known & (step >= 0) & {
+            'all': True, 'landmarks': ~to_robot, 'robots': to_robot}[links]
+        negative = np.flatnonzero(use & (rows[:, 2] < 0))
+        if negative.size and not negative_ranges:
+            row = int(negative[0])
+            raise ValueError(
+                f"'Robot{r + 1}_Measurement.dat': data row {row + 1} "
+                f"gives a negative range ({float(rows[row, 2])!r} m), "
+                f"which the likelihood does not take (its ranges are "
+                f"non-negative)")
+        kept.append((rows[use, 0], step[use], np.full(int(use.sum()), r),
+                     np.array([node_of[s] for s in subject[use]],
+                              dtype=np.int64), rows[use, 2:2 + width]))
+    times_kept, step, receiver, sender, values = (
+        np.concatenate(part) for part in zip(*kept))
+    merged = merge_links(step, receiver, sender, values.reshape(-1, width),
+                         'latest', times=times_kept)
+    counts['repeated'] = merged.merged
+    edge_index, edge_attr, edge_time = (merged.edge_index, merged.edge_attr,
+                                        merged.edge_time)
     anchor = torch.arange(count) >= NUM_ROBOTS
     prior_var = torch.tensor([prior_std**2] * 2 + [heading_std**2],
                              dtype=torch.float32)

@@ -4,8 +4,10 @@ time-stamped ranges between named nodes and the nodes' ground truth where
 there is any, and one shared step (:func:`recording_realization`) bins it
 into the :class:`~tg_nebp.data.Realization` that every tracker takes.
 
-**The binning** (the step :math:`\Delta` given by the scenario, said in the
-report): from :math:`t_0`, one step after the first time at which every
+**The binning**, one for every real dataset (MRCLAM's reader bins its
+camera's measurements with the same two functions, :func:`step_of` and
+:func:`merge_links`; the step :math:`\Delta` given by the scenario, said in
+the report): from :math:`t_0`, one step after the first time at which every
 node with truth has it (plus the scenario's :obj:`start`), step :math:`k = 0, 1,
 \dots` holds the ranges measured in :math:`(t_0 + k \Delta, t_0 + (k + 1)
 \Delta]`, and its time is the middle of that interval. The ranges of one
@@ -27,7 +29,8 @@ robot declared an anchor: its position surveyed once), or at their surveyed
 position."""
 import dataclasses
 import math
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import (Dict, List, Mapping, NamedTuple, Optional,
+                    Sequence, Tuple)
 
 import numpy as np
 import torch
@@ -35,7 +38,8 @@ import torch
 from tg_nebp.data.realization import Realization
 
 __all__ = ['Recording', 'RangeCalibration', 'recording_realization',
-           'READ_COUNTS', 'BIN_COUNTS', 'recording_report']
+           'step_of', 'merge_links', 'Links', 'MERGES', 'READ_COUNTS',
+           'BIN_COUNTS', 'recording_report']
 
 #: The ranges a reader drops and counts (those not finite, negative or
 #: beyond the reader's :obj:`max_range`, absurd, and those of a node that is
@@ -166,6 +170,78 @@ class RangeCalibration:
             raise ValueError(f"'{where}': 'calibration': {e}") from None
 
 
+def step_of(times: np.ndarray, t0: float, dt: float,
+            steps: int) -> np.ndarray:
+    r"""The step of every time in :obj:`times`: step :math:`k` holds the
+    times in :math:`(t_0 + k \Delta, t_0 + (k + 1) \Delta]`, :math:`k <`
+    :obj:`steps`; :math:`-1` for a time outside them. The binning of every
+    real dataset (MRCLAM's and the recordings')."""
+    times = np.asarray(times, dtype=np.float64)
+    inside = (times > t0) & (times <= t0 + steps * dt)
+    step = np.minimum(np.ceil((times - t0) / dt).astype(np.int64) - 1,
+                      steps - 1)
+    return np.where(inside, step, -1)
+
+
+class Links(NamedTuple):
+    r"""A realization's links, as :func:`merge_links` gives them: sorted
+    by step, receiver, sender and sensor."""
+    edge_index: torch.Tensor
+    edge_attr: torch.Tensor
+    edge_time: torch.Tensor
+    #: Each link's sensor (an index into the recording's sensors).
+    sensor: torch.Tensor
+    #: The rows merged into another's link.
+    merged: int
+
+
+#: How :func:`merge_links` merges one step's rows of a link: into their
+#: mean (ranges at several hertz), or the latest row (MRCLAM's camera: a
+#: bearing is not averaged across the robot's turn).
+MERGES = ('mean', 'latest')
+
+
+def merge_links(step: np.ndarray, receiver: np.ndarray, sender: np.ndarray,
+                values: np.ndarray, merge: str,
+                times: Optional[np.ndarray] = None,
+                sensor: Optional[np.ndarray] = None) -> Links:
+    r"""The links of binned rows (:obj:`step` from :func:`step_of`, every
+    row inside): one link per step, receiver, sender and sensor, its
+    features :obj:`values` :math:`(M, F)` merged by :obj:`merge`
+    (:data:`~tg_nebp.datasets.recording.MERGES`; :obj:`"latest"`: the
+    row of the largest of :obj:`times`, of two at one time the later row),
+    as float32."""
+    if merge not in MERGES:
+        raise ValueError(f"'merge' must be one of {list(MERGES)}, got "
+                         f"{merge!r}")
+    if merge == 'latest' and times is None:
+        raise ValueError("merge 'latest' needs the rows' 'times'")
+    sensor = np.zeros(len(step), np.int64) if sensor is None else sensor
+    rows: Dict[Tuple[int, int, int, int], List[int]] = {}
+    for k in range(len(step)):
+        rows.setdefault((int(step[k]), int(receiver[k]), int(sender[k]),
+                         int(sensor[k])), []).append(k)
+    keys = sorted(rows)
+    width = values.shape[1]
+    attr = np.empty((len(keys), width))
+    for link, key in enumerate(keys):
+        if merge == 'mean':
+            # each column's own mean, summed in row order
+            attr[link] = [np.mean(values[rows[key], c])
+                          for c in range(width)]
+        else:
+            # the largest time; of equal times the later row
+            chosen = max(rows[key], key=lambda k: (times[k], k))
+            attr[link] = values[chosen]
+    return Links(
+        edge_index=torch.tensor([[k[2] for k in keys], [k[1] for k in keys]],
+                                dtype=torch.long).view(2, -1),
+        edge_attr=torch.from_numpy(attr).float(),
+        edge_time=torch.tensor([k[0] for k in keys], dtype=torch.long),
+        sensor=torch.tensor([k[3] for k in keys], dtype=torch.long),
+        merged=sum(len(r) - 1 for r in rows.values()))
+
+
 def _truth_at(recording: Recording, node: int, times: np.ndarray,
               dt: float) -> np.ndarray:
     # [p, v] at 'times': the interpolated truth, the velocity its central
@@ -244,40 +320,38 @@ def recording_realization(recording: Recording, dt: float,
                  np.zeros(recording.position_dim)])
             prior[node] = states[node, 0]
     counts = dict(recording.counts, **dict.fromkeys(BIN_COUNTS, 0))
-    sums: Dict[Tuple[int, int, int], List[float]] = {}
     t, receiver, sender, z, sensor = (recording.ranges[:, c]
                                       for c in range(5))
     receiver, sender = receiver.astype(np.int64), sender.astype(np.int64)
     sensor = sensor.astype(np.int64)
-    inside = (t > t0) & (t <= t0 + steps * dt)
+    step = step_of(t, t0, dt, steps)
+    inside = step >= 0
     counts['outside'] = int((~inside).sum())
-    step = np.minimum(np.ceil((t - t0) / dt).astype(np.int64) - 1,
-                      steps - 1)
     both = anchor[receiver] & anchor[sender]
     counts['between_anchors'] = int((inside & both).sum())
+    kept = np.flatnonzero(inside & ~both)
+    values = np.empty(len(kept))
     bias = {}
-    for k in np.flatnonzero(inside & ~both):
+    for row, k in enumerate(kept):
         pair = (int(receiver[k]), int(sender[k]))
         if pair not in bias:
             bias[pair] = calibration.bias(recording.nodes[pair[0]],
                                           recording.nodes[pair[1]])
+        values[row] = float(z[k]) - bias[pair]
         # an anchor never receives: its range to an agent is the agent's
         rx, tx = pair[::-1] if anchor[pair[0]] else pair
         if symmetric and not anchor[tx] and tx < rx:
             rx, tx = tx, rx
-        sums.setdefault((int(step[k]), rx, tx, int(sensor[k])), []).append(
-            float(z[k]) - bias[pair])
-    counts['merged'] = sum(len(v) - 1 for v in sums.values())
-    keys = sorted(sums)
-    edge_index = torch.tensor([[k[2] for k in keys], [k[1] for k in keys]],
-                              dtype=torch.long).view(2, -1)
-    # with several sensors, each link names its own (the likelihood's
-    # second feature, StudentTRangeBySensor's)
-    several = len(recording.sensors) > 1
-    edge_attr = torch.tensor(
-        [[float(np.mean(sums[k]))] + [float(k[3])] * several for k in keys],
-        dtype=torch.float32).view(-1, 1 + several)
-    edge_time = torch.tensor([k[0] for k in keys], dtype=torch.long)
+        receiver[k], sender[k] = rx, tx
+    links = merge_links(step[kept], receiver[kept], sender[kept],
+                        values[:, None], 'mean', sensor=sensor[kept])
+    counts['merged'] = links.merged
+    edge_attr = links.edge_attr
+    if len(recording.sensors) > 1:
+        # with several sensors, each link names its own (the likelihood's
+        # second feature, StudentTRangeBySensor's)
+        edge_attr = torch.cat([edge_attr, links.sensor.float()[:, None]],
+                              -1)
     size = 2 * recording.position_dim
     variance = [prior_std**2] * recording.position_dim + \
         [velocity_std**2] * recording.position_dim
@@ -286,8 +360,9 @@ def recording_realization(recording: Recording, dt: float,
     anchor_t = torch.from_numpy(anchor)
     prior_cov[anchor_t] = 0
     data = Realization(
-        states=torch.from_numpy(states).float(), edge_index=edge_index,
-        edge_attr=edge_attr, edge_time=edge_time, anchor=anchor_t,
+        states=torch.from_numpy(states).float(),
+        edge_index=links.edge_index, edge_attr=edge_attr,
+        edge_time=links.edge_time, anchor=anchor_t,
         prior_mean=torch.from_numpy(prior).float(), prior_cov=prior_cov,
         num_steps=steps, num_nodes=count)
     return data, counts
