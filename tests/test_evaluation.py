@@ -80,6 +80,29 @@ def test_torchrun_evaluate_shards_and_equals_one_process(tmp_path, capsys):
     assert sharded == single
 
 
+def test_an_agent_without_truth_is_tracked_not_scored():
+    # its estimates are made and its links used, but it has no error: the
+    # values are those of the other agents, and the bound refuses
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.evaluation import bound_dataset
+    from tg_nebp.filters import GaussianBP
+    data = tiny_scenario(steps=3).generate(gen(0))
+    agents = (~data.anchor).nonzero().flatten().tolist()
+    tracker = GaussianBP()
+    full = track_dataset(tracker, [data])
+    blind = data.clone()
+    blind.states[agents[1]] = float('nan')
+    result = track_dataset(tracker, [blind])
+    assert result['errors'].numel() == (len(agents) - 1) * 3
+    # the same estimates (the tracker never reads the truth)
+    keep = [k for k in range(len(agents)) if k != 1]
+    torch.testing.assert_close(
+        result['errors'], full['errors'].view(len(agents), 3)[keep]
+        .flatten(), rtol=0, atol=0)
+    with pytest.raises(ValueError, match=rf"node {agents[1]} has none"):
+        bound_dataset(PosteriorCRB(), [blind])
+
+
 def test_bound_dataset_orders_and_summarizes_like_a_tracker():
     from tg_nebp.bounds import PosteriorCRB
     from tg_nebp.evaluation import (bound_dataset, spread, summarize_bound,

@@ -60,6 +60,12 @@ def test_position_loss_against_loops():
             expected += (float(mean[i, 1]) - float(states[i, 2, 1]))**2
     assert math.isclose(float(position_loss(mean, states, 2, anchor)),
                         expected, rel_tol=1e-12)
+    # an agent without ground truth (its states NaN) is not scored
+    expected -= sum((float(mean[3, c]) - float(states[3, 2, c]))**2
+                    for c in range(2))
+    states[3] = math.nan
+    assert math.isclose(float(position_loss(mean, states, 2, anchor)),
+                        expected, rel_tol=1e-12)
 
 
 # the equivariant layer's per-particle offsets are noisier at 1e-2

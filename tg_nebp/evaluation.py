@@ -11,7 +11,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp import metrics
 from tg_nebp.bounds import PosteriorCRB
-from tg_nebp.data.realization import position_dim_of
+from tg_nebp.data.realization import position_dim_of, scored_of
 from tg_nebp.data.validation import check_positive_int
 from tg_nebp.filters import Tracker
 from tg_nebp.filters.tracker import with_control
@@ -103,7 +103,7 @@ def track_dataset(tracker: Tracker, dataset: Sequence,
                                                    device):
             generator = [torch.Generator(device).manual_seed(
                 derive_seed(seed, r)) for r in indices]
-            agents = ~batch.anchor
+            agents = scored_of(batch)
             holds_first = indices[0] == 0  # its estimates go to the plots
             errors, nees, means, headings = [], [], [], []
             dim = dof = position_dim_of(batch)

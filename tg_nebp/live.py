@@ -37,7 +37,7 @@ import torch
 from torch_geometric.data import Data
 
 from tg_nebp import metrics
-from tg_nebp.data.realization import position_dim_of
+from tg_nebp.data.realization import position_dim_of, scored_of
 from tg_nebp.evaluation import summarize
 from tg_nebp.filters.session import TrackingSession
 from tg_nebp.filters.session_inputs import AgentPrior, AnchorAt
@@ -239,8 +239,9 @@ def truth_lines(data: Data, dt: float = 1.0) -> Iterator[str]:
     :obj:`{"t": ..., "time": ..., "states": [{"id": ..., "state": [...]},
     ...]}` (identifiers and times as :func:`realization_lines` writes
     them), with :obj:`"position_dim"` where the realization declares it
-    (a state layout other than :math:`[\mathbf{p}, \mathbf{v}]`)."""
-    agents = (~data.anchor).nonzero().view(-1).tolist()
+    (a state layout other than :math:`[\mathbf{p}, \mathbf{v}]`); an agent
+    without ground truth has no line entry."""
+    agents = scored_of(data).nonzero().view(-1).tolist()
     extra = ({} if getattr(data, 'position_dim', None) is None else
              dict(position_dim=position_dim_of(data)))
     for t, time in enumerate(_step_times(data, dt)):

@@ -22,7 +22,7 @@ from torch_geometric.data import Batch
 
 from tg_nebp.filters import (NEBP, FixedLagGaussianNEBP, GaussianNEBP,
                              StepOutput, Tracker)
-from tg_nebp.data.realization import position_dim_of
+from tg_nebp.data.realization import position_dim_of, scored_of
 from tg_nebp.data.validation import check_number
 from tg_nebp.io import atomic_write, one_line, read_tensors
 from tg_nebp.utils import derive_seed, process_group
@@ -87,9 +87,10 @@ def position_loss(mean, states, t, anchor, dim=None):
     r"""The paper's loss :math:`\sum_i \|\hat{\mathbf{p}}_i -
     \mathbf{p}_i\|^2` over the agents at time index :obj:`t`, the
     positions the first :obj:`dim` entries (the first half of a state by
-    default)."""
-    agents = ~anchor
+    default); an agent without ground truth (its states NaN) is not
+    scored."""
     dim = states.size(-1) // 2 if dim is None else dim
+    agents = ~anchor & ~torch.isnan(states[:, t, :dim]).any(-1)
     return (mean[agents, :dim] - states[agents, t, :dim]).square().sum()
 
 
@@ -109,7 +110,7 @@ def gaussian_step_loss(step, batch: Batch) -> Tensor:
     covariance. The negative log-likelihood alone rewards a wide
     covariance around a lost agent as much as finding it; the squared
     error keeps the estimate honest."""
-    agents = ~batch.anchor
+    agents = scored_of(batch)
     dim = position_dim_of(batch)
     error = step.mean[agents, :dim] - batch.states[agents, step.t, :dim]
     cov = step.cov[agents, :dim, :dim]
@@ -460,7 +461,7 @@ def train_epoch(model: Tracker, train_set, optimizer: torch.optim.Optimizer,
     for indices in _local_batches(train_set, batch_size, seed, epoch,
                                   world_size, rank):
         batch, generators = _batch(train_set, indices, device, seed, epoch)
-        agents = int((~batch.anchor).sum())
+        agents = int(scored_of(batch).sum())
         for step in model.steps(batch, generators):
             value = loss(step, batch)
             optimizer.zero_grad()

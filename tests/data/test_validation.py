@@ -390,6 +390,26 @@ def test_realization_states_wrong_state_size(realization):
                r"\[30, 3, 5\]")
 
 
+def test_realization_states_of_an_agent_without_truth(realization):
+    # an agent's whole row NaN: tracked without ground truth, accepted; a
+    # NaN within a row, an infinity or an anchor without truth refused
+    from tg_nebp.data import check_realization, scored_of
+    agent = int((~realization.anchor).nonzero()[0, 0])
+    realization.states[agent] = math.nan
+    check_realization(realization, ('range', ))
+    assert not bool(scored_of(realization)[agent])
+    assert int(scored_of(realization).sum()) == \
+        int((~realization.anchor).sum()) - 1
+    realization.states[agent, 0, 0] = 1.0
+    check_both(realization, rf"'states\[{agent}\]' holds a non-finite")
+    realization.states[agent] = math.inf
+    check_both(realization, rf"'states\[{agent}\]' holds a non-finite")
+    realization.states[agent] = 0.0
+    a = int(realization.anchor.nonzero()[0, 0])
+    realization.states[a] = math.nan
+    check_both(realization, rf"'states\[{a}\]' holds a non-finite")
+
+
 def test_realization_states_wrong_steps(realization):
     realization.states = realization.states[:, :2]
     check_both(realization, r"'states' must have shape \[30, 3, 4\]")

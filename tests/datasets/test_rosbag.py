@@ -128,6 +128,39 @@ def test_binning_is_the_mean_of_each_steps_ranges_less_the_bias(tmp_path):
     assert (directed.num_edges, merged.num_edges) == (3 * steps, 2 * steps)
 
 
+def test_a_node_without_truth_is_tracked_and_used_not_scored(tmp_path):
+    from tg_nebp.data import check_realization, scored_of
+    path = write_bag(tmp_path / 'bag', messages(), 'sqlite3')
+    recording = read_bag(path, TIERS_TOPICS, without_truth=True)
+    assert recording.nodes == ['n_1', 'n_2', 'n_3', 'n_4']
+    assert recording.counts['untracked'] == 0 and 3 not in recording.truth
+    dt = 0.5
+    data, _ = recording_realization(recording, dt, anchors=['n_1', 'n_2'],
+                                    prior_std=0.5)
+    check_realization(data, ('range', ))
+    assert scored_of(data).tolist() == [False, False, True, False]
+    assert bool(torch.isnan(data.states[3]).all())
+    assert not bool(torch.isnan(data.states[:3]).any())
+    # n_4's ranges are links: n_3 (first in node order) receives them
+    to_n4 = data.edge_index[0] == 3
+    assert int(to_n4.sum()) == int(data.num_steps)
+    assert set(data.edge_index[1, to_n4].tolist()) == {2}
+    # its prior: at rest at the mean of the others' positions at the
+    # prior's time, as wide as their largest distance from it
+    t = 0.5 * dt  # the prior's time after the truth's start
+    known = np.array([truth(node, t)[:2] for node in '123'])
+    centre = known.mean(0)
+    extent = np.linalg.norm(known - centre, axis=-1).max()
+    np.testing.assert_allclose(data.prior_mean[3].numpy(),
+                               [*centre, 0, 0], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(
+        data.prior_cov[3].diagonal().numpy(),
+        [extent**2] * 2 + [0.5**2] * 2, rtol=1e-6)
+    # it cannot be an anchor: nothing places it
+    with pytest.raises(ValueError, match="anchor 'n_4' has neither"):
+        recording_realization(recording, dt, anchors=['n_1', 'n_4'])
+
+
 @pytest.mark.parametrize('value, key', [(math.nan, 'not_finite'),
                                         (math.inf, 'not_finite'),
                                         (-0.5, 'negative'),

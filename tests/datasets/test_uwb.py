@@ -83,6 +83,26 @@ def test_fitted_biases_recover_the_simulated_ones():
     assert abs(float(residual.median())) < 0.005
 
 
+def test_a_node_without_truth_does_not_enter_the_fit():
+    # its links have no residual: the fit is that of the others alone
+    biases = {(0, 2): 0.31, (1, 2): 0.52, (1, 3): 0.44, (2, 3): 0.27}
+    recording = simulated(biases, seconds=30.0)
+    data, _ = recording_realization(recording, 0.5, anchors=['a', 'b'])
+    alone = fit_range_models(data, recording.nodes, 0.5, horizon=1)
+    recording.nodes.append('e')  # ranges 9 m off to c, no truth
+    extra = np.array([(t, 2, 4, 9.0, 0) for t in np.arange(0.02, 30, 0.1)])
+    recording.ranges = np.concatenate([recording.ranges, extra])
+    recording.ranges = recording.ranges[np.argsort(recording.ranges[:, 0],
+                                                   kind='stable')]
+    data, _ = recording_realization(recording, 0.5, anchors=['a', 'b'])
+    assert bool((data.edge_index == 4).any())
+    motion, measurement, calibration, report = fit_range_models(
+        data, recording.nodes, 0.5, horizon=1)
+    assert calibration == alone[2] and report == alone[3]
+    assert motion.sigma_a == alone[0].sigma_a
+    assert measurement.sigma == alone[1].sigma
+
+
 def test_a_static_run_keeps_the_motion_noise_and_says_so():
     recording = simulated({(0, 2): 0.3, (1, 2): 0.4}, seconds=20.0)
     for node in (2, 3):  # standing still
@@ -106,6 +126,10 @@ def test_names_options_and_files(tmp_path):
     assert load_scenario('tiers-uwb-test3-raw').calibration is None
     half = load_scenario('tiers-uwb-test3-second-half-raw')
     assert (half.part, half.calibration) == ('second-half', None)
+    assert not full.without_truth
+    assert load_scenario('tiers-uwb-test3-all-nodes').without_truth
+    with pytest.raises(ValueError, match="'without_truth' must be true or"):
+        full.replace(without_truth='yes')
     with pytest.raises(ValueError, match="unknown option 'fast'"):
         load_scenario('tiers-uwb-test3-fast')
     with pytest.raises(ValueError, match="'first-half' repeats or "

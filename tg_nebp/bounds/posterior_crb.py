@@ -179,6 +179,14 @@ class PosteriorCRB(torch.nn.Module):
         if states is None:
             raise ValueError("the posterior CRB needs the true 'states' of "
                              "the realization")
+        unknown = torch.isnan(states).flatten(1).any(-1)
+        if bool(unknown.any()):
+            # its links' information is taken at the true positions of both
+            # ends: without one end's truth there is no bound to compute
+            raise ValueError(
+                f"the posterior CRB needs every node's ground truth: node "
+                f"{int(unknown.nonzero()[0])} has none (a node tracked "
+                f"without truth)")
         size = states.size(-1)
         check_state_dim(size, self.motion, position_dim_of(data))
         if self.use_control:

@@ -1,4 +1,4 @@
-from .realization import Realization, num_steps_of, position_dim_of
+from .realization import Realization, num_steps_of, position_dim_of, scored_of
 from .validation import (check_graph, check_link_features, check_particles,
                          check_prior, check_realization, check_anchor,
                          check_state_dim, check_control)
@@ -15,4 +15,5 @@ __all__ = [
     'check_state_dim',
     'check_control',
     'position_dim_of',
+    'scored_of',
 ]

@@ -21,7 +21,9 @@ position then velocity, :math:`D = 2` or :math:`3` entries each: in 2-D
 :class:`Realization`, so that PyG's :class:`~torch_geometric.loader.DataLoader`
 batches realizations of different sizes into one disjoint graph:
 
-* :obj:`states` :obj:`[N, T, 2D]`: true states at time steps :math:`1..T`,
+* :obj:`states` :obj:`[N, T, 2D]`: true states at time steps :math:`1..T`
+  (an agent's row all NaN: a node without ground truth, tracked and used
+  but not scored: :func:`scored_of`),
 * :obj:`edge_index` :obj:`[2, E_total]`, :obj:`edge_attr` :obj:`[E_total, 1]`:
   the edges of all time steps concatenated,
 * :obj:`edge_time` :obj:`[E_total]`: the time index :math:`t \in [0, T)` of
@@ -47,7 +49,17 @@ import numbers
 import torch
 from torch_geometric.data import Data
 
-__all__ = ['Realization', 'num_steps_of', 'position_dim_of', 'controls_of']
+__all__ = ['Realization', 'num_steps_of', 'position_dim_of', 'controls_of',
+           'scored_of']
+
+
+def scored_of(data: Data) -> torch.Tensor:
+    r"""The nodes :math:`(N)` whose estimates a metric or a loss scores:
+    the agents with ground truth (a real recording's node without it, its
+    :obj:`states` row NaN, is tracked and its links used, but it has no
+    error to count)."""
+    known = ~torch.isnan(data.states).flatten(1).any(-1)
+    return ~data.anchor & known
 
 
 def position_dim_of(data: Data) -> int:

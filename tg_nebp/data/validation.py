@@ -479,10 +479,14 @@ def check_realization(data, features: Sequence[str] = ('range', ),
                          f"{data.prior_mean.size(1)}], got "
                          f"{list(states.shape)}")
     if states is not None:
-        bad = ~torch.isfinite(states).flatten(1).all(-1)
+        # an agent without ground truth: its whole row NaN (tracked, not
+        # scored); anything else not finite is damage
+        unknown = torch.isnan(states).flatten(1).all(-1) & ~anchor
+        bad = ~torch.isfinite(states).flatten(1).all(-1) & ~unknown
         if bool(bad.any()):
             raise ValueError(f"'states[{_first(bad)}]' holds a non-finite "
-                             f"value")
+                             f"value (a node without ground truth: an "
+                             f"agent whose every state is NaN)")
 
 
 def check_links(edge_index: Tensor, edge_attr: Tensor,

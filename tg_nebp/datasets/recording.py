@@ -269,9 +269,14 @@ def recording_realization(recording: Recording, dt: float,
 
     Nodes: the recording's, in its order; the :obj:`anchors` (names of
     nodes with truth, or surveyed nodes, which are anchors always) static at
-    their position at :math:`t_0`. Every other node must have ground truth
-    (a node without truth cannot be given a prior or a score here: the
-    readers leave them out and count their ranges as :obj:`"untracked"`).
+    their position at :math:`t_0`. A node with neither truth nor a surveyed
+    position (a reader keeps one only when asked: a bag's
+    :obj:`without_truth`) is an agent tracked and used but not scored: its
+    :obj:`states` NaN (:func:`~tg_nebp.data.scored_of`), its prior
+    uninformed, centred on the nodes with truth (their mean position at
+    the prior's time, at rest) with the standard deviation of their extent
+    (the largest distance of one from that centre, at least
+    :obj:`prior_std`): it is somewhere among them.
 
     With :obj:`symmetric` (two-way ranging: both ends report the one range
     the exchange measured, so the two directions of a pair are one
@@ -299,18 +304,24 @@ def recording_realization(recording: Recording, dt: float,
         anchor[recording.node(name)] = True
     for node in recording.surveyed:
         anchor[node] = True
-    for node in range(count):
-        if node not in recording.truth and node not in recording.surveyed:
-            raise ValueError(f"'{recording.source}': node "
-                             f"'{recording.nodes[node]}' has neither ground "
-                             f"truth nor a surveyed position")
+    unknown = np.array([node not in recording.truth and
+                        node not in recording.surveyed
+                        for node in range(count)], dtype=bool)
+    if (anchor & unknown).any():
+        node = int(np.flatnonzero(anchor & unknown)[0])
+        raise ValueError(f"'{recording.source}': anchor "
+                         f"'{recording.nodes[node]}' has neither ground "
+                         f"truth nor a surveyed position to place it")
+    if unknown.all():
+        raise ValueError(f"'{recording.source}': no node has ground truth")
     if anchor.all():
         raise ValueError(f"'{recording.source}': every node is an anchor: "
                          f"there is no agent to localize")
     times = t0 + dt * (np.arange(steps) + 0.5)  # the steps' middles
     states = np.zeros((count, steps, 2 * recording.position_dim))
     prior = np.zeros((count, 2 * recording.position_dim))
-    for node in range(count):
+    position_std = np.full(count, float(prior_std))
+    for node in np.flatnonzero(~unknown):
         states[node] = _truth_at(recording, node, times, dt)
         prior[node] = _truth_at(recording, node, np.array([t0 - 0.5 * dt]),
                                 dt)[0]
@@ -319,6 +330,14 @@ def recording_realization(recording: Recording, dt: float,
                 [prior[node, :recording.position_dim],
                  np.zeros(recording.position_dim)])
             prior[node] = states[node, 0]
+    if unknown.any():
+        known = prior[~unknown, :recording.position_dim]
+        centre = known.mean(0)
+        states[unknown] = np.nan
+        prior[unknown] = np.concatenate([centre, np.zeros_like(centre)])
+        position_std[unknown] = max(
+            float(np.linalg.norm(known - centre, axis=-1).max()),
+            float(prior_std))
     counts = dict(recording.counts, **dict.fromkeys(BIN_COUNTS, 0))
     t, receiver, sender, z, sensor = (recording.ranges[:, c]
                                       for c in range(5))
@@ -352,11 +371,10 @@ def recording_realization(recording: Recording, dt: float,
         # second feature, StudentTRangeBySensor's)
         edge_attr = torch.cat([edge_attr, links.sensor.float()[:, None]],
                               -1)
-    size = 2 * recording.position_dim
-    variance = [prior_std**2] * recording.position_dim + \
-        [velocity_std**2] * recording.position_dim
-    prior_cov = torch.diag_embed(torch.tensor(variance, dtype=torch.float32)
-                                 .expand(count, size)).clone()
+    dim = recording.position_dim
+    variance = np.concatenate([np.repeat(position_std[:, None]**2, dim, 1),
+                               np.full((count, dim), velocity_std**2)], 1)
+    prior_cov = torch.diag_embed(torch.from_numpy(variance).float())
     anchor_t = torch.from_numpy(anchor)
     prior_cov[anchor_t] = 0
     data = Realization(

@@ -125,14 +125,17 @@ def _open(path: Path):
 
 
 def read_bag(path: Union[str, Path], topics: BagTopics,
-             position_dim: int = 2) -> Recording:
+             position_dim: int = 2, without_truth: bool = False
+             ) -> Recording:
     r"""The ranges and ground truth of the bag at :obj:`path` (a ROS 2
     bag's folder or file, or a ROS 1 :obj:`.bag`), its topics matched by
     :obj:`topics`, positions of :obj:`position_dim` coordinates (the first
     ones of the truth's).
 
     A node with a range topic but no ground truth is left out, its ranges
-    counted as :obj:`"untracked"`; a range that is not finite, negative or
+    counted as :obj:`"untracked"`, or with :obj:`without_truth` kept (a
+    node to track and use, not to score:
+    :func:`~tg_nebp.datasets.recording_realization`); a range that is not finite, negative or
     beyond the topics' :obj:`max_range` is dropped and counted. Refused,
     each with a :class:`ValueError` naming the file and the topic: a bag
     that cannot be read (missing, truncated, damaged), patterns that match
@@ -152,13 +155,13 @@ def read_bag(path: Union[str, Path], topics: BagTopics,
                          f"({type(e).__name__}: {e})") from None
     try:
         return _read(reader, path, topics, range_pattern, truth_pattern,
-                     position_dim)
+                     position_dim, without_truth)
     finally:
         reader.close()
 
 
 def _read(reader, path, topics, range_pattern, truth_pattern,
-          position_dim) -> Recording:
+          position_dim, without_truth) -> Recording:
     range_connections, truth_connections, truth_topics = {}, {}, {}
     for connection in reader.connections:
         match = range_pattern.fullmatch(connection.topic)
@@ -238,10 +241,14 @@ def _read(reader, path, topics, range_pattern, truth_pattern,
         if not truth[node]:
             raise ValueError(f"'{path}': truth topic '{by_id[cid].topic}' "
                              f"holds no message")
-    nodes = sorted(truth, key=_natural)
+    # the nodes of the range topics as well, where those without truth
+    # are kept
+    ranging = {node for pair in range_connections.values() for node in pair}
+    nodes = sorted(set(truth) | (ranging if without_truth else set()),
+                   key=_natural)
     index = {name: k for k, name in enumerate(nodes)}
     truth_arrays = {}
-    for name in nodes:
+    for name in filter(truth.__contains__, nodes):
         rows = np.array(truth[name], dtype=np.float64)[:, :1 + position_dim]
         if not np.isfinite(rows).all():
             bad = int(np.flatnonzero(~np.isfinite(rows).all(1))[0])

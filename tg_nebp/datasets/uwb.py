@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch_geometric.data import InMemoryDataset
 
-from tg_nebp.data.realization import Realization
+from tg_nebp.data.realization import Realization, scored_of
 from tg_nebp.data.validation import check_positive_int, check_realization
 from tg_nebp.datasets.mrclam import _scale, long_run_factor
 from tg_nebp.datasets.recording import (RangeCalibration, Recording,
@@ -55,6 +55,7 @@ _TIERS = re.compile(r'tiers-uwb-(test[0-9]+)((?:-[a-z0-9]+)*)\Z')
 _TIERS_OPTIONS = {
     'ros1': dict(ros1=True),
     'raw': dict(raw=True),
+    'all-nodes': dict(without_truth=True),
     'first-half': dict(part='first-half'),
     'second-half': dict(part='second-half'),
 }
@@ -118,6 +119,7 @@ class RecordingScenario(RecordedScenarioFields):
     models and the range calibration fitted on the first half of
     :obj:`test3` (shipped). Options follow the name: :obj:`ros1` (the ROS 1
     copy :obj:`case_4/ros1/testN.bag`), :obj:`raw` (no range calibration),
+    :obj:`all-nodes` (:obj:`n_8` tracked too, not scored),
     :obj:`first-half` or :obj:`second-half`.
 
     Args:
@@ -154,6 +156,9 @@ class RecordingScenario(RecordedScenarioFields):
             deviation, metres per second. (default: :obj:`0.3`)
         symmetric (bool, optional): Both directions of a pair are one
             two-way range (merged within a step). (default: :obj:`True`)
+        without_truth (bool, optional): A bag's nodes without ground truth
+            tracked and their ranges used, not scored; left out (their
+            ranges counted) without it. (default: :obj:`False`)
         description (str, optional): Free text, not part of the
             fingerprint. (default: :obj:`""`)
     """
@@ -172,6 +177,7 @@ class RecordingScenario(RecordedScenarioFields):
     prior_std: float = 0.5
     velocity_std: float = 0.3
     symmetric: bool = True
+    without_truth: bool = False
     description: str = ''
 
     def __post_init__(self):
@@ -225,9 +231,10 @@ class RecordingScenario(RecordedScenarioFields):
         if self.part not in RECORDING_PARTS:
             raise ValueError(f"'part' must be one of {list(RECORDING_PARTS)}"
                              f", got {self.part!r}")
-        if not isinstance(self.symmetric, bool):
-            raise ValueError(f"'symmetric' must be true or false, got "
-                             f"{self.symmetric!r}")
+        for key in ('symmetric', 'without_truth'):
+            if not isinstance(getattr(self, key), bool):
+                raise ValueError(f"'{key}' must be true or false, got "
+                                 f"{getattr(self, key)!r}")
         motion, measurement = self.motion_model, self.measurement_model
         if tuple(measurement.features) not in (('range', ),
                                                ('range', 'sensor')):
@@ -256,6 +263,8 @@ class RecordingScenario(RecordedScenarioFields):
                            part=chosen.get('part', 'all'))
             if chosen.get('raw'):
                 changes['calibration'] = None
+            if chosen.get('without_truth'):
+                changes['without_truth'] = True
             return _shipped('tiers').replace(**changes)
         match = _MILUV.match(text)
         if match is not None and not text.endswith('.json'):
@@ -318,7 +327,8 @@ class RecordingScenario(RecordedScenarioFields):
         options = _reader_options(self.reader, self.options)
         if self.reader == 'miluv':
             return read_miluv(root, self.recording, **options)
-        return read_bag(self.path(root), options, self.position_dim)
+        return read_bag(self.path(root), options, self.position_dim,
+                        self.without_truth)
 
     def span(self, recording: Recording) -> Tuple[float, float]:
         r"""The part's start and length in seconds from the first time
@@ -450,6 +460,13 @@ def fit_range_models(data: Realization, nodes: List[str], dt: float,
     from tg_nebp.models import (ConstantVelocity, StudentTRange,
                                 StudentTRangeBySensor)
     horizon = check_positive_int(horizon, 'horizon')
+    # the links of two nodes with truth: a node without has no residual
+    fitted = np.isfinite(_distances(data))
+    if not fitted.all():
+        data = data.clone()
+        data.edge_index = data.edge_index[:, fitted]
+        data.edge_attr = data.edge_attr[fitted]
+        data.edge_time = data.edge_time[fitted]
     residual = data.edge_attr[:, 0].double().numpy() - _distances(data)
     sensor = (data.edge_attr[:, 1].round().long().numpy()
               if len(sensors) > 1 else np.zeros(len(residual), np.int64))
@@ -488,7 +505,7 @@ def fit_range_models(data: Realization, nodes: List[str], dt: float,
             beyond_3_sigma=float(np.mean(np.abs(centred[mine]) >
                                          3 * sigma)))
     dim = data.states.size(-1) // 2
-    velocity = data.states[~data.anchor, :, dim:].double()
+    velocity = data.states[scored_of(data), :, dim:].double()
     moving = velocity.norm(dim=-1).amax(-1) > 0.05
     if bool(moving.any()) and velocity.size(1) > 1:
         acceleration = (velocity[moving, 1:] - velocity[moving, :-1]) / dt
