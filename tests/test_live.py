@@ -232,6 +232,34 @@ def test_score_counts_the_truth_that_no_estimate_covers(data):
         data.num_time_steps * agents - 2 * agents + 1
 
 
+def test_an_agent_without_truth_is_estimated_and_counted_not_scored(data):
+    # its truth lines say null; the score is the other agents' (as the
+    # offline evaluation scores them), its estimates counted apart
+    from tg_nebp.evaluation import track_dataset
+    blind = data.clone()
+    agent = int((~data.anchor).nonzero()[0, 0])
+    blind.states[agent] = math.nan
+    truth = list(truth_lines(blind))
+    assert all(any(e['id'] == agent and e['state'] is None
+                   for e in json.loads(line)['states']) for line in truth)
+    written = []
+    track_lines(TrackingSession(GaussianBP()), realization_lines(blind),
+                written.append)
+    entry = score(written, truth)
+    agents = int((~data.anchor).sum())
+    steps = data.num_time_steps
+    assert entry['estimates'] == steps * (agents - 1)
+    assert entry['without_truth'] == steps and entry['unscored_states'] == 0
+    offline = track_dataset(GaussianBP(), [blind])
+    assert entry['rmse'] == pytest.approx(
+        float(offline['errors'].square().mean().sqrt()), rel=1e-6)
+    # an id the truth does not know at all is still refused
+    line = json.loads(written[0])
+    line['estimates'][0] = dict(line['estimates'][0], id=999)
+    with pytest.raises(ValueError, match="no true state of 999"):
+        score([json.dumps(line)], truth)
+
+
 def test_a_smoothers_line_holds_its_revised_window():
     # fixed-lag Gaussian BP: every line adds the revised estimates of the
     # window's earlier steps, oldest first, read back bit for bit; the

@@ -161,7 +161,9 @@ def run_score(args) -> int:
           f"P(accept) {entry['accept']}, {entry['steps']} steps, "
           f"{entry['estimates']} estimates; not estimated: "
           f"{entry['unscored_steps']} truth steps, "
-          f"{entry['unscored_states']} true states")
+          f"{entry['unscored_states']} true states"
+          + (f"; {entry['without_truth']} estimates of agents without "
+             f"truth, not scored" if entry['without_truth'] else ''))
     return 0
 
 

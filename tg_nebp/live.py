@@ -240,13 +240,16 @@ def truth_lines(data: Data, dt: float = 1.0) -> Iterator[str]:
     ...]}` (identifiers and times as :func:`realization_lines` writes
     them), with :obj:`"position_dim"` where the realization declares it
     (a state layout other than :math:`[\mathbf{p}, \mathbf{v}]`); an agent
-    without ground truth has no line entry."""
-    agents = scored_of(data).nonzero().view(-1).tolist()
+    without ground truth (:func:`~tg_nebp.data.scored_of`) has the state
+    :obj:`null` (tracked, not scored)."""
+    agents = (~data.anchor).nonzero().view(-1).tolist()
+    scored = scored_of(data)
     extra = ({} if getattr(data, 'position_dim', None) is None else
              dict(position_dim=position_dim_of(data)))
     for t, time in enumerate(_step_times(data, dt)):
         yield json.dumps(dict(t=t, time=time, **extra, states=[
-            dict(id=i, state=data.states[i, t].tolist())
+            dict(id=i, state=data.states[i, t].tolist() if scored[i] else
+                 None)
             for i in agents]))
 
 
@@ -434,7 +437,9 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
     float32), with the number of steps and estimates scored and what the
     truth holds that no estimate covers (:obj:`"unscored_steps"`: truth
     times without an estimate line, :obj:`"unscored_states"`: true states
-    without an estimate, both counted over the times estimated and not).
+    without an estimate, both counted over the times estimated and not;
+    :obj:`"without_truth"`: estimates of agents whose truth is
+    :obj:`null`, tracked and not scored).
     A malformed line or entry (a time that is not a number, entries that
     are not a list of objects with an :obj:`"id"`, a mean or covariance
     that is not finite numbers of the truth's size), a time given twice
@@ -449,15 +454,19 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
         step = {}
         for k, entry in enumerate(_entries(line, 'states', where)):
             state = entry.get('state')
+            if state is None:  # an agent without ground truth
+                step[json.dumps(entry['id'])] = None
+                continue
             if not isinstance(state, list) or not all(
                     isinstance(v, (int, float)) and not isinstance(v, bool)
                     and math.isfinite(v) for v in state):
                 raise ValueError(f"{where}: 'states[{k}]' must hold a "
-                                 f"'state' of finite numbers")
+                                 f"'state' of finite numbers (or null: "
+                                 f"no ground truth)")
             step[json.dumps(entry['id'])] = state
         states[time] = step
         position_dims[time] = line.get('position_dim')
-    errors, nees, seen, dim = [], [], set(), 2
+    errors, nees, seen, dim, without_truth = [], [], set(), 2, 0
     for number, line in _objects(estimates, 'estimates',
                                  ('time', 'estimates')):
         where = f"estimates line {number}"
@@ -472,10 +481,15 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
         entries = _entries(line, 'estimates', where)
         if not entries:  # no agent at that time
             continue
-        rows = [(e, step.get(json.dumps(e['id']))) for e in entries]
-        missing = [e['id'] for e, s in rows if s is None]
+        missing = [e['id'] for e in entries
+                   if json.dumps(e['id']) not in step]
         if missing:
             raise ValueError(f"{where}: no true state of {missing[0]!r}")
+        rows = [(e, step[json.dumps(e['id'])]) for e in entries]
+        without_truth += sum(s is None for _, s in rows)
+        rows = [(e, s) for e, s in rows if s is not None]
+        if not rows:  # only agents without ground truth
+            continue
         try:
             # the stored truth's float32, as an evaluation reads it
             true = torch.tensor([s for _, s in rows], dtype=torch.float32)
@@ -504,7 +518,9 @@ def score(estimates: Iterable[str], truth: Iterable[str]) -> dict:
     scored = int(sum(e.numel() for e in errors))
     entry.update(steps=len(errors), estimates=scored,
                  unscored_steps=len(set(states) - seen),
-                 unscored_states=sum(map(len, states.values())) - scored)
+                 unscored_states=sum(s is not None for step in states.values()
+                                     for s in step.values()) - scored,
+                 without_truth=without_truth)
     return entry
 
 
