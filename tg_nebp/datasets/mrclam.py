@@ -15,8 +15,8 @@ first time :math:`t_0` at which all five robots have ground truth and odometry,
 :obj:`duration` seconds in steps of :obj:`dt`; step :math:`k` holds the
 measurements in :math:`(t_0 + (k - 1) \Delta, t_0 + k \Delta]`; a robot's
 repeated measurement of one subject within a step: the latest (the binning
-of every real dataset, :func:`~tg_nebp.datasets.recording.step_of` and
-:func:`~tg_nebp.datasets.recording.merge_links`; a bearing is not averaged
+of every real dataset, :func:`~tg_nebp.datasets.step_of` and
+:func:`~tg_nebp.datasets.merge_links`; a bearing is not averaged
 across a turn, so MRCLAM merges by the latest where the UWB recordings take
 the mean); a barcode not in
 :obj:`Barcodes.dat` (or a subject without ground truth) is dropped and counted;

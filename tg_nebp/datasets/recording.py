@@ -195,7 +195,7 @@ class Links(NamedTuple):
     merged: int
 
 
-#: How :func:`~tg_nebp.datasets.recording.merge_links` merges one step's
+#: How :func:`~tg_nebp.datasets.merge_links` merges one step's
 #: rows of a link: into their mean (ranges at several hertz), or the latest
 #: row (MRCLAM's camera: a bearing is not averaged across the robot's
 #: turn).
