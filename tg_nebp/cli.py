@@ -241,7 +241,12 @@ def _add_method_options(parser: argparse.ArgumentParser):
         'ideal of a distributed filter)')
     add('--inflation', type=_at_least(1, _number), default=None,
         metavar='K', help='gbp, hybrid: multiply every belief covariance by '
-        'K before the next prediction (default: 1.5; 1 is plain Gaussian BP)')
+        'K before the next prediction (default: 1.5; 1 with '
+        '--report-inflation 1 is plain Gaussian BP)')
+    add('--report-inflation', type=_at_least(1, _number), default=None,
+        metavar='K', help='gbp, hybrid without --lag: report every '
+        'covariance inflated by K, no further than the step\'s prediction '
+        '(default: 2.5; 1 reports the belief itself)')
     add('--tolerance', type=_at_least(0, _number), default=None,
         metavar='T', help='gbp, gnebp, hybrid: stop a step\'s iterations '
         'once no belief mean moves by more than T (default: 0.01; 0 runs '

@@ -68,7 +68,7 @@ GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
              resampler='systematic', regularize=0.2, ess_threshold=0.5,
              measurement='student-t', iterations=2, ends='both',
              marginal=True, inflation=1.2, tolerance=0.0, no_control=True,
-             lag=3, incremental=True)
+             lag=3, incremental=True, report_inflation=2.0)
 
 
 def test_an_option_is_refused_by_the_methods_that_do_not_take_it(scenario):
@@ -258,6 +258,14 @@ def test_method_tracker_builds_the_smoothers(scenario):
         method_tracker('gbp', scenario, lag='all')
     with pytest.raises(ValueError, match="'lag' and 'marginal'"):
         method_tracker('iekf', scenario, lag=3, marginal=True)
+    # a window reports its beliefs as they are; Gaussian BP and hybrid BP
+    # inflate what they report as told
+    with pytest.raises(ValueError, match="'report_inflation' .* and 'lag'"):
+        method_tracker('gbp', scenario, lag=3, report_inflation=2.0)
+    assert method_tracker('gbp', scenario, report_inflation=1.0)[
+        0].report_inflation == 1.0
+    assert method_tracker('hybrid', scenario, report_inflation=3.0)[
+        0].gaussian.report_inflation == 3.0
     with pytest.raises(ValueError, match=r"'lag' \(--lag\) is for method "
                        r"gbp or hybrid or iekf or pcrb, not bp"):
         method_tracker('bp', scenario, lag=3)

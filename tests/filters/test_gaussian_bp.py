@@ -41,3 +41,53 @@ def test_early_stop_is_per_graph_so_a_batch_equals_each_graph_alone():
                 [getattr(a, field) for a in alone]))
         # some iterations ran on fewer than all the nodes
         assert min(tracker.nodes) < max(tracker.nodes)
+
+
+def _inflated_by_loops(cov, predicted, kappa):
+    # an independent reference of bounded_inflation, one node at a time:
+    # with cov = L L^T, the eigenvalues lambda of L^-1 P L^-T tell how much
+    # each direction's variance the links took away; each is inflated by
+    # min(kappa, max(lambda, 1))
+    out = cov.clone()
+    for i in range(cov.size(0)):
+        c, p = cov[i].double(), predicted[i].double()
+        if torch.linalg.matrix_rank(c) < c.size(0):
+            continue  # an anchor: zero, left
+        lower = torch.linalg.cholesky(c)
+        inv = torch.linalg.inv(lower)
+        values, vectors = torch.linalg.eigh(inv @ p @ inv.T)
+        factor = torch.clamp(torch.clamp(values, min=1.0), max=kappa)
+        root = lower @ vectors
+        out[i] = root @ torch.diag(factor) @ root.T
+    return out
+
+
+def test_the_reported_covariance_is_the_belief_inflated_to_the_prediction():
+    # the recommended tracker reports its belief's covariance inflated by
+    # report_inflation, no further than the step's prediction in any
+    # direction; the means, and all it carries to later steps, are those
+    # of the same tracker reporting its beliefs as they are
+    data = tiny_scenario(steps=5).generate(gen(3))
+    reporting = GaussianBP.recommended()
+    assert reporting.report_inflation == GBP_RECOMMENDED[
+        'report_inflation'] > 1
+    plain = GaussianBP.recommended(report_inflation=1.0)
+    state = plain.initial_state(data)
+    inflated_any = False
+    for t, (step, (edges, control)) in enumerate(zip(
+            reporting.steps(data), zip(data.edges_by_step(),
+                                       plain.controls_of(data)))):
+        own, state = plain.step(state, *edges, data.anchor, t,
+                                control=control)
+        assert torch.equal(step.mean, own.mean)
+        expected = _inflated_by_loops(own.cov, state.predicted,
+                                      reporting.report_inflation)
+        torch.testing.assert_close(step.cov, expected, rtol=1e-9,
+                                   atol=1e-12)
+        inflated_any |= bool((step.cov.diagonal(dim1=-2, dim2=-1) >
+                              own.cov.diagonal(dim1=-2, dim2=-1) * 1.5)
+                             .any())
+        # never beyond the prediction
+        gap = state.predicted - step.cov
+        assert float(torch.linalg.eigvalsh(gap).min()) > -1e-9
+    assert inflated_any

@@ -429,7 +429,9 @@ def test_a_step_without_links_predicts_and_a_joined_prior_is_not_inflated(
         [4.0, 1.0, 0.01, 0.04], dtype=torch.float64)).tolist())
     mean, cov = session.estimates(last)['n0']
     if held is not None:
-        cov = bounded_inflation(cov[None], held[:1],
+        # what it carries is its belief (the estimate it reports may be
+        # inflated further: report_inflation), inflated by kappa
+        cov = bounded_inflation(session.state.cov[:1], held[:1],
                                 torch.tensor([kappa]))[0]
     beliefs = [(0, mean, cov, 1.0),
                (-1, torch.tensor(prior.mean, dtype=torch.float64),

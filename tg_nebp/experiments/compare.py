@@ -190,14 +190,15 @@ def compare_methods(scenario: Scenario,
     for likelihood in likelihoods:
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (
-            f'Gaussian BP, recommended (inflation 1.5), '
+            f'Gaussian BP, recommended (inflation 1.5, reported 2.5), '
             f'{shown[likelihood]} likelihood',
             lambda m=measurement: GaussianBP.recommended(
                 motion=motion, measurement=m))
         methods[f'gbp-plain {likelihood}'] = (
             f'Gaussian BP without inflation, {shown[likelihood]} likelihood',
             lambda m=measurement: GaussianBP.recommended(
-                inflation=1.0, motion=motion, measurement=m))
+                inflation=1.0, report_inflation=1.0, motion=motion,
+                measurement=m))
     for likelihood in likelihoods if lag is not None else ():
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp{suffix} {likelihood}'] = (

@@ -220,7 +220,8 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
     if method == 'gbp':
         given = _given(num_iterations=iterations,
                        inflation=options.inflation, ends=options.ends,
-                       tolerance=options.tolerance)
+                       tolerance=options.tolerance,
+                       report_inflation=options.report_inflation)
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
         if lag is not None:
@@ -248,7 +249,8 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
         return _hybrid(scenario, models, checkpoint, options.particles, lag,
                        _given(num_iterations=iterations,
                               inflation=options.inflation,
-                              tolerance=options.tolerance),
+                              tolerance=options.tolerance,
+                              report_inflation=options.report_inflation),
                        options.measurement)
     if method == 'nebp':
         if checkpoint is None:
@@ -283,6 +285,8 @@ def _hybrid(scenario, models: dict, checkpoint: Optional[str],
     if checkpoint is not None:
         for name, value in (('lag', lag), ('inflation',
                                            given.get('inflation')),
+                            ('report_inflation',
+                             given.get('report_inflation')),
                             ('measurement', measurement)):
             if value is not None:
                 raise ValueError(

@@ -62,6 +62,8 @@ class MethodOptions:
     marginal: bool = _option(('iekf', ), False)
     #: Gaussian BP's covariance inflation.
     inflation: Optional[float] = _option(('gbp', 'hybrid'))
+    #: The inflation of the covariance Gaussian BP reports.
+    report_inflation: Optional[float] = _option(('gbp', 'hybrid'))
     #: The largest move of a converged iteration; 0 runs every iteration.
     tolerance: Optional[float] = _option(('gbp', 'gnebp', 'hybrid'))
     #: A learned method's checkpoint (a path or a shipped name).
@@ -128,6 +130,10 @@ class MethodOptions:
         if self.incremental and lag != WHOLE_SEQUENCE:
             raise ValueError(f"'incremental' is the smoother of the whole "
                              f"sequence: give 'lag' {WHOLE_SEQUENCE!r}")
+        if lag is not None and self.report_inflation is not None:
+            raise ValueError("'report_inflation' (--report-inflation) and "
+                             "'lag': a window reports its beliefs as they "
+                             "are")
         if lag is not None and self.marginal:
             raise ValueError("'lag' and 'marginal': the smoother keeps the "
                              "joint of its window")

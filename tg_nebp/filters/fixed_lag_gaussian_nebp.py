@@ -3,7 +3,8 @@ from typing import Optional
 from torch import Tensor
 
 from tg_nebp.data.validation import check_position_dim
-from tg_nebp.filters.fixed_lag_gbp import FixedLagGaussianBP, WindowState
+from tg_nebp.filters.fixed_lag_gbp import (WINDOW_GBP_RECOMMENDED,
+                                          FixedLagGaussianBP, WindowState)
 from tg_nebp.filters.gaussian_bp import GBP_RECOMMENDED
 from tg_nebp.filters.gaussian_nebp import LearnedCorrection
 from tg_nebp.models import MeasurementModel, MotionModel
@@ -116,7 +117,7 @@ class FixedLagGaussianNEBP(LearnedCorrection, FixedLagGaussianBP):
         tolerance and inflation; every step iterated); a trained one comes
         from a checkpoint
         (:func:`~tg_nebp.training.gaussian_nebp_from_checkpoint`)."""
-        return cls(**{**GBP_RECOMMENDED, **overrides})
+        return cls(**{**WINDOW_GBP_RECOMMENDED, **overrides})
 
     @property
     def rank_one(self) -> bool:

@@ -5,8 +5,9 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number, check_positive_int
-from tg_nebp.filters.gaussian_bp import (GaussianBP, GaussianState,
-                                         SolvedStep, _inverse)
+from tg_nebp.filters.gaussian_bp import (GBP_RECOMMENDED, GaussianBP,
+                                         GaussianState, SolvedStep,
+                                         _inverse)
 from tg_nebp.filters.relocation import LinkSearch, relocation_step
 from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput
@@ -19,7 +20,7 @@ from tg_nebp.nn.conv.gaussian_bp_conv import (FactorMessages,
 from tg_nebp.utils import symmetrize
 
 __all__ = ['FixedLagGaussianBP', 'WindowState', 'SCHEDULES',
-           'FIXED_LAG_RECOMMENDED']
+           'FIXED_LAG_RECOMMENDED', 'WINDOW_GBP_RECOMMENDED']
 
 #: The orders of a step's iterations over the window (the :obj:`schedule`
 #: of :class:`FixedLagGaussianBP`): every factor and agent each iteration,
@@ -34,6 +35,10 @@ SCHEDULES = ('sweep', 'residual')
 #: 1.1. Chosen on MRCLAM sequence 6 (the development sequence) and the
 #: validation realizations of robots_train (the results page, *Settled
 #: steps*).
+#: Gaussian BP's recommended configuration as a window takes it: without
+#: its :obj:`report_inflation` (a window reports its beliefs as they are).
+WINDOW_GBP_RECOMMENDED = {key: value for key, value in GBP_RECOMMENDED.items()
+                          if key != 'report_inflation'}
 FIXED_LAG_RECOMMENDED = dict(iterated=5, relinearize_threshold=0.1,
                              relinearize_skip=10, settled_inflation=1.1)
 
@@ -363,12 +368,14 @@ class FixedLagGaussianBP(GaussianBP):
         robots_train at lag 20 3 steps were 1.27 times the smoothing
         bound and 5 steps 1.12; the settled inflation 1.1 is the smallest
         of 1, 1.1 and 1.2 with P(accept 0.95) of at least 0.85 on
-        sequence 6). :obj:`overrides` replace or add constructor
-        arguments."""
+        sequence 6). The window reports its beliefs as they are (no
+        :obj:`report_inflation`: a window's revised covariances fall short
+        of the joint's in another way). :obj:`overrides` replace or add
+        constructor arguments."""
         lag = overrides.get('lag', 5)
         settled = FIXED_LAG_RECOMMENDED if isinstance(lag, int) and \
             lag > 5 else {}
-        return super().recommended(**{**settled, **overrides})
+        return cls(**{**WINDOW_GBP_RECOMMENDED, **settled, **overrides})
 
     def initial_state(self, data, generator=None) -> WindowState:
         r"""The state before the first step of the nodes of :obj:`data`:

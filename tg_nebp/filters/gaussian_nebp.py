@@ -205,11 +205,11 @@ class GaussianNEBP(LearnedCorrection, GaussianBP):
                       **overrides})
 
     def settings(self) -> dict:
-        # the inflation is learned per agent: Gaussian BP's global one
-        # (1) is not this tracker's
+        # the inflation is learned per agent: Gaussian BP's global ones
+        # (1) are not this tracker's
         settings = dict(super().settings(), hidden_dim=self.conv.hidden_dim,
                         position_dim=self.position_dim)
-        del settings['inflation']
+        del settings['inflation'], settings['report_inflation']
         return settings
 
     def config(self) -> dict:

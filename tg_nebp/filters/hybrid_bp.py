@@ -401,8 +401,8 @@ class HybridBP(Tracker):
                                    tempering)
         # the estimates (and a window's revisions of the past) are the
         # Gaussian tracker's
-        output = solved.output._replace(particles=drawn,
-                                        log_weights=log_weights)
+        output = self.gaussian.reported(solved.output, solved.state)._replace(
+            particles=drawn, log_weights=log_weights)
         return output, self.state_type(
             *solved.state, drawn, log_weights,
             weighted_moments(drawn, log_weights)[1], prior.predicted)
