@@ -81,6 +81,10 @@ def test_compare_runs_resumes_and_adds_checkpoints(tmp_path):
     table = compare_table(again)
     assert table.count('| `nebp nebp.pt ') == 2
     assert '### `tiny_nlos`' in table
+    # both acceptance levels of every row, as the row holds them
+    iekf = rows['iekf gaussian']['accept']
+    assert f"| {iekf['0.95']:.3f} / {iekf['0.99']:.3f} |" in table
+    assert '| 0.950 / 0.990 |' in table  # the bound's: the levels
 
 
 def test_changed_scenario_under_the_same_name_is_refused(tmp_path):

@@ -280,7 +280,7 @@ def row_schema(realizations: int, bound: bool = False) -> dict:
                 seconds_per_realization=_NON_NEGATIVE,
                 outage={'0.5': _PROBABILITY, '1.0': _PROBABILITY,
                         '2.0': _PROBABILITY},
-                accept={'0.95': _PROBABILITY},
+                accept={'0.95': _PROBABILITY, '0.99': _PROBABILITY},
                 spread={'realizations': [realization] * realizations,
                         'outage_1m': probabilities,
                         'accept_0.95': probabilities,
@@ -608,7 +608,7 @@ def compare_table(compare: dict) -> str:
     for name, rows in compare['results'].items():
         ratios = floor_ratios(rows)
         lines += [f'### `{name}`', '',
-                  '| method | P_out 0.5 / 1 / 2 m | P(accept 0.95) | '
+                  '| method | P_out 0.5 / 1 / 2 m | P(accept 0.95 / 0.99) | '
                   'RMSE [m] | RMSE / floor | P_out(1 m) per real. | '
                   'P(accept) per real. | s per real. |',
                   '| --- ' * 8 + '|']
@@ -617,7 +617,8 @@ def compare_table(compare: dict) -> str:
             ratio = ratios.get(key)
             lines.append(
                 f"| `{key}` | {o['0.5']:.3f} / {o['1.0']:.4f} / "
-                f"{o['2.0']:.4f} | {e['accept']['0.95']:.3f} | "
+                f"{o['2.0']:.4f} | {e['accept']['0.95']:.3f} / "
+                f"{e['accept']['0.99']:.3f} | "
                 f"{e['rmse']:.3f} | "
                 + (f'{ratio[0]:.2f} ± {ratio[1]:.2f}' if ratio else '')
                 + f" | {s['outage_1m']['mean']:.4f} ± "
