@@ -742,3 +742,29 @@ def mirror(third=(15.0, 3.0), prior_y=-5.0, steps=8, prior_sd=0.5,
     from tg_nebp.models import ConstantVelocity, GaussianRange
     return data, dict(motion=ConstantVelocity(sigma_a=0.05),
                       measurement=GaussianRange(sigma=0.3))
+
+
+def bounded_inflation_by_loops(cov, predicted, kappa):
+    r"""An independent reference of
+    :func:`~tg_nebp.gaussian.bounded_inflation`, one node at a time, in
+    float64."""
+    # with cov = L L^T, the eigenvalues lambda of L^-1 P L^-T tell how much
+    # each direction's variance the links took away; each is inflated by
+    # min(kappa, max(lambda, 1)). A covariance without a Cholesky factor, or
+    # one whose factor's diagonal spans more than half the digits of its
+    # dtype, is scaled by kappa as it is (an anchor's zero stays zero)
+    out = cov.double().clone()
+    for i in range(cov.size(0)):
+        c, p = cov[i].double(), predicted[i].double()
+        lower, failed = torch.linalg.cholesky_ex(c)
+        diagonal = lower.diagonal().abs()
+        if failed or diagonal.min() <= diagonal.max() * \
+                torch.finfo(cov.dtype).eps**0.25:
+            out[i] = kappa * c
+            continue
+        inv = torch.linalg.inv(lower)
+        values, vectors = torch.linalg.eigh(inv @ p @ inv.T)
+        factor = torch.clamp(torch.clamp(values, min=1.0), max=kappa)
+        root = lower @ vectors
+        out[i] = root @ torch.diag(factor) @ root.T
+    return out

@@ -244,9 +244,10 @@ def _add_method_options(parser: argparse.ArgumentParser):
         'K before the next prediction (default: 1.5; 1 with '
         '--report-inflation 1 is plain Gaussian BP)')
     add('--report-inflation', type=_at_least(1, _number), default=None,
-        metavar='K', help='gbp, hybrid without --lag: report every '
-        'covariance inflated by K, no further than the step\'s prediction '
-        '(default: 2.5; 1 reports the belief itself)')
+        metavar='K', help='bp, and gbp and hybrid without --lag: report '
+        'every covariance inflated by K, no further than the step\'s '
+        'prediction (default: gbp and hybrid 2.5, bp 1 as the paper; 1 '
+        'reports the belief itself)')
     add('--tolerance', type=_at_least(0, _number), default=None,
         metavar='T', help='gbp, gnebp, hybrid: stop a step\'s iterations '
         'once no belief mean moves by more than T (default: 0.01; 0 runs '

@@ -6,7 +6,8 @@ from torch_geometric.data import Batch
 
 from tg_nebp.filters import GBP_RECOMMENDED, GaussianBP
 
-from helpers import assert_batch_equals_alone, gen, tiny_scenario
+from helpers import (assert_batch_equals_alone, bounded_inflation_by_loops,
+                     gen, tiny_scenario)
 
 
 class Counting(GaussianBP):
@@ -43,25 +44,6 @@ def test_early_stop_is_per_graph_so_a_batch_equals_each_graph_alone():
         assert min(tracker.nodes) < max(tracker.nodes)
 
 
-def _inflated_by_loops(cov, predicted, kappa):
-    # an independent reference of bounded_inflation, one node at a time:
-    # with cov = L L^T, the eigenvalues lambda of L^-1 P L^-T tell how much
-    # each direction's variance the links took away; each is inflated by
-    # min(kappa, max(lambda, 1))
-    out = cov.clone()
-    for i in range(cov.size(0)):
-        c, p = cov[i].double(), predicted[i].double()
-        if torch.linalg.matrix_rank(c) < c.size(0):
-            continue  # an anchor: zero, left
-        lower = torch.linalg.cholesky(c)
-        inv = torch.linalg.inv(lower)
-        values, vectors = torch.linalg.eigh(inv @ p @ inv.T)
-        factor = torch.clamp(torch.clamp(values, min=1.0), max=kappa)
-        root = lower @ vectors
-        out[i] = root @ torch.diag(factor) @ root.T
-    return out
-
-
 def test_the_reported_covariance_is_the_belief_inflated_to_the_prediction():
     # the recommended tracker reports its belief's covariance inflated by
     # report_inflation, no further than the step's prediction in any
@@ -80,7 +62,7 @@ def test_the_reported_covariance_is_the_belief_inflated_to_the_prediction():
         own, state = plain.step(state, *edges, data.anchor, t,
                                 control=control)
         assert torch.equal(step.mean, own.mean)
-        expected = _inflated_by_loops(own.cov, state.predicted,
+        expected = bounded_inflation_by_loops(own.cov, state.predicted,
                                       reporting.report_inflation)
         torch.testing.assert_close(step.cov, expected, rtol=1e-9,
                                    atol=1e-12)

@@ -911,3 +911,36 @@ def test_regularized_resampling_never_moves_an_anchor():
         known = data.prior_mean[anchors].unsqueeze(1).expand(-1, 100, -1)
         assert torch.equal(step.particles[anchors], known.to(
             step.particles.dtype))
+
+
+def test_the_reported_covariance_is_the_cloud_inflated_to_its_prediction():
+    # the recommended tracker reports its weighted particle covariance
+    # inflated by report_inflation, no further than the predicted cloud's;
+    # the particles, weights and means are those of the same draws
+    # reported as they are
+    from tg_nebp.filters.particle_bp import RECOMMENDED
+    from helpers import bounded_inflation_by_loops
+    data = tiny_scenario(steps=4).generate(gen(5))
+    reporting = ParticleBP.recommended(num_particles=64)
+    assert reporting.report_inflation == RECOMMENDED['report_inflation'] > 1
+    plain = ParticleBP.recommended(num_particles=64, report_inflation=1.0)
+    state = plain.initial_state(data, gen(9))
+    mine = gen(9)
+    inflated_any = False
+    for t, (step, (edges, _)) in enumerate(zip(
+            reporting.steps(data, gen(9)),
+            zip(data.edges_by_step(), plain.controls_of(data)))):
+        if t == 0:  # the same stream: the prior's draws first
+            plain.initial_state(data, mine)
+        own, state = plain.step(state, *edges, data.anchor, t, mine)
+        assert torch.equal(step.mean, own.mean)
+        assert torch.equal(step.log_weights, own.log_weights)
+        # float32 clouds: to float32's resolution of the whitening
+        expected = bounded_inflation_by_loops(
+            own.cov, state.predicted, reporting.report_inflation)
+        torch.testing.assert_close(step.cov.double(), expected,
+                                   rtol=1e-3, atol=1e-6)
+        inflated_any |= bool((step.cov.diagonal(dim1=-2, dim2=-1) >
+                              own.cov.diagonal(dim1=-2, dim2=-1) * 1.5)
+                             .any())
+    assert inflated_any

@@ -271,7 +271,8 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
                    num_iterations=iterations, resampler=options.resampler,
                    num_samples=options.samples,
                    regularize=options.regularize,
-                   ess_threshold=options.ess_threshold, ends=options.ends)
+                   ess_threshold=options.ess_threshold, ends=options.ends,
+                   report_inflation=options.report_inflation)
     return ParticleBP(**given, compile=options.compile, **models), 'bp'
 
 

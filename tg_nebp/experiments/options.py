@@ -62,8 +62,9 @@ class MethodOptions:
     marginal: bool = _option(('iekf', ), False)
     #: Gaussian BP's covariance inflation.
     inflation: Optional[float] = _option(('gbp', 'hybrid'))
-    #: The inflation of the covariance Gaussian BP reports.
-    report_inflation: Optional[float] = _option(('gbp', 'hybrid'))
+    #: The inflation of the covariance that Gaussian BP or particle BP
+    #: reports.
+    report_inflation: Optional[float] = _option(('bp', 'gbp', 'hybrid'))
     #: The largest move of a converged iteration; 0 runs every iteration.
     tolerance: Optional[float] = _option(('gbp', 'gnebp', 'hybrid'))
     #: A learned method's checkpoint (a path or a shipped name).
