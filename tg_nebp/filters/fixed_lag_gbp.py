@@ -28,6 +28,10 @@ __all__ = ['FixedLagGaussianBP', 'WindowState', 'SCHEDULES',
 SCHEDULES = ('sweep', 'residual')
 
 
+#: Gaussian BP's recommended configuration as a window takes it: without
+#: its :obj:`report_inflation` (a window reports its beliefs as they are).
+WINDOW_GBP_RECOMMENDED = {key: value for key, value in GBP_RECOMMENDED.items()
+                          if key != 'report_inflation'}
 #: The settled steps of a window longer than 5 steps in
 #: :meth:`~tg_nebp.filters.FixedLagGaussianBP.recommended`: the newest 5
 #: steps iterated, the older settled and relinearized as iSAM2
@@ -35,10 +39,6 @@ SCHEDULES = ('sweep', 'residual')
 #: 1.1. Chosen on MRCLAM sequence 6 (the development sequence) and the
 #: validation realizations of robots_train (the results page, *Settled
 #: steps*).
-#: Gaussian BP's recommended configuration as a window takes it: without
-#: its :obj:`report_inflation` (a window reports its beliefs as they are).
-WINDOW_GBP_RECOMMENDED = {key: value for key, value in GBP_RECOMMENDED.items()
-                          if key != 'report_inflation'}
 FIXED_LAG_RECOMMENDED = dict(iterated=5, relinearize_threshold=0.1,
                              relinearize_skip=10, settled_inflation=1.1)
 

@@ -177,8 +177,9 @@ class GaussianBP(Tracker):
         report_inflation (float, optional): The covariance of every
             estimate it reports is its belief's inflated by
             :math:`\kappa_r \geq 1`, no further in any direction than
-            the step's prediction (:func:`~tg_nebp.gaussian.
-            bounded_inflation`, as :obj:`inflation`); what it carries to
+            the step's prediction
+            (:func:`~tg_nebp.gaussian.bounded_inflation`, as
+            :obj:`inflation`); what it carries to
             the next step, and every mean, is unchanged. The beliefs of a
             filter of marginals are narrower than their errors (the
             information that links share is counted again at every
