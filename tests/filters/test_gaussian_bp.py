@@ -61,6 +61,8 @@ def test_the_reported_covariance_is_the_belief_inflated_to_the_prediction():
                                        plain.controls_of(data)))):
         own, state = plain.step(state, *edges, data.anchor, t,
                                 control=control)
+        # bit for bit on every CPU path: both run the same operations on
+        # the same inputs, the report touches the covariance only
         assert torch.equal(step.mean, own.mean)
         expected = bounded_inflation_by_loops(own.cov, state.predicted,
                                       reporting.report_inflation)

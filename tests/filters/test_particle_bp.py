@@ -933,6 +933,8 @@ def test_the_reported_covariance_is_the_cloud_inflated_to_its_prediction():
         if t == 0:  # the same stream: the prior's draws first
             plain.initial_state(data, mine)
         own, state = plain.step(state, *edges, data.anchor, t, mine)
+        # bit for bit on every CPU path: the same draws and operations on
+        # the same inputs, the report touches the covariance only
         assert torch.equal(step.mean, own.mean)
         assert torch.equal(step.log_weights, own.log_weights)
         # float32 clouds: to float32's resolution of the whitening

@@ -1,4 +1,4 @@
-from .scenario import RecordedScenarioFields, Scenario
+from .scenario import RecordedScenarioFields, Scenario, ScenarioModels
 from .mrclam import (FIT_HORIZON, MRCLAMSequence, fit_models,
                      integrate_odometry, interpolate_pose, long_run_factor,
                      mrclam_realization, read_mrclam)
@@ -15,7 +15,7 @@ from .uwb import (RecordingScenario, RecordingDataset, fit_range_models,
 from .cooperative_localization import (CooperativeLocalizationDataset,
                                        load_datasets, load_scenario)
 
-__all__ = ['Scenario', 'RecordedScenarioFields', 'CooperativeLocalizationDataset', 'load_datasets',
+__all__ = ['Scenario', 'RecordedScenarioFields', 'ScenarioModels', 'CooperativeLocalizationDataset', 'load_datasets',
            'load_scenario', 'MRCLAM', 'MRCLAMScenario', 'fitted_scenario',
            'range_part', 'MRCLAMSequence', 'read_mrclam',
            'mrclam_realization', 'integrate_odometry', 'interpolate_pose',

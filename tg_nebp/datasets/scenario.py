@@ -18,7 +18,7 @@ from tg_nebp.models import (ConstantVelocityDrag, GaussianRange,
                             MeasurementModel, Model, MotionModel,
                             model_from_config, resolve_models, wrap_angle)
 
-__all__ = ['Scenario', 'RecordedScenarioFields']
+__all__ = ['Scenario', 'RecordedScenarioFields', 'ScenarioModels']
 
 _FILE_NAME = re.compile(r'[A-Za-z0-9_+-][A-Za-z0-9_.+-]*\Z')
 
@@ -48,7 +48,23 @@ def scenario_from_fields(cls, fields: Any, where: str):
         raise ValueError(f"scenario '{where}': {e}") from None
 
 
-class RecordedScenarioFields:
+class ScenarioModels:
+    r"""The models of a scenario (simulated or of real data) built from its
+    :obj:`motion` and :obj:`measurement` configurations."""
+
+    @property
+    def motion_model(self) -> MotionModel:
+        r"""The scenario's motion model, built from :obj:`motion`."""
+        return model_from_config(self.motion, 'motion')
+
+    @property
+    def measurement_model(self) -> MeasurementModel:
+        r"""The scenario's measurement model, built from
+        :obj:`measurement`."""
+        return model_from_config(self.measurement, 'measurement')
+
+
+class RecordedScenarioFields(ScenarioModels):
     r"""What the scenarios of real data (:class:`~tg_nebp.datasets.MRCLAMScenario`,
     :class:`~tg_nebp.datasets.RecordingScenario`, frozen dataclasses of
     JSON fields) share: their JSON object, file, copies and fingerprint. A
@@ -88,16 +104,6 @@ class RecordedScenarioFields:
         blob = json.dumps(fields, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:10]
 
-    @property
-    def motion_model(self) -> MotionModel:
-        r"""The motion model of the :obj:`motion` field."""
-        return model_from_config(self.motion, 'motion')
-
-    @property
-    def measurement_model(self) -> MeasurementModel:
-        r"""The likelihood of the :obj:`measurement` field."""
-        return model_from_config(self.measurement, 'measurement')
-
 
 def _is_real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -108,7 +114,7 @@ def _is_sequence(value) -> bool:
 
 
 @dataclasses.dataclass(frozen=True)
-class Scenario:
+class Scenario(ScenarioModels):
     r"""The definition of a cooperative-localization network, from which
     :meth:`~tg_nebp.datasets.Scenario.generate` draws realizations. The
     paper's networks are JSON files in the repository's top-level
@@ -400,17 +406,6 @@ class Scenario:
         r"""The size :math:`S` of a state: the motion model's where it
         declares one (a robot's 3), else :math:`2D`."""
         return self.motion_model.state_dim or 2 * self.position_dim
-
-    @property
-    def motion_model(self) -> MotionModel:
-        r"""The scenario's motion model, built from :obj:`motion`."""
-        return model_from_config(self.motion, 'motion')
-
-    @property
-    def measurement_model(self) -> MeasurementModel:
-        r"""The scenario's measurement model, built from
-        :obj:`measurement`."""
-        return model_from_config(self.measurement, 'measurement')
 
     def realization_bytes(self) -> int:
         r"""A lower estimate of the memory one realization takes while it is
