@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from mrclam_gtsam import noise  # beside this one
+from tg_nebp.data import scored_of
 from tg_nebp.datasets import RecordingDataset, load_scenario
 from tg_nebp.metrics import consistency_curve, nees
 
@@ -177,11 +178,13 @@ def run(data, motion, measurement, robust):
 
 def report(data, agents, mean, cov, seconds=None):
     # the RMSE, median, largest error and P(accept 0.95) of evaluate's
-    # metrics over the positions
+    # metrics over the positions of the agents it scores (one tracked
+    # without ground truth is not: scored_of)
     dim = data.states.size(-1) // 2
-    truth = data.states[agents].double()[..., :dim]
-    mean = torch.from_numpy(mean)[..., :dim]
-    cov = torch.from_numpy(cov)[..., :dim, :dim]
+    scored = scored_of(data)[agents]
+    truth = data.states[agents].double()[scored][..., :dim]
+    mean = torch.from_numpy(mean)[scored][..., :dim]
+    cov = torch.from_numpy(cov)[scored][..., :dim, :dim]
     error = (mean - truth).norm(dim=-1).flatten()
     accept = consistency_curve(nees(mean, cov, truth).flatten(), [0.95],
                                dof=dim)
