@@ -550,7 +550,8 @@ def first_step(data, motion):
 def live_trackers():
     r"""A tracker of every kind by name, built the same way in every
     process (the learned ones with fixed random weights), for the live
-    session tests: Gaussian BP plain and recommended, the IEKF joint and
+    session tests: Gaussian BP plain, recommended and with the noise
+    adaptation, the IEKF joint and
     marginal, particle BP plain and recommended (M-sample messages,
     regularized), NEBP, the Gaussian NEBP, fixed-lag Gaussian BP (a
     window of 3 steps, and one of 4 whose 2 oldest are settled), the
@@ -560,10 +561,13 @@ def live_trackers():
     from tg_nebp.filters import (NEBP, CentralizedIEKF, FixedLagGaussianBP,
                                  FixedLagGaussianNEBP, GaussianBP,
                                  GaussianNEBP, HybridBP,
-                                 IncrementalSmoother, ParticleBP)
+                                 IncrementalSmoother, NoiseAdaptation,
+                                 ParticleBP)
     return {
         'gbp': lambda: GaussianBP(),
         'gbp-recommended': lambda: GaussianBP.recommended(),
+        'gbp-adapted': lambda: GaussianBP.recommended(
+            noise_adaptation=NoiseAdaptation()),
         'gbp-lag3': lambda: FixedLagGaussianBP.recommended(lag=3),
         'gbp-lag4-settled': lambda: FixedLagGaussianBP.recommended(
             lag=4, iterated=2),

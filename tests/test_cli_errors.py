@@ -199,6 +199,22 @@ def assign(key: str, value) -> Callable[[dict], None]:
     return lambda fields: fields.__setitem__(key, value)
 
 
+def track_terabytes(folder: Path):
+    # a live tracker sizes its particles as nodes join: an allocation that
+    # fails is one error line naming --particles, not the allocator's
+    # traceback
+    line = dict(time=1.0, join=[
+        dict(id=0, anchor=[0.0, 0.0]),
+        dict(id=1, mean=[5.0, 5.0, 0.0, 0.0],
+             cov=[[4.0, 0, 0, 0], [0, 4.0, 0, 0], [0, 0, 0.01, 0],
+                  [0, 0, 0, 0.01]])],
+                links=[[0, 1, 7.1]])
+    (folder / 'm.jsonl').write_text(json.dumps(line) + '\n')
+    return (['track', '--method', 'hybrid', '--particles', str(10**12),
+             '--input', 'm.jsonl', '--output', 'e.jsonl'],
+            ['out of memory', '--particles'])
+
+
 CASES: Dict[str, Prepare] = {
     'evaluate-out-is-file': out_is_file(EVALUATE),
     'train-out-is-file': out_is_file(TRAIN),
@@ -283,6 +299,7 @@ CASES: Dict[str, Prepare] = {
                                         "'num_agents'"),
     'particles-terabytes': argv_only(EVALUATE + ['--particles', str(10**9)],
                                      ["'particles'"]),
+    'track-particles-terabytes': track_terabytes,
 }
 
 

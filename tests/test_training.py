@@ -677,3 +677,21 @@ def test_pretrained_checkpoints_load_by_name_with_their_command(name):
         in readme
     # a file path is a path, not a name
     assert checkpoint_path(f'./{name}') == Path(f'./{name}')
+
+
+@pytest.mark.parametrize('field, value', [('lag', 0), ('lag', -1),
+                                          ('hidden_dim', 0)])
+def test_a_stored_configuration_out_of_range_names_the_checkpoint(
+        tmp_path, field, value):
+    # a window checkpoint whose stored lag or width is out of range was
+    # refused as the user's own flag ("'lag' must be positive") without
+    # naming the file
+    path = tmp_path / 'window.pt'
+    save_checkpoint(path, FixedLagGaussianNEBP.recommended(lag=3,
+                                                           hidden_dim=8))
+    state = load_checkpoint(path)
+    state['config'][field] = value
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=rf"checkpoint '{path}' cannot be "
+                       rf"rebuilt as a FixedLagGaussianNEBP .*'{field}'"):
+        gaussian_nebp_from_checkpoint(path)

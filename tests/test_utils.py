@@ -269,6 +269,18 @@ def test_symmetric_psd_defects_match_a_loop(dtype):
     assert 5 < int(asymmetric.sum()) < 20 and 5 < int(indefinite.sum()) < 20
 
 
+@pytest.mark.parametrize('bad', [math.nan, math.inf, -math.inf])
+def test_a_non_finite_matrix_is_a_defect(bad):
+    # a NaN or infinite matrix was reported as having no defect
+    batch = torch.eye(2, dtype=torch.float64).repeat(3, 1, 1)
+    batch[1, 0, 1] = bad
+    asymmetric, indefinite, lowest = symmetric_psd_defects(batch)
+    assert asymmetric.tolist() == [False, True, False]
+    assert indefinite.tolist() == [False, True, False]
+    assert math.isnan(float(lowest[1])) and lowest[[0, 2]].tolist() == [
+        1.0, 1.0]
+
+
 def test_rounding_tolerance_is_half_the_digits_of_the_dtype():
     assert rounding_tolerance(torch.float32) == pytest.approx(3.45e-4,
                                                               rel=1e-2)

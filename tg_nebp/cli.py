@@ -8,6 +8,7 @@ import contextlib
 import logging
 import math
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Callable, List, NoReturn, Optional
@@ -248,6 +249,11 @@ def _add_method_options(parser: argparse.ArgumentParser):
         'every covariance inflated by K, no further than the step\'s '
         'prediction (default: gbp and hybrid 2.5, bp 1 as the paper; 1 '
         'reports the belief itself)')
+    add('--adapt-noise', action='store_true',
+        help='gbp and hybrid without --lag: estimate every agent\'s '
+        'measurement noise scale (at least 1) from its links\' innovations '
+        'and temper its messages by it: a model whose noise is too small '
+        'for the data is corrected without ground truth')
     add('--tolerance', type=_at_least(0, _number), default=None,
         metavar='T', help='gbp, gnebp, hybrid: stop a step\'s iterations '
         'once no belief mean moves by more than T (default: 0.01; 0 runs '
@@ -526,12 +532,13 @@ def _track_command(sub) -> None:
                     'MRCLAM sequence)')
     tk.add_argument('--seed', type=_non_negative, default=0,
                     help='seed of the session\'s draws (default: 0)')
-    tk.add_argument('--window', choices=list(WINDOW_LINES), default='all',
-                    help='what a smoother\'s line holds of its window: '
-                    'every earlier step revised (all), the step that '
-                    'leaves the full window at the next step (final: a '
-                    'line that does not grow with the lag) or none '
-                    '(default: all)')
+    tk.add_argument('--window', choices=list(WINDOW_LINES), default=None,
+                    help='gbp and hybrid with --lag L > 1 (or a window '
+                    'checkpoint): what a line holds of the window: every '
+                    'earlier step revised (all), the step that leaves the '
+                    'full window at the next step (final: a line that does '
+                    'not grow with the lag) or none (default: all); refused '
+                    'by a tracker whose lines carry no window')
     _add_method_options(tk)
     _add_common(tk, root=False)
     tk.set_defaults(run=run_track)
@@ -746,6 +753,12 @@ def _library_reports():
         logger.setLevel(level)
 
 
+def _out_of_memory(error: RuntimeError) -> bool:
+    # CUDA's OutOfMemoryError, or the CPU allocator's failure
+    return type(error).__name__ == 'OutOfMemoryError' or \
+        "can't allocate memory" in str(error)
+
+
 def _main(args) -> int:
     if args.command == 'reproduce' and args.out is None:
         args.out = ('results/beyond' if args.preset == 'beyond' else
@@ -761,6 +774,19 @@ def _main(args) -> int:
                          f"\n")
         sys.stderr.flush()
         return 130
+    except RuntimeError as e:
+        # an allocation the machine cannot make (particles, realizations or
+        # a network too large for its memory) is a choice of the user's:
+        # one line that says what to make smaller; any other RuntimeError
+        # is a bug and keeps its traceback
+        if not _out_of_memory(e):
+            raise
+        bytes_ = re.search(r'allocate (\d+) bytes', str(e))
+        size = (f' ({int(bytes_.group(1)) / 2**30:.3g} GiB in one tensor)'
+                if bytes_ else '')
+        return _print_error(
+            f"out of memory{size}: fewer --particles, a smaller "
+            f"--batch-size or a smaller network")
     except BenchFailed as e:  # measurements that failed, each in the table
         _print_error(e)
         return 1

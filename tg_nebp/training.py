@@ -207,6 +207,13 @@ def _rebuilt(path, state: dict, options: dict) -> Tracker:
     except (TypeError, RuntimeError, KeyError) as e:
         raise ValueError(f"checkpoint '{path}' does not match the "
                          f"{tracker.__name__} model: {one_line(e)}") from None
+    except ValueError as e:
+        # a stored configuration out of range (a lag of 0), or a run-time
+        # option given with it: named with the file, not as the user's flag
+        raise ValueError(f"checkpoint '{path}' cannot be rebuilt as a "
+                         f"{tracker.__name__} (its configuration"
+                         f"{' with ' + ', '.join(options) if options else ''}"
+                         f"): {one_line(e)}") from None
     return model
 
 

@@ -153,7 +153,7 @@ def rounding_tolerance(dtype: torch.dtype) -> float:
 def symmetric_psd_defects(matrices: Tensor,
                           tolerance: Optional[float] = None
                           ) -> Tuple[Tensor, Tensor, Tensor]:
-    r"""Which of the finite matrices :math:`(\ldots, D, D)` are not
+    r"""Which of the matrices :math:`(\ldots, D, D)` are not
     symmetric and which not positive semi-definite, each beyond
     :obj:`tolerance` (:func:`rounding_tolerance` of their dtype by
     default) of the matrix's largest entry: two boolean masks
@@ -161,15 +161,20 @@ def symmetric_psd_defects(matrices: Tensor,
     symmetric part :math:`(\ldots)` (float64). The one check of
     covariances that the realizations' validation, a saved tracker's
     state and the metrics share, so that what one accepts no other
-    refuses."""
+    refuses. A matrix with a NaN or infinite entry is neither (both masks
+    true, its smallest eigenvalue NaN): no covariance holds one."""
     if tolerance is None:
         tolerance = rounding_tolerance(matrices.dtype)
     matrices = matrices.double()
+    broken = ~matrices.isfinite().all(-1).all(-1)
+    # eigvalsh refuses a non-finite matrix: a zero stands in for it
+    matrices = matrices.masked_fill(broken[..., None, None], 0.0)
     scale = matrices.abs().amax((-1, -2))
     asymmetry = (matrices - matrices.transpose(-1, -2)).abs().amax((-1, -2))
     lowest = torch.linalg.eigvalsh(symmetrize(matrices))[..., 0]
-    return (asymmetry > tolerance * scale, lowest < -tolerance * scale,
-            lowest)
+    return ((asymmetry > tolerance * scale) | broken,
+            (lowest < -tolerance * scale) | broken,
+            lowest.masked_fill(broken, float('nan')))
 
 
 def log_normalize(log_weights: Tensor) -> Tensor:

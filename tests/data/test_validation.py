@@ -587,6 +587,43 @@ def test_realization_prior_mean_too_large(realization):
     check_both(realization, r"'prior_mean\[2\]' holds a position beyond")
 
 
+@pytest.mark.parametrize('dtype, variance', [(torch.float64, 1.7e308),
+                                             (torch.float32, 3e38),
+                                             (torch.float64, 1e15)])
+def test_realization_prior_variance_too_large(realization, dtype, variance):
+    # a finite variance near the largest float passed, then overflowed
+    # the symmetrization (Gaussian BP's raw LinAlgError, the window's
+    # Cholesky error, the bound's NaN)
+    realization.prior_mean = realization.prior_mean.to(dtype)
+    realization.prior_cov = realization.prior_cov.to(dtype)
+    realization.prior_cov[2, 1, 1] = variance
+    check_both(realization, r"'prior_cov\[2\]' holds an entry beyond 1e\+14")
+
+
+def test_the_largest_prior_variance_is_tracked_finitely():
+    # at the bound, every Gaussian tracker and the bound stay finite and
+    # the agents are found by their links
+    from tg_nebp.bounds import PosteriorCRB
+    from tg_nebp.data.validation import MAX_PRIOR_VARIANCE
+    from tg_nebp.filters import (CentralizedIEKF, FixedLagGaussianBP,
+                                 GaussianBP)
+    from helpers import gen, tiny_scenario
+    data = tiny_scenario(steps=6).generate(gen(0))
+    agents = ~data.anchor
+    data.prior_cov = data.prior_cov.clone()
+    data.prior_cov[agents] = torch.eye(4, dtype=data.prior_cov.dtype) * \
+        MAX_PRIOR_VARIANCE
+    check_realization(data)
+    for tracker in (GaussianBP.recommended(),
+                    FixedLagGaussianBP.recommended(lag=3),
+                    CentralizedIEKF()):
+        out = tracker(data)
+        assert bool(out.cov.isfinite().all())
+        error = (out.mean[agents, -1, :2] - data.states[agents, -1, :2])
+        assert float(error.norm(dim=-1).max()) < 3.0
+    assert bool(PosteriorCRB()(data).isfinite().all())
+
+
 @pytest.mark.parametrize('value,error', [
     (2.5, TypeError), ('8', TypeError), (True, TypeError), (0, ValueError),
     (-3, ValueError)])

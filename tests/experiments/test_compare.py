@@ -310,6 +310,13 @@ def test_a_window_checkpoint_gets_a_smoothers_two_rows(tmp_path):
     assert isinstance(smoothed, Smoothed) and isinstance(
         smoothed.tracker, FixedLagGaussianNEBP)
     assert [floor_row(k) for k in keys] == ['pcrb', 'pcrb-lag3']
+    # at another lag of the table, or none, the bound at the checkpoint's
+    # own lag joins it, so that its smoothed row has a floor (it had none
+    # under 'compare --lag 2 --checkpoint' of a window of 3)
+    for lag in (None, 2):
+        other = compare_methods(tiny_scenario(), [checkpoint], lag=lag)
+        assert all(floor_row(k) in other for k in other), lag
+        assert 'pcrb-lag3' in other
     result = run_compare(
         methods=['pcrb', 'gbp-lag3 gaussian', 'gbp-lag3-smoothed gaussian',
                  'gnebp-lag3'], checkpoints=[checkpoint], lag=3,

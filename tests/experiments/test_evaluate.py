@@ -9,7 +9,7 @@ from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.cli import main
 from tg_nebp.datasets import Scenario, load_scenario
 from tg_nebp.experiments.evaluate import evaluate_scenario, method_tracker
-from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS
+from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS, MethodOptions
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
                              FixedLagGaussianNEBP, GaussianBP, GaussianNEBP,
                              ParticleBP)
@@ -68,7 +68,8 @@ GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
              resampler='systematic', regularize=0.2, ess_threshold=0.5,
              measurement='student-t', iterations=2, ends='both',
              marginal=True, inflation=1.2, tolerance=0.0, no_control=True,
-             lag=3, incremental=True, report_inflation=2.0)
+             lag=3, incremental=True, report_inflation=2.0,
+             adapt_noise=True)
 
 
 def test_an_option_is_refused_by_the_methods_that_do_not_take_it(scenario):
@@ -334,3 +335,25 @@ def test_cli_evaluates_a_smoother_filtered_and_smoothed(tmp_path, capsys):
             lag=3, motion=scenario.motion_model,
             measurement=scenario.measurement_model)), dataset))
     assert written['gbp-lag3-smoothed']['rmse'] == expected['rmse']
+
+
+def test_switches_checkpoints_and_records_are_checked_by_name(scenario):
+    # 'no', 'false' or 0 switched an option on (anything not False did)
+    for name in ('no_control', 'compile', 'incremental', 'marginal',
+                 'adapt_noise'):
+        for value in ('no', 'false', 0, None):
+            with pytest.raises(TypeError, match=rf"'{name}' \(--"
+                               rf"{name.replace('_', '-')}\) is a switch"):
+                MethodOptions(**{name: value}).check('iekf')
+    # a checkpoint that is not a path (a raw TypeError of pathlib)
+    with pytest.raises(TypeError, match="'checkpoint' must be a path"):
+        method_tracker('gnebp', scenario, checkpoint=5)
+    # a record given as a plain mapping is one; anything else is named
+    tracker, key = method_tracker('gbp', scenario,
+                                  options=dict(iterations=3))
+    assert tracker.num_iterations == 3 and key == 'gbp'
+    with pytest.raises(ValueError, match=r"unknown method option\(s\) "
+                       r"\['iteration'\]"):
+        method_tracker('gbp', scenario, options=dict(iteration=3))
+    with pytest.raises(TypeError, match="'options' must be a MethodOptions"):
+        method_tracker('gbp', scenario, options=[('iterations', 3)])

@@ -386,3 +386,28 @@ def test_the_incremental_smoother_tracks_live_and_resumes(recorded,
                  str(recorded['scenario']), '--input', str(measurements),
                  '--output', str(tmp_path / 'refused.jsonl')]) == 2
     assert not (tmp_path / 'refused.jsonl').exists()
+
+
+@pytest.mark.parametrize('args, carries', [
+    (['--method', 'gbp'], 'no window'),
+    (['--method', 'iekf'], 'no window'),
+    (['--method', 'hybrid'], 'no window'),
+    (['--method', 'iekf', '--lag', 'all', '--incremental'],
+     'the newest states only')])
+def test_a_window_option_to_a_tracker_without_one_is_refused(
+        tmp_path, capsys, args, carries):
+    # --window final was silently ignored by a filter, and the incremental
+    # smoother wrote no window under --window all
+    empty = tmp_path / 'm.jsonl'
+    empty.write_text('')
+    assert main(['track', *args, '--window', 'final', '--input',
+                 str(empty), '--output', str(tmp_path / 'e.jsonl')]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith(
+        "error: 'window' (--window) is for a smoother") and carries in \
+        error[0]
+    assert not (tmp_path / 'e.jsonl').exists()
+    # a window of more than one step takes it
+    assert main(['track', '--method', 'gbp', '--lag', '3', '--window',
+                 'final', '--input', str(empty), '--output',
+                 str(tmp_path / 'e.jsonl')]) == 0

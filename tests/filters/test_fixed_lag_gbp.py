@@ -416,3 +416,21 @@ def test_links_with_features_the_model_does_not_read():
                        GaussianBP()(data).mean)
     steps = list(FixedLagGaussianBP(3).steps(data))
     assert bool(torch.isfinite(steps[-1].window_mean).all())
+
+
+def test_a_numpy_lag_is_a_lag():
+    # a NumPy count of 80 settles the window as an int 80 does (an
+    # isinstance(lag, int) check dropped the settled configuration)
+    from tg_nebp.experiments.evaluate import method_tracker
+    from tg_nebp.datasets import load_scenario
+    for lag in (80, np.int64(80), np.int32(6)):
+        assert FixedLagGaussianBP.recommended(lag=lag).settings() == \
+            FixedLagGaussianBP.recommended(lag=int(lag)).settings()
+    assert FixedLagGaussianBP.recommended(lag=80).iterated is not None
+    tracker, _ = method_tracker('gbp', load_scenario('paper_test'),
+                                lag=np.int64(80))
+    assert tracker.settings() == FixedLagGaussianBP.recommended(
+        lag=80).settings()
+    for lag, error in (('80', TypeError), (True, TypeError), (0, ValueError)):
+        with pytest.raises(error, match="'lag'"):
+            FixedLagGaussianBP.recommended(lag=lag)

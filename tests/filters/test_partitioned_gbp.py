@@ -10,10 +10,11 @@ import torch
 import torch.distributed as dist
 from torch_geometric.data import Batch
 
-from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP,
-                             PartitionedFixedLagGaussianBP,
+from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, LinkSearch,
+                             NoiseAdaptation, PartitionedFixedLagGaussianBP,
                              PartitionedGaussianBP, Smoothed, partition,
                              strips)
+from tg_nebp.models import GaussianRange
 
 from helpers import gen, tiny_scenario, torchrun
 
@@ -36,6 +37,13 @@ WINDOWED = (('lag', lambda tracker: tracker, {}),
             ('settled', Smoothed, dict(iterated=2)))
 
 
+def adapting(scenario) -> dict:
+    # the options of the noise adaptation's runs
+    sigma = scenario.measurement_model.sigma / 3
+    return dict(measurement=GaussianRange(sigma=sigma),
+                noise_adaptation=NoiseAdaptation())
+
+
 def tracked(path: Path, rank: int) -> None:
     scenario, data = network()
     owner = strips(data, dist.get_world_size())
@@ -44,6 +52,12 @@ def tracked(path: Path, rank: int) -> None:
         plan=plan, motion=scenario.motion_model,
         measurement=scenario.measurement_model, **OPTIONS)
     out = tracker(part)
+    # the noise adaptation, of a model whose noise is 3 times too small
+    # (every agent's scale above 1): an owned agent's scale sums all its
+    # links in the order one process sums them
+    adapted = PartitionedGaussianBP.recommended(
+        plan=plan, motion=scenario.motion_model, **adapting(scenario),
+        **OPTIONS)(part)
     # the stop is decided over all ranks: each sees the largest move of
     # any (here every rank's own move is its number)
     moves = tracker.largest_moves(torch.tensor([float(rank)]),
@@ -60,6 +74,8 @@ def tracked(path: Path, rank: int) -> None:
     torch.save(dict(nodes=plan.nodes[plan.owned], moves=moves,
                     halo=int((~plan.owned).sum()),
                     mean=out.mean[plan.owned], cov=out.cov[plan.owned],
+                    adapted=(adapted.mean[plan.owned],
+                             adapted.cov[plan.owned]),
                     windowed=windowed),
                path / f'rank{rank}.pt')
 
@@ -71,6 +87,8 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
     models = dict(motion=scenario.motion_model,
                   measurement=scenario.measurement_model)
     expected = GaussianBP.recommended(**models, **OPTIONS)(data)
+    adapted = GaussianBP.recommended(motion=scenario.motion_model,
+                                     **adapting(scenario), **OPTIONS)(data)
     windowed = {name: wrap(FixedLagGaussianBP.recommended(
         lag=LAG, **options, **models, **OPTIONS))(data)
         for name, wrap, options in WINDOWED}
@@ -86,6 +104,8 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
         # the same order as in one process
         assert torch.equal(part['mean'], expected.mean[nodes])
         assert torch.equal(part['cov'], expected.cov[nodes])
+        assert torch.equal(part['adapted'][0], adapted.mean[nodes])
+        assert torch.equal(part['adapted'][1], adapted.cov[nodes])
         for name, (mean, cov) in part['windowed'].items():
             assert torch.equal(mean, windowed[name].mean[nodes]), name
             assert torch.equal(cov, windowed[name].cov[nodes]), name
@@ -93,6 +113,24 @@ def test_ranks_track_their_agents_as_one_process(tmp_path, ranks):
     # every node is owned once
     assert torch.equal(torch.cat(seen).sort().values,
                        torch.arange(data.num_nodes))
+
+
+def test_a_relocation_is_refused_where_partitioned():
+    # a rank would search halo agents whose links it sees in part, stagger
+    # the searches by its own indices and keep its relocations: the ranks
+    # no longer tracked as one process (6.8e-5 m apart on 2 ranks)
+    scenario, data = network()
+    owner = strips(data, 2)
+    part, plan = partition(data, owner, 0, 2)
+    for make in (PartitionedGaussianBP, PartitionedFixedLagGaussianBP):
+        options = dict(lag=LAG) if make is PartitionedFixedLagGaussianBP \
+            else {}
+        with pytest.raises(ValueError, match="'relocation' is not "
+                           "available to a partitioned tracker"):
+            make.recommended(plan=plan, relocation=LinkSearch(), **options)
+        tracker = make.recommended(plan=plan, **options)
+        with pytest.raises(ValueError, match="'relocation' is not"):
+            tracker.relocate_with(LinkSearch())
 
 
 def test_a_rank_without_an_agent_is_refused_up_front():

@@ -69,10 +69,16 @@ def test_the_search_is_its_settings():
     for options, match in ((dict(margin=0.0), "'margin'"),
                            (dict(directions=0), "'directions'"),
                            (dict(links=0), "'links'"),
-                           (dict(steps=-1), "'steps"),
+                           (dict(steps=-1), "'steps' must be at least 0"),
                            (dict(every=0), "'every'")):
         with pytest.raises(ValueError, match=match):
             LinkSearch(**options)
+    # a count of another type named (a raw TypeError of 'steps + 1' was
+    # raised, and True taken as 1)
+    for steps in ('2', None, True, 1.5):
+        with pytest.raises(TypeError, match="'steps' must be an integer"):
+            LinkSearch(steps=steps)
+    assert LinkSearch(steps=0).steps == 0
     with pytest.raises(TypeError, match="'relocation'"):
         GaussianBP(relocation='search')
 

@@ -26,6 +26,8 @@ __all__ = [
     'check_realization',
     'check_anchor',
     'magnitude_limit',
+    'MAX_PRIOR_VARIANCE',
+    'check_non_negative_int',
     'check_positive_int',
     'check_number',
     'check_links',
@@ -40,6 +42,15 @@ __all__ = [
 
 def _first(mask: Tensor) -> int:
     return int(mask.nonzero()[0, 0])
+
+
+#: The largest entry of a prior covariance accepted (square metres, and
+#: the squared units of the other state entries): a standard deviation of
+#: 10,000 km, beyond which a float64 filter's update of a range of about
+#: a metre loses its digits (measured: every Gaussian tracker and the
+#: bound finite up to 1e14, Gaussian BP singular at 1e150, the window's
+#: and the IEKF's covariances indefinite at 1e18).
+MAX_PRIOR_VARIANCE = 1e14
 
 
 def magnitude_limit(dtype: torch.dtype) -> float:
@@ -65,6 +76,17 @@ def check_positive_int(value, name: str) -> int:
         raise TypeError(f"'{name}' must be an integer, got {value!r}")
     if value < 1:
         raise ValueError(f"'{name}' must be positive, got {value}")
+    return int(value)
+
+
+def check_non_negative_int(value, name: str) -> int:
+    r"""Returns :obj:`value` as an :obj:`int` if it is an integer of at
+    least zero (a float, a string or a bool is a :class:`TypeError`
+    naming :obj:`name`)."""
+    if not is_integer(value):
+        raise TypeError(f"'{name}' must be an integer, got {value!r}")
+    if value < 0:
+        raise ValueError(f"'{name}' must be at least 0, got {value}")
     return int(value)
 
 
@@ -269,7 +291,7 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
     r"""Checks the prior: finite means (an anchor's mean is its known
     position; the first :obj:`position_dim` entries are the position, the
     first half of a state by default), symmetric positive semi-definite
-    covariances."""
+    covariances whose entries are at most :data:`MAX_PRIOR_VARIANCE`."""
     n, d = prior_mean.shape
     if not prior_cov.is_floating_point():
         raise ValueError(f"'prior_cov' must be a floating point tensor, got "
@@ -294,6 +316,14 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
     bad = ~torch.isfinite(prior_cov).flatten(1).all(-1)
     if bool(bad.any()):
         raise ValueError(f"'prior_cov[{_first(bad)}]' is not finite")
+    # a variance near the dtype's largest number overflows the first
+    # symmetrization, and one of 1e18 m^2 loses every digit of a unit
+    # range's update in a covariance-form (float64) filter
+    huge = (prior_cov.abs() > MAX_PRIOR_VARIANCE).flatten(1).any(-1)
+    if bool(huge.any()):
+        raise ValueError(f"'prior_cov[{_first(huge)}]' holds an entry beyond "
+                         f"{MAX_PRIOR_VARIANCE:.0e} (a standard deviation of "
+                         f"10,000 km): give a finite, smaller prior")
     _check_symmetric_psd(prior_cov, 'prior_cov', atol)
 
 

@@ -236,8 +236,15 @@ def compare_methods(scenario: Scenario,
         kind = CHECKPOINT_ROWS[base]
         window = window_lag(load_checkpoint(path)['config'])
         if window is not None:
-            # the correction inside a window: a smoother's two rows
+            # the correction inside a window: a smoother's two rows, and
+            # the smoothing bound at its own lag that divides the smoothed
+            # one (where the table's lag is another, or none)
             name = f'{kind}{lag_key(window)}'
+            methods.setdefault(BOUND + lag_key(window), (
+                f'the smoothing bound at lag {window} (the measurements up '
+                f'to t + {window - 1})',
+                lambda window=window: PosteriorCRB(motion, own,
+                                                   lag=window)))
             methods[f'{name} {path.name} {_file_hash(path)}'] = (
                 f'Gaussian NEBP in a window of {window} from {path}, '
                 f'filtered', lambda path=path: tracker_from_checkpoint(path))

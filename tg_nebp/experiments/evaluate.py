@@ -8,7 +8,7 @@ import dataclasses
 import os
 import warnings
 from pathlib import Path
-from typing import Callable, Optional, Tuple, Union
+from typing import Callable, Mapping, Optional, Tuple, Union
 
 from tg_nebp.bounds import PosteriorCRB
 from tg_nebp.data.validation import check_positive_int
@@ -19,8 +19,8 @@ from tg_nebp.experiments.options import WHOLE_SEQUENCE, MethodOptions
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              FixedLagGaussianNEBP, GaussianBP, HybridBP,
-                             IncrementalSmoother, LinkSearch, ParticleBP,
-                             Smoothed, Tracker)
+                             IncrementalSmoother, LinkSearch,
+                             NoiseAdaptation, ParticleBP, Smoothed, Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -140,9 +140,9 @@ def method_tracker(method: str, scenario: Scenario, *,
     r"""The tracker of :obj:`method` (one of
     :data:`~tg_nebp.experiments.options.METHODS`) for the data of
     :obj:`scenario`, and its :obj:`metrics.json` key, with the
-    :obj:`options` (a :class:`~tg_nebp.experiments.options.MethodOptions`,
-    or its fields as keywords :obj:`given`; both: the keywords replace the
-    record's), checked once (:meth:`MethodOptions.check
+    :obj:`options` (a :class:`~tg_nebp.experiments.options.MethodOptions`
+    or a mapping of its fields, or its fields as keywords :obj:`given`;
+    both: the keywords replace the record's), checked once (:meth:`MethodOptions.check
     <tg_nebp.experiments.options.MethodOptions.check>`). The options left
     at :obj:`None` take each method's default: particle BP with 1,000
     particles, one iteration, receiver-only messages and the multinomial
@@ -151,7 +151,9 @@ def method_tracker(method: str, scenario: Scenario, *,
     shipped checkpoint; :obj:`iterations` and :obj:`tolerance` replace its
     own);
     :meth:`GaussianBP.recommended() <tg_nebp.filters.GaussianBP.recommended>`
-    (a :obj:`tolerance` of 0 runs every iteration); the IEKF with 5
+    (a :obj:`tolerance` of 0 runs every iteration; with :obj:`adapt_noise`
+    its :class:`~tg_nebp.filters.NoiseAdaptation` at the defaults, as
+    hybrid BP's); the IEKF with 5
     Gauss-Newton iterations. A given value is used or refused, never
     replaced: an option that :obj:`method` does not take
     (:data:`~tg_nebp.experiments.options.METHOD_OPTIONS`) is a
@@ -183,8 +185,16 @@ def method_tracker(method: str, scenario: Scenario, *,
     more than one step (its filtered estimates; key
     :obj:`"hybrid-lagL"`), or over the Gaussian NEBP of a
     :obj:`checkpoint` (key :obj:`"hybrid-gnebp"`)."""
-    options = (MethodOptions.of(given) if options is None else
-               dataclasses.replace(options, **given)).check(method)
+    if options is None:
+        options = MethodOptions.of(given)
+    else:
+        if isinstance(options, Mapping):  # the record's fields by name
+            options = MethodOptions.of(options)
+        if not isinstance(options, MethodOptions):
+            raise TypeError(f"'options' must be a MethodOptions or a mapping "
+                            f"of its fields, got {options!r}")
+        options = dataclasses.replace(options, **given)
+    options = options.check(method)
     tracker, key = _method_tracker(method, scenario, options)
     tracker.use_control = not options.no_control
     # its own metrics.json entry: the run with the inputs stays
@@ -221,7 +231,8 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
         given = _given(num_iterations=iterations,
                        inflation=options.inflation, ends=options.ends,
                        tolerance=options.tolerance,
-                       report_inflation=options.report_inflation)
+                       report_inflation=options.report_inflation,
+                       noise_adaptation=_adaptation(options))
         if given.get('tolerance') == 0:  # every iteration
             given['tolerance'] = None
         if lag is not None:
@@ -250,7 +261,8 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
                        _given(num_iterations=iterations,
                               inflation=options.inflation,
                               tolerance=options.tolerance,
-                              report_inflation=options.report_inflation),
+                              report_inflation=options.report_inflation,
+                              noise_adaptation=_adaptation(options)),
                        options.measurement)
     if method == 'nebp':
         if checkpoint is None:
@@ -276,6 +288,11 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
     return ParticleBP(**given, compile=options.compile, **models), 'bp'
 
 
+def _adaptation(options: MethodOptions) -> Optional[NoiseAdaptation]:
+    # the noise adaptation of --adapt-noise, at its defaults
+    return NoiseAdaptation() if options.adapt_noise else None
+
+
 def _hybrid(scenario, models: dict, checkpoint: Optional[str],
             particles: Optional[int], lag, given: dict,
             measurement: Optional[str]) -> Tuple[HybridBP, str]:
@@ -288,6 +305,7 @@ def _hybrid(scenario, models: dict, checkpoint: Optional[str],
                                            given.get('inflation')),
                             ('report_inflation',
                              given.get('report_inflation')),
+                            ('adapt_noise', given.get('noise_adaptation')),
                             ('measurement', measurement)):
             if value is not None:
                 raise ValueError(

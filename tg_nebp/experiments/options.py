@@ -6,6 +6,7 @@ whole to the tracker that it builds. Each field names the methods that
 take it (:data:`METHOD_OPTIONS` is read from the fields), so a new option
 is one field."""
 import dataclasses
+import os
 from typing import Any, Dict, Mapping, Optional, Tuple, Union
 
 from tg_nebp.data.validation import check_positive_int
@@ -65,10 +66,13 @@ class MethodOptions:
     #: The inflation of the covariance that Gaussian BP or particle BP
     #: reports.
     report_inflation: Optional[float] = _option(('bp', 'gbp', 'hybrid'))
+    #: Every agent's measurement noise scale estimated from its links'
+    #: innovations (:class:`~tg_nebp.filters.NoiseAdaptation`).
+    adapt_noise: bool = _option(('gbp', 'hybrid'), False)
     #: The largest move of a converged iteration; 0 runs every iteration.
     tolerance: Optional[float] = _option(('gbp', 'gnebp', 'hybrid'))
     #: A learned method's checkpoint (a path or a shipped name).
-    checkpoint: Optional[str] = _option(('nebp', 'gnebp', 'hybrid'))
+    checkpoint: Union[str, os.PathLike, None] = _option(('nebp', 'gnebp', 'hybrid'))
     #: Compile the message passing.
     compile: bool = _option(('bp', 'nebp', 'gbp'), False)
     #: Ignore the data's known inputs (odometry).
@@ -108,6 +112,17 @@ class MethodOptions:
         if method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(METHODS)}, "
                              f"got {method!r}")
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            # a switch is a bool: 'no' or 'false' switching it on surprises
+            if field.default is False and not isinstance(value, bool):
+                raise TypeError(f"'{field.name}' (--"
+                                f"{field.name.replace('_', '-')}) is a "
+                                f"switch: True or False, got {value!r}")
+        if self.checkpoint is not None and not isinstance(
+                self.checkpoint, (str, os.PathLike)):
+            raise TypeError(f"'checkpoint' must be a path or the name of a "
+                            f"shipped checkpoint, got {self.checkpoint!r}")
         for name in self.given():
             takers = METHOD_OPTIONS[name]
             if method not in takers:
@@ -135,6 +150,10 @@ class MethodOptions:
             raise ValueError("'report_inflation' (--report-inflation) and "
                              "'lag': a window reports its beliefs as they "
                              "are")
+        if lag is not None and self.adapt_noise:
+            raise ValueError("'adapt_noise' (--adapt-noise) and 'lag': the "
+                             "noise adaptation runs in the filters, not in "
+                             "a window")
         if lag is not None and self.marginal:
             raise ValueError("'lag' and 'marginal': the smoother keeps the "
                              "joint of its window")

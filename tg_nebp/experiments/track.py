@@ -55,7 +55,7 @@ def track_stream(method: str, input: str = '-', output: str = '-',
                  device: str = 'cpu',
                  report: Optional[Callable[[str], None]] = None,
                  options: Optional[MethodOptions] = None,
-                 window: str = 'all', **given) -> dict:
+                 window: Optional[str] = None, **given) -> dict:
     r"""Tracks a stream of measurement lines (:mod:`tg_nebp.live`) from
     :obj:`input` (a path, or :obj:`"-"`: standard input, read line by
     line as it arrives) with :obj:`method`'s tracker
@@ -73,7 +73,11 @@ def track_stream(method: str, input: str = '-', output: str = '-',
     is reported by :obj:`report` (standard error by default) and skipped
     (:obj:`"skip"`). A smoother's lines hold its :obj:`window`
     (:data:`~tg_nebp.live.WINDOW_LINES`: every earlier step revised, the
-    final one alone, or none; :func:`~tg_nebp.live.estimate_line`).
+    final one alone, or none; :func:`~tg_nebp.live.estimate_line`; every
+    earlier step by default); a :obj:`window` given to a tracker whose
+    lines carry none (a filter, or the incremental smoother, whose window
+    is the whole sequence) is a :class:`ValueError`, as another option a
+    method does not take is.
     Returns the counts of :func:`~tg_nebp.live.track_lines`."""
     if method not in LIVE_METHODS:
         raise ValueError(f"method must be one of {', '.join(LIVE_METHODS)} "
@@ -89,6 +93,15 @@ def track_stream(method: str, input: str = '-', output: str = '-',
                          f"offline reference")
     tracker, _ = method_tracker(method, scenario_of(scenario),
                                 options=options)
+    lag = getattr(tracker, 'lag', None)
+    if window is not None and not (lag is not None and lag > 1):
+        raise ValueError(
+            f"'window' (--window) is for a smoother whose lines carry its "
+            f"window (gbp or hybrid with --lag L > 1, a window checkpoint); "
+            f"{method}'s lines carry "
+            + ("the newest states only (the incremental smoother's window "
+               "is the whole sequence: a line would grow with it)"
+               if options.incremental else "no window"))
     tracker = tracker.to(device).eval()
     done = written = 0
     digests = None
@@ -119,7 +132,8 @@ def track_stream(method: str, input: str = '-', output: str = '-',
             with torch.no_grad():
                 return track_lines(session, read_lines(source), write,
                                    on_error, report, save_state, done,
-                                   written, digests, window)
+                                   written, digests,
+                                   'all' if window is None else window)
         finally:
             gc.unfreeze()
 

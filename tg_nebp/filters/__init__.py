@@ -16,6 +16,7 @@ from .fixed_lag_gbp import (FIXED_LAG_RECOMMENDED, FixedLagGaussianBP,
                             WindowState)
 from .fixed_lag_gaussian_nebp import FixedLagGaussianNEBP
 from .relocation import LinkSearch, SearchResult
+from .noise_adaptation import NoiseAdaptation
 from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
 from .session import TrackingSession
 from .session_inputs import AgentPrior, AnchorAt
@@ -45,6 +46,7 @@ __all__ = [
     'HYBRID_RECOMMENDED',
     'LinkSearch',
     'SearchResult',
+    'NoiseAdaptation',
     'SolvedStep',
     'PartitionedGaussianBP',
     'PartitionedFixedLagGaussianBP',

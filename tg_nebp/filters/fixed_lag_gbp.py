@@ -372,9 +372,9 @@ class FixedLagGaussianBP(GaussianBP):
         :obj:`report_inflation`: a window's revised covariances fall short
         of the joint's in another way). :obj:`overrides` replace or add
         constructor arguments."""
-        lag = overrides.get('lag', 5)
-        settled = FIXED_LAG_RECOMMENDED if isinstance(lag, int) and \
-            lag > 5 else {}
+        # any integer type (a NumPy count too) settles a long window
+        lag = check_positive_int(overrides.get('lag', 5), 'lag')
+        settled = FIXED_LAG_RECOMMENDED if lag > 5 else {}
         return cls(**{**WINDOW_GBP_RECOMMENDED, **settled, **overrides})
 
     def initial_state(self, data, generator=None) -> WindowState:

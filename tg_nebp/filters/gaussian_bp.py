@@ -11,7 +11,9 @@ from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
                               graph_index)
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
-                                              GaussianBPConv)
+                                              GaussianBPConv,
+                                              as_factor_messages)
+from tg_nebp.filters.noise_adaptation import NoiseAdaptation
 from tg_nebp.filters.relocation import (LinkSearch, SearchResult,
                                         relocation_step)
 from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv
@@ -186,6 +188,13 @@ class GaussianBP(Tracker):
             iteration); :obj:`inflation` is chosen for the accuracy of the
             next steps, this for the honesty of the covariance reported.
             :obj:`1` reports the belief itself. (default: :obj:`1.0`)
+        noise_adaptation (NoiseAdaptation, optional): Estimate every
+            agent's measurement noise scale from its links' innovations and
+            temper its incoming messages by it
+            (:class:`~tg_nebp.filters.NoiseAdaptation`): a model whose
+            noise is too small for the data is corrected without ground
+            truth. :obj:`None` takes the model as it is.
+            (default: :obj:`None`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -202,8 +211,14 @@ class GaussianBP(Tracker):
                  tolerance: Optional[float] = 0.01, inflation: float = 1.0,
                  compile: bool = False,
                  relocation: Optional[LinkSearch] = None,
-                 report_inflation: float = 1.0):
+                 report_inflation: float = 1.0,
+                 noise_adaptation: Optional[NoiseAdaptation] = None):
         super().__init__(motion, measurement)
+        if noise_adaptation is not None and not isinstance(
+                noise_adaptation, NoiseAdaptation):
+            raise TypeError(f"'noise_adaptation' must be a NoiseAdaptation "
+                            f"or None, got {noise_adaptation!r}")
+        self.noise_adaptation = noise_adaptation
         self.report_inflation = check_number(
             report_inflation, 'report_inflation', minimum=1.0,
             inclusive=True, maximum=MAX_INFLATION)
@@ -428,8 +443,13 @@ class GaussianBP(Tracker):
         likelihood of the step's links (the relocation's search, hybrid
         BP's particles) raises each message edge's of :obj:`solved`, so
         that it weighs the links as this tracker's messages do:
-        :obj:`None` (the likelihood itself) for Gaussian BP."""
-        return None
+        :obj:`None` (the likelihood itself) for Gaussian BP, the inverse
+        noise scale of each edge's target with a
+        :obj:`noise_adaptation`."""
+        if self.noise_adaptation is None or solved.messages is None:
+            return None
+        return self.noise_adaptation.message_weights(solved.state.memory,
+                                                     solved.factors)
 
     def reinitialized(self, state: GaussianState, nodes: Tensor,
                       mean: Tensor, cov: Tensor) -> GaussianState:
@@ -450,7 +470,12 @@ class GaussianBP(Tracker):
                        device=None) -> Optional[Tensor]:
         r"""What the iterations carry besides the beliefs, one row per
         node, before the first step: nothing for Gaussian BP (a learned
-        correction keeps its node embeddings there)."""
+        correction keeps its node embeddings there), the noise scales'
+        sums with a :obj:`noise_adaptation`
+        (:meth:`NoiseAdaptation.initial_memory
+        <tg_nebp.filters.NoiseAdaptation.initial_memory>`)."""
+        if self.noise_adaptation is not None:
+            return self.noise_adaptation.initial_memory(num_nodes, device)
         return None
 
     def inflation_of(self, cov: Tensor, memory: Optional[Tensor],
@@ -465,11 +490,36 @@ class GaussianBP(Tracker):
                 messages, generator, factors, memory: Optional[Tensor],
                 iteration: int):
         r"""One iteration of the conv: the new beliefs, messages and
-        memory (:meth:`initial_memory`)."""
-        new, messages = self.conv(prior, belief, edge_index, edge_attr,
-                                  anchor, messages, generator, factors,
-                                  validate=False)
-        return new, messages, memory
+        memory (:meth:`initial_memory`). With a :obj:`noise_adaptation`,
+        the first iteration (at the predicted beliefs) adds the step's
+        links to every agent's noise scale, and every iteration's messages
+        are tempered by their targets' scales."""
+        adaptation = self.noise_adaptation
+        if adaptation is None:
+            new, messages = self.conv(prior, belief, edge_index, edge_attr,
+                                      anchor, messages, generator, factors,
+                                      validate=False)
+            return new, messages, memory
+        if iteration == 0:
+            memory = self.adapted_noise(memory, belief, edge_index,
+                                        edge_attr, anchor, generator)
+        new = adaptation.tempered(
+            self.conv.step_messages(belief, edge_index, edge_attr, anchor,
+                                    factors, messages, generator),
+            adaptation.message_weights(memory, factors))
+        return (self.conv.beliefs(prior, belief, as_factor_messages(new),
+                                  factors, anchor), new, memory)
+
+    def adapted_noise(self, memory: Tensor, belief: GaussianBelief,
+                      edge_index: Tensor, edge_attr: Tensor, anchor: Tensor,
+                      generator=None) -> Tensor:
+        r"""The :obj:`memory` of the :obj:`noise_adaptation` after the
+        step's links, at the predicted :obj:`belief`
+        (:meth:`NoiseAdaptation.updated
+        <tg_nebp.filters.NoiseAdaptation.updated>`)."""
+        return self.noise_adaptation.updated(memory, self.measurement,
+                                             belief, edge_index, edge_attr,
+                                             anchor, generator)
 
     def carry(self, mean: Tensor, cov: Tensor, memory: Optional[Tensor],
               predicted: Tensor):
@@ -551,6 +601,8 @@ class GaussianBP(Tracker):
                    report_inflation=self.report_inflation)
         if self.relocation is not None:
             out['relocation'] = self.relocation.settings()
+        if self.noise_adaptation is not None:
+            out['noise_adaptation'] = self.noise_adaptation.settings()
         return out
 
     def __repr__(self) -> str:
@@ -560,4 +612,6 @@ class GaussianBP(Tracker):
                 f'damping={self.conv.damping}, tolerance={self.tolerance}, '
                 f'inflation={self.inflation}'
                 + ('' if self.relocation is None else
-                   f', relocation={self.relocation}') + ')')
+                   f', relocation={self.relocation}')
+                + ('' if self.noise_adaptation is None else
+                   f', noise_adaptation={self.noise_adaptation}') + ')')

@@ -144,6 +144,18 @@ class PartitionedTracker:
         self.plan = plan
         self.group = group
 
+    def relocate_with(self, relocation):
+        r"""Refuses a relocation (:class:`~tg_nebp.filters.LinkSearch`):
+        a rank would search halo agents whose links it sees only in part,
+        and move agents that other ranks hold as they were, so the ranks
+        would no longer track as one process."""
+        if relocation is not None:
+            raise ValueError(f"'relocation' is not available to a "
+                             f"partitioned tracker ({type(self).__name__}): "
+                             f"the ranks would not track as one process; "
+                             f"relocate in one process")
+        return super().relocate_with(relocation)
+
     def check(self, data: Realization) -> None:
         r"""The realization checks of every tracker, and that it is one
         network (its part of one) and this rank's part of it."""
@@ -211,6 +223,14 @@ class PartitionedGaussianBP(PartitionedTracker, GaussianBP):
         beliefs from their owners (:meth:`exchange`)."""
         new, messages, memory = super().iterate(prior, belief, *args)
         return self.exchange(new), messages, memory
+
+    def adapted_noise(self, memory, belief, *args):
+        r"""The noise adaptation's memory after the step's links, the
+        halo's replaced by their owners' (a rank sees a halo node's links
+        in part; the scales temper the messages to the halo, which the
+        extrinsic beliefs of the next iteration remove)."""
+        return self._exchange_rows(super().adapted_noise(memory, belief,
+                                                         *args))
 
     def exchange(self, belief: GaussianBelief) -> GaussianBelief:
         r"""The beliefs with the halo's replaced by their owners'."""

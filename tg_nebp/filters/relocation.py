@@ -13,7 +13,8 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import Tensor
 
-from tg_nebp.data.validation import check_number, check_positive_int
+from tg_nebp.data.validation import (check_non_negative_int, check_number,
+                                     check_positive_int)
 from tg_nebp.nn.conv.gaussian_bp_conv import Factors
 from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv, SourceBeliefs
 from tg_nebp.utils import symmetrize
@@ -124,7 +125,7 @@ class LinkSearch:
         self.margin = check_number(margin, 'margin')
         self.directions = check_positive_int(directions, 'directions')
         self.links = check_positive_int(links, 'links')
-        self.steps = check_positive_int(steps + 1, 'steps + 1') - 1
+        self.steps = check_non_negative_int(steps, 'steps')
         self.every = check_positive_int(every, 'every')
 
     def settings(self) -> dict:

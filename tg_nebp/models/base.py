@@ -27,6 +27,27 @@ from tg_nebp.models.layout import StateLayout
 from tg_nebp.models.registry import Model
 from tg_nebp.utils import inputs, row_jacobian
 
+# the names this module held before the registry and the layout became
+# modules of their own: importable from here for a release, with a warning
+# that names where they went
+_MOVED = {'MODELS': 'tg_nebp.models.registry',
+          'model_like': 'tg_nebp.models.registry',
+          'model_from_config': 'tg_nebp.models.registry',
+          'wrap_angle': 'tg_nebp.models.layout'}
+
+
+def __getattr__(name: str):
+    if name not in _MOVED:
+        raise AttributeError(f"module {__name__!r} has no attribute "
+                             f"{name!r}")
+    import importlib
+    import warnings
+    where = _MOVED[name]
+    warnings.warn(f"tg_nebp.models.base.{name} moved to {where}.{name} "
+                  f"(also tg_nebp.models.{name}); the old place goes in the "
+                  f"next release", DeprecationWarning, stacklevel=2)
+    return getattr(importlib.import_module(where), name)
+
 __all__ = [
     'MotionModel',
     'MeasurementModel',
