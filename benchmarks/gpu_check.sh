@@ -122,11 +122,11 @@ if ! "$PY" -c "import tg_nebp, torch_geometric, pytest" 2>/dev/null; then
   step install "$PY" -m pip install -q -e ".[test]"
 fi
 if [ "$DRY" = 1 ]; then
-  step tests "$PY" -m pytest -q -p no:cacheprovider tests/ops tests/filters/test_particle_bp_cuda.py
+  step tests "$PY" -m pytest -q -p no:cacheprovider tests/ops tests/filters/particle/test_particle_bp_cuda.py
 else
   "$PY" -c "import sys, torch; sys.exit(not torch.cuda.is_available())" \
     || fail "no CUDA device here (use --dry-run on a CPU)"
-  step tests "$PY" -m pytest -q -p no:cacheprovider -rs tests/ops tests/filters/test_particle_bp_cuda.py \
+  step tests "$PY" -m pytest -q -p no:cacheprovider -rs tests/ops tests/filters/particle/test_particle_bp_cuda.py \
     tests/test_training_distributed.py tests/nn/conv
 fi
 step bench "$PY" -m tg_nebp bench --device "$DEVICE" "${BENCH[@]}" --json --root "$ROOT"

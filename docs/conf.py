@@ -186,15 +186,18 @@ PYG_HOOKS = {
 }
 
 
-def reference(module: str) -> str:
+def reference(module: str, names=None, header: bool = True) -> str:
     r"""The reST of the reference of :obj:`module`: its docstring, a
     summary table of its public names and the description of each one
-    that it defines (re-exported names link to their own page)."""
+    that it defines (re-exported names link to their own page). A page
+    in sections (the families of :mod:`tg_nebp.filters`) gives each
+    section's :obj:`names` and the module's docstring (:obj:`header`) in
+    its first only."""
     mod = importlib.import_module(module)
-    names = public(module)
-    lines = [f'.. automodule:: {module}', '',
-             f'.. currentmodule:: {module}', '',
-             '.. autosummary::', '   :nosignatures:', '']
+    names = public(module) if names is None else names
+    lines = ([f'.. automodule:: {module}', ''] if header else []) + [
+        f'.. currentmodule:: {module}', '',
+        '.. autosummary::', '   :nosignatures:', '']
     lines += [f'   {summary_entry(module, name)}' for name in names]
     lines.append('')
     for name in names:
@@ -220,6 +223,13 @@ def reference(module: str) -> str:
     return '\n'.join(lines)
 
 
+def public_except(module: str, *others: str):
+    r"""The public names of :obj:`module` that none of the modules
+    :obj:`others` lists (what a package keeps besides its subpackages')."""
+    taken = {name for other in others for name in public(other)}
+    return [name for name in public(module) if name not in taken]
+
+
 def render_api_page(app, docname, source):
     r"""The pages of docs/api are Jinja templates: :obj:`reference(module)`
     writes a module's reference from its :obj:`__all__` (as PyG's package
@@ -227,7 +237,7 @@ def render_api_page(app, docname, source):
     if docname.startswith('api/'):
         source[0] = jinja2.Template(source[0]).render(
             reference=reference, public=public,
-            summary_entry=summary_entry)
+            public_except=public_except, summary_entry=summary_entry)
 
 
 def execute_notebook(app, docname, source):

@@ -158,3 +158,31 @@ def test_the_cycle_finder_finds_a_circle():
     graph = import_graph()
     graph['tg_nebp.data.validation'].add('tg_nebp.models')
     assert any('tg_nebp.data.validation' in c for c in cycles(graph))
+
+
+def test_the_trackers_live_in_their_families_and_import_as_before():
+    # particle, Gaussian (with their windows), centralized and live: each a
+    # subpackage; every public name imports from tg_nebp.filters, and a
+    # module's path before the families imports as the same module
+    import importlib
+    import tg_nebp.filters as filters
+    families = ('particle', 'gaussian', 'centralized', 'live')
+    listed = set()
+    for family in families:
+        package = importlib.import_module(f'tg_nebp.filters.{family}')
+        assert set(package.__all__) <= set(filters.__all__), family
+        for name in package.__all__:
+            assert getattr(filters, name) is getattr(package, name)
+        listed |= set(package.__all__)
+    # what the top keeps besides: the shared time loop and its state
+    assert set(filters.__all__) - listed == {
+        'Tracker', 'StepOutput', 'TrackOutput', 'Smoothed', 'StateField',
+        'FIELD_KINDS', 'check_state', 'check_state_dim', 'weighted_moments'}
+    assert {p.name for p in (PACKAGE / 'filters').glob('*.py')} == {
+        '__init__.py', 'tracker.py', 'state.py'}
+    for family, names in filters._FAMILIES.items():
+        for name in names:
+            moved = importlib.import_module(f'tg_nebp.filters.{family}.{name}')
+            assert importlib.import_module(f'tg_nebp.filters.{name}') is moved
+    from tg_nebp.filters.gaussian_bp import GaussianBP
+    assert GaussianBP is filters.GaussianBP

@@ -17,7 +17,8 @@ from tg_nebp.datasets import Scenario
 from tg_nebp.filters import (NEBP, FixedLagGaussianNEBP, GaussianNEBP,
                              StepOutput)
 from tg_nebp.training import (CHECKPOINT_VERSION, PRETRAINED, adam,
-                              checkpoint_base, checkpoint_path, gaussian_nebp_from_checkpoint,
+                              checkpoint_base, checkpoint_path,
+                              gaussian_nebp_from_checkpoint,
                               gaussian_step_loss, load_checkpoint,
                               nebp_from_checkpoint, position_loss,
                               save_checkpoint, step_loss,

@@ -22,9 +22,9 @@ from tg_nebp.experiments.bench import BenchFailed, add_arguments, run_bench
 from tg_nebp.experiments.options import METHODS, WHOLE_SEQUENCE
 from tg_nebp.experiments.reproduce import PRESET_NAMES
 from tg_nebp.experiments.track import LIVE_METHODS
-from tg_nebp.filters.nebp import VARIANTS
-from tg_nebp.filters.particle_bp import MAX_BANDWIDTH
-from tg_nebp.filters.resampling import RESAMPLERS
+from tg_nebp.filters.particle.nebp import VARIANTS
+from tg_nebp.filters.particle.particle_bp import MAX_BANDWIDTH
+from tg_nebp.filters.particle.resampling import RESAMPLERS
 from tg_nebp.io import check_writable_folder, one_line
 from tg_nebp.live import ON_ERROR, WINDOW_LINES
 from tg_nebp.models import MODELS
@@ -774,6 +774,9 @@ def _main(args) -> int:
                          f"\n")
         sys.stderr.flush()
         return 130
+    except BenchFailed as e:  # measurements that failed, each in the table
+        _print_error(e)
+        return 1
     except RuntimeError as e:
         # an allocation the machine cannot make (particles, realizations or
         # a network too large for its memory) is a choice of the user's:
@@ -787,9 +790,6 @@ def _main(args) -> int:
         return _print_error(
             f"out of memory{size}: fewer --particles, a smaller "
             f"--batch-size or a smaller network")
-    except BenchFailed as e:  # measurements that failed, each in the table
-        _print_error(e)
-        return 1
     except OSError as e:  # a file or folder that cannot be read or written
         where = f" '{e.filename}'" if e.filename else ''
         return _print_error(f'{e.strerror or e}{where}')

@@ -39,8 +39,8 @@ from torch_geometric.data import Data
 from tg_nebp import metrics
 from tg_nebp.data.realization import position_dim_of, scored_of
 from tg_nebp.evaluation import summarize
-from tg_nebp.filters.session import TrackingSession
-from tg_nebp.filters.session_inputs import AgentPrior, AnchorAt
+from tg_nebp.filters.live.session import TrackingSession
+from tg_nebp.filters.live.session_inputs import AgentPrior, AnchorAt
 from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.io import first_line
 

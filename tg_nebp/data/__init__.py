@@ -1,7 +1,8 @@
 from .realization import Realization, num_steps_of, position_dim_of, scored_of
 from .validation import (check_graph, check_link_features, check_particles,
                          check_prior, check_realization, check_anchor,
-                         check_state_dim, check_control)
+                         check_state_dim, check_control,
+                         MAX_PRIOR_VARIANCE)
 
 __all__ = [
     'Realization',
@@ -14,6 +15,7 @@ __all__ = [
     'check_anchor',
     'check_state_dim',
     'check_control',
+    'MAX_PRIOR_VARIANCE',
     'position_dim_of',
     'scored_of',
 ]

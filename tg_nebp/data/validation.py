@@ -291,7 +291,8 @@ def check_prior(prior_mean: Tensor, prior_cov: Tensor, anchor: Tensor,
     r"""Checks the prior: finite means (an anchor's mean is its known
     position; the first :obj:`position_dim` entries are the position, the
     first half of a state by default), symmetric positive semi-definite
-    covariances whose entries are at most :data:`MAX_PRIOR_VARIANCE`."""
+    covariances whose entries are at most
+    :data:`~tg_nebp.data.validation.MAX_PRIOR_VARIANCE`."""
     n, d = prior_mean.shape
     if not prior_cov.is_floating_point():
         raise ValueError(f"'prior_cov' must be a floating point tensor, got "

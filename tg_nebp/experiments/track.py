@@ -15,7 +15,7 @@ import torch
 from tg_nebp.datasets import Scenario, load_datasets
 from tg_nebp.experiments.evaluate import method_tracker, scenario_of
 from tg_nebp.experiments.options import MethodOptions
-from tg_nebp.filters.session import TrackingSession
+from tg_nebp.filters.live.session import TrackingSession
 from tg_nebp.io import write_text
 from tg_nebp.live import (read_lines, realization_lines, score, track_lines,
                           truth_lines)

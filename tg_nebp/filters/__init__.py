@@ -1,78 +1,55 @@
-from .resampling import (RESAMPLERS, effective_sample_size,
-                         multinomial_resample,
-                         residual_resample, silverman_bandwidth,
-                         stratified_resample, systematic_resample)
+r"""The trackers: the time loop that every method shares
+(:class:`Tracker`, the state of a tracker between steps), and its four
+families, each a subpackage: ``tg_nebp.filters.particle`` (particle
+BP, NEBP, the resamplers), ``tg_nebp.filters.gaussian`` (Gaussian BP,
+its learned correction, their windows, hybrid BP, and the relocation, the
+noise adaptation and the partitioned runs they take),
+``tg_nebp.filters.centralized`` (the IEKF and the smoothers, the
+references) and ``tg_nebp.filters.live`` (the live session). Every
+public name is importable from here."""
+import importlib
+import sys
+
 from .state import FIELD_KINDS, StateField, check_state
 from .tracker import Smoothed, StepOutput, Tracker, TrackOutput
-from .particle_bp import ParticleBP, ParticleState
-from .nebp import NEBP
-from .centralized_iekf import CentralizedIEKF, JointState
-from .centralized_smoother import CentralizedSmoother
-from .incremental_smoother import IncrementalSmoother, SmootherState
-from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
-                          SolvedStep)
-from .gaussian_nebp import GaussianNEBP, LearnedCorrection
-from .fixed_lag_gbp import (FIXED_LAG_RECOMMENDED, FixedLagGaussianBP,
-                            WindowState)
-from .fixed_lag_gaussian_nebp import FixedLagGaussianNEBP
-from .relocation import LinkSearch, SearchResult
-from .noise_adaptation import NoiseAdaptation
-from .hybrid_bp import HYBRID_RECOMMENDED, HybridBP
-from .session import TrackingSession
-from .session_inputs import AgentPrior, AnchorAt
-from .partitioned_gbp import (Partition, PartitionedFixedLagGaussianBP,
-                              PartitionedGaussianBP, PartitionedTracker,
-                              partition, strips)
+# every family's public names, listed once in its own __all__
+from . import centralized, gaussian, live, particle
+from .particle import *  # noqa: F401,F403
+from .gaussian import *  # noqa: F401,F403
+from .centralized import *  # noqa: F401,F403
+from .live import *  # noqa: F401,F403
 from tg_nebp.data.validation import check_state_dim
 from tg_nebp.utils import weighted_moments
 
+# the modules as they were before the families became subpackages
+# (tg_nebp.filters.gaussian_bp is tg_nebp.filters.gaussian.gaussian_bp):
+# the same module objects under their old names, so that an import of
+# the old path keeps working
+_FAMILIES = {
+    'particle': ('particle_bp', 'nebp', 'resampling'),
+    'gaussian': ('gaussian_bp', 'gaussian_nebp', 'fixed_lag_gbp',
+                 'fixed_lag_gaussian_nebp', 'hybrid_bp', 'relocation',
+                 'noise_adaptation', 'partitioned_gbp'),
+    'centralized': ('centralized_iekf', 'centralized_smoother',
+                    'incremental_smoother'),
+    'live': ('session', 'session_inputs'),
+}
+for _family, _names in _FAMILIES.items():
+    for _name in _names:
+        _module = importlib.import_module(f'{__name__}.{_family}.{_name}')
+        sys.modules[f'{__name__}.{_name}'] = _module
+        globals()[_name] = _module
+del _family, _names, _name, _module
+
+# the shared time loop's names, then every family's
 __all__ = [
     'Tracker',
-    'ParticleBP',
-    'NEBP',
-    'CentralizedIEKF',
-    'CentralizedSmoother',
-    'IncrementalSmoother',
-    'SmootherState',
-    'Smoothed',
-    'GaussianBP',
-    'GaussianNEBP',
-    'LearnedCorrection',
-    'FixedLagGaussianBP',
-    'FixedLagGaussianNEBP',
-    'FIXED_LAG_RECOMMENDED',
-    'WindowState',
-    'HybridBP',
-    'HYBRID_RECOMMENDED',
-    'LinkSearch',
-    'SearchResult',
-    'NoiseAdaptation',
-    'SolvedStep',
-    'PartitionedGaussianBP',
-    'PartitionedFixedLagGaussianBP',
-    'PartitionedTracker',
-    'TrackingSession',
-    'GaussianState',
-    'JointState',
-    'ParticleState',
-    'AgentPrior',
-    'AnchorAt',
-    'Partition',
-    'partition',
-    'strips',
-    'GBP_RECOMMENDED',
     'StepOutput',
     'TrackOutput',
+    'Smoothed',
     'StateField',
     'FIELD_KINDS',
     'check_state',
     'check_state_dim',
     'weighted_moments',
-    'multinomial_resample',
-    'systematic_resample',
-    'stratified_resample',
-    'residual_resample',
-    'effective_sample_size',
-    'silverman_bandwidth',
-    'RESAMPLERS',
-]
+] + particle.__all__ + gaussian.__all__ + centralized.__all__ + live.__all__

@@ -2,7 +2,7 @@ r"""The learned correction of Gaussian BP, one iteration
 (GaussianNEBPConv): the identity correction is Gaussian BP bit for bit, its
 maps onto the weights' and inflations' ranges, its invariant features
 against plain loops, and its checks. (The tracker, GaussianNEBP, is tested
-in tests/filters/test_gaussian_nebp.py.)"""
+in tests/filters/gaussian/test_gaussian_nebp.py.)"""
 import math
 
 import pytest

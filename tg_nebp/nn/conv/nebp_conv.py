@@ -14,8 +14,8 @@ from tg_nebp.data.validation import (check_layer_inputs, check_number,
 from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.particle_bp_conv import ParticleBPConv
 from tg_nebp.utils import (compute_dtype, floored_exp, log_normalize,
-                            logaddexp, long_edge_index, plain_tensor,
-                            weighted_moments)
+                           logaddexp, long_edge_index, plain_tensor,
+                           weighted_moments)
 
 __all__ = ['NEBPConv', 'node_embedding', 'embedding_dim']
 

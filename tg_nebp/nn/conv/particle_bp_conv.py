@@ -12,7 +12,7 @@ from tg_nebp.data.validation import (check_edge_log_weights,
 from tg_nebp.models import GaussianRange, MeasurementModel, RangeModel
 from tg_nebp.ops import fused_bp_available, fused_bp_segment_sum
 from tg_nebp.utils import (compute_dtype, logsumexp, long_edge_index,
-                            plain_tensor, sort_by_receiver)
+                           plain_tensor, sort_by_receiver)
 
 __all__ = ['ParticleBPConv']
 

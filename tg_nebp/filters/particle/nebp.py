@@ -3,7 +3,7 @@ from typing import Callable, Optional, Union
 from torch import Tensor
 
 from tg_nebp.data.validation import check_position_dim
-from tg_nebp.filters.particle_bp import ParticleBP
+from tg_nebp.filters.particle.particle_bp import ParticleBP
 from tg_nebp.models import (MeasurementModel, MotionModel, StateLayout,
                             model_from_config)
 from tg_nebp.nn.conv import EquivariantNEBPConv, NEBPConv, ParticleBPConv

@@ -10,7 +10,7 @@ from scipy.stats import chi2
 
 from tg_nebp.filters import (FixedLagGaussianBP, GaussianBP, GaussianNEBP,
                              LinkSearch, TrackingSession)
-from tg_nebp.filters.relocation import directions
+from tg_nebp.filters.gaussian.relocation import directions
 
 from helpers import mirror, randomize, stream_realization
 

@@ -22,11 +22,11 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_position_dim, check_prior,
                                      check_state_dim, magnitude_limit)
-from tg_nebp.filters.session_inputs import (LONGEST_SECONDS, AgentPrior,
-                                            AnchorAt, Identifier,
-                                            checked_identifier,
-                                            checked_numbers, identified,
-                                            seconds_or_none)
+from tg_nebp.filters.live.session_inputs import (LONGEST_SECONDS, AgentPrior,
+                                                 AnchorAt, Identifier,
+                                                 checked_identifier,
+                                                 checked_numbers, identified,
+                                                 seconds_or_none)
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.io import atomic_write, first_line, read_tensors
 

@@ -12,8 +12,9 @@ from torch_geometric.data import Batch
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import (check_layer_inputs, check_number,
                                      check_positive_int, magnitude_limit)
-from tg_nebp.filters.resampling import (RESAMPLERS, effective_sample_size,
-                                        silverman_bandwidth)
+from tg_nebp.filters.particle.resampling import (RESAMPLERS,
+                                                 effective_sample_size,
+                                                 silverman_bandwidth)
 from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import bounded_inflation

@@ -13,9 +13,9 @@ from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv,
                                               as_factor_messages)
-from tg_nebp.filters.noise_adaptation import NoiseAdaptation
-from tg_nebp.filters.relocation import (LinkSearch, SearchResult,
-                                        relocation_step)
+from tg_nebp.filters.gaussian.noise_adaptation import NoiseAdaptation
+from tg_nebp.filters.gaussian.relocation import (LinkSearch, SearchResult,
+                                                 relocation_step)
 from tg_nebp.nn.conv.hybrid_bp_conv import HybridBPConv
 from tg_nebp.utils import symmetrize
 

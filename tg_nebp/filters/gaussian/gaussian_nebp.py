@@ -5,7 +5,7 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.realization import position_dim_of
 from tg_nebp.data.validation import check_position_dim
-from tg_nebp.filters.gaussian_bp import GBP_RECOMMENDED, GaussianBP
+from tg_nebp.filters.gaussian.gaussian_bp import GBP_RECOMMENDED, GaussianBP
 from tg_nebp.models import MeasurementModel, MotionModel, model_from_config
 from tg_nebp.nn.conv import GaussianNEBPConv
 

@@ -20,8 +20,8 @@ import torch.distributed as dist
 from torch import Tensor
 
 from tg_nebp.data.realization import Realization, position_dim_of
-from tg_nebp.filters.fixed_lag_gbp import FixedLagGaussianBP
-from tg_nebp.filters.gaussian_bp import GaussianBP
+from tg_nebp.filters.gaussian.fixed_lag_gbp import FixedLagGaussianBP
+from tg_nebp.filters.gaussian.gaussian_bp import GaussianBP
 from tg_nebp.nn.conv.gaussian_bp_conv import GaussianBelief
 
 __all__ = ['Partition', 'strips', 'partition', 'PartitionedTracker',

@@ -11,13 +11,14 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
-from tg_nebp.filters.fixed_lag_gbp import FixedLagGaussianBP
-from tg_nebp.filters.gaussian_bp import GaussianBP
-from tg_nebp.filters.particle_bp import (Generators, _check_prediction,
-                                         _draw, _nodes_per_graph,
-                                         sample_gaussian)
-from tg_nebp.filters.relocation import LinkSearch, SearchResult
-from tg_nebp.filters.resampling import silverman_bandwidth
+from tg_nebp.filters.gaussian.fixed_lag_gbp import FixedLagGaussianBP
+from tg_nebp.filters.gaussian.gaussian_bp import GaussianBP
+from tg_nebp.filters.particle.particle_bp import (Generators,
+                                                  _check_prediction, _draw,
+                                                  _nodes_per_graph,
+                                                  sample_gaussian)
+from tg_nebp.filters.gaussian.relocation import LinkSearch, SearchResult
+from tg_nebp.filters.particle.resampling import silverman_bandwidth
 from tg_nebp.filters.state import StateField, check_state
 from tg_nebp.filters.tracker import StepOutput, Tracker
 from tg_nebp.gaussian import bounded_inflation_map, graph_index

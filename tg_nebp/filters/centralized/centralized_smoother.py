@@ -6,7 +6,7 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_lag
-from tg_nebp.filters.centralized_iekf import CentralizedIEKF
+from tg_nebp.filters.centralized.centralized_iekf import CentralizedIEKF
 from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior, block_diagonal,
                               check_dense_joint, check_predicted_prior,

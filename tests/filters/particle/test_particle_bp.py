@@ -14,7 +14,7 @@ from tg_nebp import metrics
 from tg_nebp.data import Realization
 from tg_nebp.datasets import Scenario
 from tg_nebp.filters import ParticleBP, weighted_moments
-from tg_nebp.filters.resampling import RESAMPLERS
+from tg_nebp.filters.particle.resampling import RESAMPLERS
 from tg_nebp.models import ConstantVelocityDrag, GaussianRange
 
 from helpers import gen, tiny_scenario
@@ -918,7 +918,7 @@ def test_the_reported_covariance_is_the_cloud_inflated_to_its_prediction():
     # inflated by report_inflation, no further than the predicted cloud's;
     # the particles, weights and means are those of the same draws
     # reported as they are
-    from tg_nebp.filters.particle_bp import RECOMMENDED
+    from tg_nebp.filters.particle.particle_bp import RECOMMENDED
     from helpers import bounded_inflation_by_loops
     data = tiny_scenario(steps=4).generate(gen(5))
     reporting = ParticleBP.recommended(num_particles=64)

@@ -3,7 +3,7 @@ it is the recommended window; a constant weight is the window of a range
 model with another noise (every message of every window step tempered); a
 batch equals each graph alone; the gradient through the window's
 iterations matches finite differences; checkpoints rebuild it; streaming,
-save/resume, joins and leaves are in tests/filters/test_session.py
+save/resume, joins and leaves are in tests/filters/live/test_session.py
 (live_trackers)."""
 import math
 

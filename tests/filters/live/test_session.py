@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import pytest
 import torch
+import helpers
 from helpers import (PACKAGE_ROOT, NonNegativeRange, gen, live_trackers,
                      loads_after_bit_flips, stream_realization,
                      tiny_scenario)
@@ -256,8 +257,9 @@ def test_a_saved_session_continues_in_a_new_process(data, tmp_path):
             session.save(tmp_path / f'{name}.pt')
             expected[name] = stream_realization(session, data, start=SPLIT)
     worker = os.path.join(os.path.dirname(__file__), 'session_worker.py')
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [PACKAGE_ROOT, os.path.dirname(os.path.dirname(worker))]))
+    # this tg_nebp, and the tests' folder for the helpers
+    tests = os.path.dirname(os.path.abspath(helpers.__file__))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([PACKAGE_ROOT, tests]))
     done = subprocess.run([sys.executable, worker, str(tmp_path),
                            str(SPLIT), *expected], env=env,
                           capture_output=True, text=True, timeout=300)

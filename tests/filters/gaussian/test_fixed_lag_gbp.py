@@ -4,7 +4,7 @@ Rauch-Tung-Striebel smoother, written in the test), on a loopy one its means
 are and its covariances fall short; settled steps are exact where their
 messages cannot change and, relinearized, bring a wrong mode back; each
 graph of a batch converges on its own; streaming and save/resume are in
-tests/filters/test_session.py (live_trackers)."""
+tests/filters/live/test_session.py (live_trackers)."""
 import numpy as np
 import pytest
 import torch

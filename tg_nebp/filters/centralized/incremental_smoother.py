@@ -6,8 +6,9 @@ from torch import Tensor
 
 from tg_nebp.data.realization import Realization
 from tg_nebp.data.validation import check_number, check_positive_int
-from tg_nebp.filters.centralized_smoother import (CentralizedSmoother, _Base,
-                                                  _Slot)
+from tg_nebp.filters.centralized.centralized_smoother import (
+                                                              CentralizedSmoother,
+                                                              _Base, _Slot)
 from tg_nebp.filters.state import StateField
 from tg_nebp.filters.tracker import StepOutput
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior, block_diagonal,

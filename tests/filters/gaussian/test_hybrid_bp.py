@@ -5,7 +5,7 @@ the weights of a grid posterior where Gaussian BP keeps one, a lost agent
 is relocated from its links within the search period while a consistent
 one never is, a batch equals each graph alone, the same seed gives the
 same draws; streaming, save/resume and damaged states are in
-tests/filters/test_session.py (live_trackers)."""
+tests/filters/live/test_session.py (live_trackers)."""
 import math
 
 import numpy as np
@@ -17,7 +17,7 @@ from torch_geometric.data import Batch
 from tg_nebp.filters import (CentralizedIEKF, FixedLagGaussianBP, GaussianBP,
                              GaussianNEBP, HybridBP)
 from tg_nebp.filters import silverman_bandwidth
-from tg_nebp.filters.hybrid_bp import kernel_density
+from tg_nebp.filters.gaussian.hybrid_bp import kernel_density
 from tg_nebp.models import ConstantVelocity
 from tg_nebp.utils import weighted_moments
 

@@ -3,10 +3,11 @@ from typing import Optional
 from torch import Tensor
 
 from tg_nebp.data.validation import check_position_dim
-from tg_nebp.filters.fixed_lag_gbp import (WINDOW_GBP_RECOMMENDED,
-                                          FixedLagGaussianBP, WindowState)
-from tg_nebp.filters.gaussian_bp import GBP_RECOMMENDED
-from tg_nebp.filters.gaussian_nebp import LearnedCorrection
+from tg_nebp.filters.gaussian.fixed_lag_gbp import (WINDOW_GBP_RECOMMENDED,
+                                                    FixedLagGaussianBP,
+                                                    WindowState)
+from tg_nebp.filters.gaussian.gaussian_bp import GBP_RECOMMENDED
+from tg_nebp.filters.gaussian.gaussian_nebp import LearnedCorrection
 from tg_nebp.models import MeasurementModel, MotionModel
 from tg_nebp.nn.conv import GaussianNEBPConv
 from tg_nebp.utils import detached

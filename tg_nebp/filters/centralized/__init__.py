@@ -1,0 +1,14 @@
+r"""The centralized references: the iterated EKF over the joint of all
+agents (or their marginals), the fixed-lag and full smoothers, and the
+incremental smoother of the whole sequence (as iSAM2)."""
+from .centralized_iekf import CentralizedIEKF, JointState
+from .centralized_smoother import CentralizedSmoother
+from .incremental_smoother import IncrementalSmoother, SmootherState
+
+__all__ = [
+    'CentralizedIEKF',
+    'JointState',
+    'CentralizedSmoother',
+    'IncrementalSmoother',
+    'SmootherState',
+]
