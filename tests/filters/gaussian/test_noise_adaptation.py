@@ -114,8 +114,15 @@ def test_scale_is_the_faded_weighted_mean_clipped_at_one():
         assert float(new[node, 0]) == pytest.approx(total, rel=1e-12)
         assert float(new[node, 1]) == pytest.approx(count, rel=1e-12)
         assert float(new[node, 2]) == pytest.approx(expected, rel=1e-12)
-    # the messages to a node are tempered by its scale
+    # the messages to a node are tempered by its scale: each message
+    # edge's weight is 1 over its target's, whatever its source
     assert torch.equal(NoiseAdaptation.scale(new), new[:, 2])
+    factors = GaussianBP().conv.factors(edge_index, anchor, 4)
+    weights = NoiseAdaptation.message_weights(new, factors)
+    for m, (source, target) in enumerate(factors.index.t().tolist()):
+        assert float(weights[m]) == pytest.approx(1 / float(new[target, 2]),
+                                                  rel=1e-12)
+    assert len(set(factors.index[1].tolist())) > 1
 
 
 def _track(tracker, graphs):

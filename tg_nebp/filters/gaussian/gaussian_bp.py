@@ -12,7 +12,8 @@ from tg_nebp.gaussian import (bounded_inflation, check_predicted_prior,
 from tg_nebp.models import MeasurementModel, MotionModel, inputs
 from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               GaussianBPConv,
-                                              as_factor_messages)
+                                              as_factor_messages,
+                                              tempered_messages)
 from tg_nebp.filters.gaussian.noise_adaptation import NoiseAdaptation
 from tg_nebp.filters.gaussian.relocation import (LinkSearch, SearchResult,
                                                  relocation_step)
@@ -503,7 +504,7 @@ class GaussianBP(Tracker):
         if iteration == 0:
             memory = self.adapted_noise(memory, belief, edge_index,
                                         edge_attr, anchor, generator)
-        new = adaptation.tempered(
+        new = tempered_messages(
             self.conv.step_messages(belief, edge_index, edge_attr, anchor,
                                     factors, messages, generator),
             adaptation.message_weights(memory, factors))

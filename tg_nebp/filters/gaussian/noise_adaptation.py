@@ -9,8 +9,7 @@ from torch import Tensor
 from tg_nebp.data.validation import check_number
 from tg_nebp.gaussian import unit_vectors
 from tg_nebp.models import MeasurementModel, RangeModel
-from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, FactorMessages,
-                                              GaussianBelief, RangeMessages,
+from tg_nebp.nn.conv.gaussian_bp_conv import (Factors, GaussianBelief,
                                               position_covariance)
 
 __all__ = ['NoiseAdaptation']
@@ -115,9 +114,9 @@ class NoiseAdaptation:
         if isinstance(measurement, RangeModel):
             return self._range_statistics(measurement, mean, cov, edge_index,
                                           edge_attr, generator)
-        grad, _ = measurement.linearize(edge_attr, mean[src], mean[dst],
-                                        generator)
         both = measurement.scope_of_both(size, mean.device)
+        grad = measurement.likelihood_gradient(edge_attr, mean[src],
+                                               mean[dst])[:, both]
         info = measurement.fisher_information(
             edge_attr, mean[src], mean[dst],
             generator)[:, both.view(-1, 1), both]
@@ -146,9 +145,10 @@ class NoiseAdaptation:
         # q = u' (P_j + P_i) u, without a matrix per link
         src, dst = edge_index
         dim = measurement.position_dim(mean.size(-1))
-        unit, score, _ = measurement.range_linearization(
-            edge_attr, mean[src], mean[dst])
-        distances, _ = unit_vectors(mean[src, :dim] - mean[dst, :dim])
+        distances, unit = unit_vectors(mean[src, :dim] - mean[dst, :dim])
+        score, _ = measurement.robust_weights(edge_attr,
+                                              distances.view(-1, 1))
+        score = score.view(-1)
         info = measurement.range_information(edge_attr, distances, generator)
         spread = sum((unit.unsqueeze(-2) @ cov[end, :dim, :dim] @
                       unit.unsqueeze(-1)).view(-1) for end in (src, dst))
@@ -189,19 +189,6 @@ class NoiseAdaptation:
     def scale(memory: Tensor) -> Tensor:
         r"""Every node's noise scale :math:`s_i` :math:`(N)`."""
         return memory[:, _SCALE]
-
-    @staticmethod
-    def tempered(messages, weight: Tensor):
-        r"""The :obj:`messages` (rank-one or general) with their
-        information scaled by :obj:`weight` :math:`(M)`, their means
-        unchanged: a Gaussian likelihood whose noise variance is
-        :math:`1 / w` times the model's."""
-        if isinstance(messages, RangeMessages):
-            return RangeMessages(messages.weight * weight,
-                                 messages.coefficient * weight,
-                                 messages.direction)
-        return FactorMessages(messages.info * weight.view(-1, 1, 1),
-                              messages.eta * weight.view(-1, 1))
 
     def settings(self) -> dict:
         return dict(memory=self.memory, prior_count=self.prior_count,

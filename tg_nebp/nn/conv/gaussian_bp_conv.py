@@ -13,7 +13,7 @@ from tg_nebp.utils import (compute_dtype, link_factors, long_edge_index,
 
 __all__ = ['GaussianBPConv', 'GaussianBelief', 'FactorMessages',
            'RangeMessages', 'Factors', 'Linearization', 'ENDS',
-           'position_covariance', 'as_factor_messages',
+           'position_covariance', 'as_factor_messages', 'tempered_messages',
            'marginal_information']
 
 #: Which ends of a link its range informs: :obj:`"both"` (every measured
@@ -227,6 +227,19 @@ def position_covariance(belief: GaussianBelief, width: int,
     cov = cov[:, :width, :width]
     cov = symmetrize(cov)
     return cov.masked_fill(anchor.view(-1, 1, 1), 0.0)
+
+
+def tempered_messages(messages, weight: Tensor):
+    r"""The :obj:`messages` (:class:`RangeMessages` or
+    :class:`FactorMessages`) with their information and information vector
+    scaled by :obj:`weight` :math:`(M)`, their means unchanged: each a
+    Gaussian whose variance is :math:`1 / w` times its own."""
+    if isinstance(messages, RangeMessages):
+        return RangeMessages(messages.weight * weight,
+                             messages.coefficient * weight,
+                             messages.direction)
+    return FactorMessages(messages.info * weight.view(-1, 1, 1),
+                          messages.eta * weight.view(-1, 1))
 
 
 def as_factor_messages(messages) -> 'FactorMessages':

@@ -11,7 +11,8 @@ from tg_nebp.models import MeasurementModel
 from tg_nebp.nn.conv.gaussian_bp_conv import (FactorMessages, Factors,
                                               GaussianBelief, GaussianBPConv,
                                               Linearization,
-                                              position_covariance)
+                                              position_covariance,
+                                              tempered_messages)
 
 __all__ = ['GaussianNEBPConv', 'CorrectionFeatures', 'EDGE_FEATURES',
            'NODE_FEATURES', 'INFLATION_FEATURES', 'bounded_log']
@@ -419,9 +420,8 @@ class GaussianNEBPConv(MessagePassing):
         gathered = self.propagate(factors.index, edge=edge,
                                   size=(node.size(0), node.size(0)))
         hidden = self.node_update(torch.cat([gathered, node], -1), hidden)
-        weight = self.message_weights(edge).to(new.eta)
-        tempered = FactorMessages(new.info * weight.view(-1, 1, 1),
-                                  new.eta * weight)
+        tempered = tempered_messages(
+            new, self.message_weights(edge).to(new.eta).view(-1))
         memory = torch.cat([hidden, features.consistency.to(edge).view(
             -1, 1), memory[:, _HISTORY:]], -1)
         return tempered, memory
