@@ -708,29 +708,32 @@ def loads_after_bit_flips(path, load, count, seed):
 
 
 def mirror(third=(15.0, 3.0), prior_y=-5.0, steps=8, prior_sd=0.5,
-           third_from=3):
+           third_from=3, velocity=0.0):
     r"""A lost agent's realization, for the relocation tests: one agent
-    at (5, 5), still, measured by anchors at (0, 0) and (10, 0) (its
-    mirror across their line, (5, -5), fits them as well) and from step
-    'third_from' on by an anchor at 'third'; its prior at (5, 'prior_y')
-    with 'prior_sd' per axis. Returns the realization and the models
-    (constant velocity, Gaussian ranges of 0.3 m)."""
-    truth = torch.tensor([5.0, 5.0, 0.0, 0.0])
-    anchors = torch.tensor([[0.0, 0.0], [10.0, 0.0], list(third)])
+    at (5, 5), still (or moving along x at 'velocity' m/s), measured by
+    anchors at (0, 0) and (10, 0) (its mirror across their line, (5, -5),
+    fits them as well) and from step 'third_from' on by an anchor at
+    'third' (None: never); its prior at (5, 'prior_y') with 'prior_sd'
+    per axis. Returns the realization and the models (constant velocity,
+    Gaussian ranges of 0.3 m)."""
+    truth = torch.tensor([5.0, 5.0, velocity, 0.0])
+    anchors = torch.tensor([[0.0, 0.0], [10.0, 0.0],
+                            list(third or (0.0, 0.0))])
     states = torch.zeros(4, steps, 4)
     states[0] = truth
+    states[0, :, 0] = 5.0 + velocity * torch.arange(steps)
     states[1:, :, :2] = anchors.unsqueeze(1)
     g = gen(1)
     edges, ranges, times = [], [], []
     for t in range(steps):
-        for a in range(3 if t >= third_from else 2):
-            distance = (anchors[a] - truth[:2]).norm()
+        for a in range(3 if t >= third_from and third else 2):
+            distance = (anchors[a] - states[0, t, :2]).norm()
             edges.append((a + 1, 0))
             ranges.append(float(distance + 0.3 * torch.randn(
                 (), generator=g, dtype=torch.float64)))
             times.append(t)
     prior_mean = torch.zeros(4, 4)
-    prior_mean[0] = torch.tensor([5.0, prior_y, 0.0, 0.0])
+    prior_mean[0] = torch.tensor([5.0, prior_y, velocity, 0.0])
     prior_mean[1:, :2] = anchors
     prior_cov = torch.zeros(4, 4, 4)
     prior_cov[0] = torch.diag(torch.tensor([prior_sd**2, prior_sd**2,

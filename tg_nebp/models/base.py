@@ -183,6 +183,51 @@ class MotionModel(Model):
                                   f"inputs, or does not say how they are "
                                   f"measured (measure())")
 
+    def transition_log_likelihood(self, states: Tensor, moved: Tensor,
+                                  control: Optional[Tensor] = None
+                                  ) -> Tensor:
+        r"""The log-density :math:`(*)` of the transitions from
+        :obj:`states` :math:`(*, S)` to :obj:`moved` :math:`(*, S)` (with
+        the step's :obj:`control`) under the additive-Gaussian form
+        (:meth:`mean`, :meth:`noise_covariance`), on the subspace the
+        noise reaches: :math:`-\frac{1}{2} \mathbf{r}^\top \mathbf{Q}^+
+        \mathbf{r} - \frac{1}{2} \log \operatorname{pdet}(2 \pi
+        \mathbf{Q})` with :math:`\mathbf{r} = \mathbf{x}_n -
+        f(\mathbf{x}_{n-1})` (a constant-velocity model's noise has rank
+        :math:`D`: a transition off that subspace has no density, and a
+        smoothed track's residuals lie on it). What scores a trajectory's
+        motion (:class:`~tg_nebp.filters.TrajectorySearch`)."""
+        given = inputs(control)
+        residual = moved - self.mean(states, **given)
+        cov = self.noise_covariance(states, **given)
+        values, vectors = torch.linalg.eigh(cov)
+        kept = values > 1e-9 * values.amax(-1, keepdim=True).clamp_min(
+            torch.finfo(values.dtype).tiny)
+        along = (vectors.transpose(-1, -2) @ residual.unsqueeze(-1)
+                 ).squeeze(-1)
+        safe = torch.where(kept, values, 1.0)
+        return -0.5 * torch.where(
+            kept, along.square() / safe + torch.log(2 * math.pi * safe),
+            0.0).sum(-1)
+
+    def rigidly_moved(self, states: Tensor, rotation: Tensor,
+                      offset: Tensor) -> Tensor:
+        r"""The :obj:`states` :math:`(*, S)` of a trajectory moved rigidly:
+        every position :math:`\mathbf{p} \mapsto \mathbf{R} \mathbf{p} +
+        \mathbf{b}` (:obj:`rotation` :math:`(*, D, D)` orthogonal, a
+        rotation or a reflection; :obj:`offset` :math:`(*, D)`) and the
+        rest of the state as the motion carries it along: here the
+        velocity of the default layout :math:`[\mathbf{p}, \mathbf{v}]`,
+        :math:`\mathbf{v} \mapsto \mathbf{R} \mathbf{v}`. A model of
+        another layout overrides it. What the candidates of a relocation
+        with hindsight are made of (:class:`~tg_nebp.filters.TrajectorySearch`,
+        which scores them by :meth:`transition_log_likelihood`: a model
+        need not be invariant under the move)."""
+        dim = self.layout(states.size(-1)).position_dim
+        blocks = states.unflatten(-1, (-1, dim)).unsqueeze(-1)
+        turned = (rotation.unsqueeze(-3) @ blocks).squeeze(-1).flatten(-2)
+        return torch.cat([turned[..., :dim] + offset, turned[..., dim:]], -1)
+
     def with_time_step(self, dt: float) -> 'MotionModel':
         r"""The same model over a time step of :obj:`dt` seconds, for a
         live session whose steps are not evenly spaced: the model rebuilt

@@ -6,7 +6,7 @@ from torch import Tensor
 
 from tg_nebp.data.validation import check_number
 from tg_nebp.models.base import MotionModel
-from tg_nebp.models.layout import StateLayout
+from tg_nebp.models.layout import StateLayout, wrap_angle
 from tg_nebp.utils import row_linearization, symmetrize
 
 __all__ = ['ConstantVelocityDrag', 'ConstantVelocity', 'UnicycleOdometry']
@@ -213,6 +213,24 @@ class UnicycleOdometry(MotionModel, name='unicycle-odometry'):
         r"""Itself: the odometry input carries the step, whatever its
         duration (a step without input is one random-walk step)."""
         return self
+
+    def rigidly_moved(self, states: Tensor, rotation: Tensor,
+                      offset: Tensor) -> Tensor:
+        r"""The states :math:`(*, 3)` moved rigidly (see
+        :meth:`MotionModel.rigidly_moved
+        <tg_nebp.models.MotionModel.rigidly_moved>`): the position
+        :math:`\mathbf{R} \mathbf{p} + \mathbf{b}`, the heading that of
+        :math:`\mathbf{R}` times the heading's direction (a reflection
+        turns a left turn into a right one, which the odometry's inputs
+        then contradict), kept on the lift within :math:`\pi` of the
+        old."""
+        position = (rotation @ states[..., :2].unsqueeze(-1)).squeeze(-1)
+        heading = states[..., 2]
+        facing = (rotation @ torch.stack([heading.cos(), heading.sin()],
+                                         -1).unsqueeze(-1)).squeeze(-1)
+        turned = torch.atan2(facing[..., 1], facing[..., 0])
+        turned = heading + wrap_angle(turned - heading)
+        return torch.cat([position + offset, turned.unsqueeze(-1)], -1)
 
     @staticmethod
     def propagate(states: Tensor, control: Tensor) -> Tensor:

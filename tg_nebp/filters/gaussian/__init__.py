@@ -5,6 +5,8 @@ the relocation of a lost agent, the noise adaptation, and one network's
 agents spread over the ranks of a process group."""
 from .noise_adaptation import NoiseAdaptation
 from .relocation import LinkSearch, SearchResult
+from .trajectory_search import (TrajectoryResult, TrajectorySearch,
+                                WindowRelocation)
 from .gaussian_bp import (GBP_RECOMMENDED, GaussianBP, GaussianState,
                           SolvedStep)
 from .gaussian_nebp import GaussianNEBP, LearnedCorrection
@@ -34,6 +36,9 @@ __all__ = [
     'HYBRID_RECOMMENDED',
     'LinkSearch',
     'SearchResult',
+    'TrajectorySearch',
+    'TrajectoryResult',
+    'WindowRelocation',
     'NoiseAdaptation',
     'PartitionedGaussianBP',
     'PartitionedFixedLagGaussianBP',

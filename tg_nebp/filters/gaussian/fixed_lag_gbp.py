@@ -8,6 +8,8 @@ from tg_nebp.data.validation import check_number, check_positive_int
 from tg_nebp.filters.gaussian.gaussian_bp import (GBP_RECOMMENDED, GaussianBP,
                                                   SolvedStep)
 from tg_nebp.filters.gaussian.relocation import LinkSearch, relocation_step
+from tg_nebp.filters.gaussian.trajectory_search import (TrajectorySearch,
+                                                        WindowRelocation)
 from tg_nebp.filters.gaussian.window_chain import SolvedWindow, WindowChains
 from tg_nebp.filters.gaussian.window_state import (SlidingWindow, Window,
                                                    WindowState, renumbered)
@@ -39,7 +41,8 @@ FIXED_LAG_RECOMMENDED = dict(iterated=5, relinearize_threshold=0.1,
                              relinearize_skip=10, settled_inflation=1.1)
 
 
-class FixedLagGaussianBP(SlidingWindow, WindowChains, GaussianBP):
+class FixedLagGaussianBP(SlidingWindow, WindowChains, WindowRelocation,
+                         GaussianBP):
     r"""Fixed-lag Gaussian belief propagation over the space-time factor
     graph: every agent keeps its states of the last :obj:`lag` steps as
     variables, tied by motion factors between consecutive states and by
@@ -182,6 +185,7 @@ class FixedLagGaussianBP(SlidingWindow, WindowChains, GaussianBP):
           filtered estimates)
     """
     state_type = WindowState
+    has_window = True
 
     def __init__(self, lag: int = 5, num_iterations: int = 20,
                  motion: Optional[MotionModel] = None,
@@ -307,6 +311,14 @@ class FixedLagGaussianBP(SlidingWindow, WindowChains, GaussianBP):
                     state, window, self._points(state, window, anchor),
                     messages, fresh, split, anchor, graph_of, num_graphs,
                     generator, t, memory)
+        hindsight = None
+        if isinstance(self.relocation, TrajectorySearch):
+            relocated, hindsight = self._relocated_window(
+                state, window, belief, messages, covs, points, anchor,
+                graph_of, t, generator)
+            if relocated is not None:
+                state, window, belief, messages, covs, points = relocated
+                settled = None, None  # its forward pass runs again
         layout = self.motion.layout(size)
         means = belief.mean.view(width, num, size).transpose(0, 1)
         output = StepOutput(t, layout.wrap(means[:, -1]), covs[:, -1],
@@ -338,6 +350,9 @@ class FixedLagGaussianBP(SlidingWindow, WindowChains, GaussianBP):
                                                        messages, anchor))
         if self.relocation is None:
             return solved
+        if hindsight is not None:
+            return solved._replace(search=self._newest_search(
+                hindsight, solved, edge_index, edge_attr, anchor))
         return relocation_step(self, solved, edge_index, edge_attr, anchor,
                                state.fresh, graph_of, t)
 

@@ -233,15 +233,26 @@ class GaussianBP(Tracker):
         self.conv = GaussianBPConv(self.measurement, ends, damping, compile)
         self.relocate_with(relocation)
 
+    #: Whether the tracker keeps a window of steps (what a
+    #: :class:`~tg_nebp.filters.TrajectorySearch` searches).
+    has_window = False
+
     def relocate_with(self, relocation: Optional[LinkSearch]
                       ) -> 'GaussianBP':
         r"""Sets the tracker's :obj:`relocation` (see the class; a
-        :class:`~tg_nebp.filters.LinkSearch` or :obj:`None`) and returns
+        :class:`~tg_nebp.filters.LinkSearch`, a window's
+        :class:`~tg_nebp.filters.TrajectorySearch`, or :obj:`None`) and returns
         it: a tracker built elsewhere (from a checkpoint) takes one too."""
         if relocation is not None and not isinstance(relocation,
                                                      LinkSearch):
             raise TypeError(f"'relocation' must be a LinkSearch or None, "
                             f"got {relocation!r}")
+        if relocation is not None and relocation.needs_window and \
+                not self.has_window:
+            raise ValueError(f"'relocation' {relocation!r} searches a "
+                             f"window's trajectories: {type(self).__name__} "
+                             f"has no window (a FixedLagGaussianBP has; here "
+                             f"a LinkSearch searches each step)")
         self.relocation = relocation
         # the exact messages a search scores its candidates by
         self.link_conv = (None if relocation is None else

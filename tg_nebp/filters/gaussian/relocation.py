@@ -120,6 +120,10 @@ class LinkSearch:
         steps (int, optional): Gauss-Newton steps of every candidate.
             (default: :obj:`2`)
     """
+    #: It searches one step's links: any Gaussian tracker takes it
+    #: (:class:`~tg_nebp.filters.TrajectorySearch` needs a window).
+    needs_window = False
+
     def __init__(self, margin: float = 10.0, directions: int = 8,
                  links: int = 4, steps: int = 2, every: int = 4):
         self.margin = check_number(margin, 'margin')
@@ -170,15 +174,7 @@ class LinkSearch:
         mean = mean.to(sources.state)
         num, size = mean.shape
         width = sources.info.size(-1)
-        # the message edges into the agents searched (sorted by target,
-        # each agent's contiguous)
-        kept = due[factors.index[1]]
-        into = factors._replace(index=factors.index[:, kept],
-                                link=factors.link[kept],
-                                end=factors.end[kept],
-                                reverse=factors.reverse[kept])
-        sourced = SourceBeliefs(*(part[kept] for part in sources))
-        power = None if tempering is None else tempering[kept]
+        into, sourced, power = edges_into(due, factors, sources, tempering)
         target = into.index[1]
         degree = torch.bincount(target, minlength=num)
         searched = degree > 0
@@ -206,12 +202,8 @@ class LinkSearch:
         candidates[:, 1:, :position_dim] = ring
         linearized = (sourced, into, edge_index, edge_attr, pairs)
         for _ in range(self.steps):
-            grad, curv = conv.target_linearization(candidates, *linearized,
-                                                   tempering=power)
-            damping = 1e-3 * curv.diagonal(dim1=-2, dim2=-1).mean(
-                -1, keepdim=True).unsqueeze(-1) + 1e-9
-            step = torch.linalg.solve(curv + damping * eye,
-                                      grad.unsqueeze(-1)).squeeze(-1)
+            step = damped_step(*conv.target_linearization(
+                candidates, *linearized, tempering=power))
             candidates = candidates.clone()
             candidates[:, 1:, :width] = candidates[:, 1:, :width] + \
                 step[:, 1:]
@@ -230,17 +222,11 @@ class LinkSearch:
         _, curvature = conv.target_linearization(found, *linearized,
                                                  tempering=power)
         curvature = curvature.squeeze(1)
-        offset = (candidates[..., :width] - found[..., :width])
-        distance = (offset.unsqueeze(-2) @ curvature.unsqueeze(1) @
-                    offset.unsqueeze(-1)).view(scores.shape)
-        other = torch.where(distance > UNIQUE_DISTANCE**2, scores,
-                            -math.inf).amax(-1)
-        top = scores.gather(1, best.view(-1, 1)).view(-1)
-        eigenvalues = torch.linalg.eigvalsh(curvature)
-        measured = eigenvalues[:, 0] > 1e-6 * eigenvalues[:, -1].clamp_min(
-            torch.finfo(eigenvalues.dtype).tiny)
-        moved = (searched & (top - scores[:, 0] > self.margin) &
-                 (top - other > self.margin) & measured)
+        decisive, _ = decisive_modes(scores, candidates[..., :width] -
+                                     found[..., :width], curvature,
+                                     self.margin)
+        moved = searched & (scores.amax(-1) - scores[:, 0] >
+                            self.margin) & decisive
         return SearchResult(candidates, scores, searched, moved, sources,
                             curvature, tempering)
 
@@ -264,6 +250,51 @@ class LinkSearch:
             torch.linalg.pinv(search.curvature, hermitian=True)
         return (torch.where(moved.view(-1, 1), found, mean),
                 torch.where(moved.view(-1, 1, 1), symmetrize(widened), cov))
+
+
+def edges_into(due: Tensor, factors: Factors, sources: SourceBeliefs,
+               tempering: Optional[Tensor] = None):
+    r"""The message edges of :obj:`factors` into the nodes :obj:`due` (a
+    mask over the nodes their targets number): those factors (sorted by
+    target, each node's contiguous), their :obj:`sources` and
+    :obj:`tempering` (:obj:`None` where none is given)."""
+    kept = due[factors.index[1]]
+    into = factors._replace(index=factors.index[:, kept],
+                            link=factors.link[kept], end=factors.end[kept],
+                            reverse=factors.reverse[kept])
+    return (into, SourceBeliefs(*(part[kept] for part in sources)),
+            None if tempering is None else tempering[kept])
+
+
+def damped_step(grad: Tensor, curv: Tensor) -> Tensor:
+    r"""The Gauss-Newton step :math:`(\ldots, R)` of a gradient
+    :math:`(\ldots, R)` and curvature :math:`(\ldots, R, R)`, damped by a
+    thousandth of the curvature's mean diagonal (a direction the links do
+    not measure stays where it is)."""
+    eye = torch.eye(curv.size(-1), dtype=curv.dtype, device=curv.device)
+    damping = 1e-3 * curv.diagonal(dim1=-2, dim2=-1).mean(
+        -1, keepdim=True).unsqueeze(-1) + 1e-9
+    return torch.linalg.solve(curv + damping * eye,
+                              grad.unsqueeze(-1)).squeeze(-1)
+
+
+def decisive_modes(scores: Tensor, offset: Tensor, curvature: Tensor,
+                   margin: float) -> Tuple[Tensor, Tensor]:
+    r"""Whether each agent's best candidate is decisive :math:`(N)`: it
+    beats every candidate of another mode (one whose :obj:`offset`
+    :math:`(N, C, R)` from the best is farther than ``UNIQUE_DISTANCE``
+    standard deviations of what the links know there, their
+    :obj:`curvature` :math:`(N, R, R)`) by :obj:`margin` nats, and the
+    links measure every direction there; and every candidate's squared
+    distance :math:`(N, C)` from the best in that curvature."""
+    distance = (offset.unsqueeze(-2) @ curvature.unsqueeze(1) @
+                offset.unsqueeze(-1)).view(scores.shape)
+    other = torch.where(distance > UNIQUE_DISTANCE**2, scores,
+                        -math.inf).amax(-1)
+    eigenvalues = torch.linalg.eigvalsh(curvature)
+    measured = eigenvalues[:, 0] > 1e-6 * eigenvalues[:, -1].clamp_min(
+        torch.finfo(eigenvalues.dtype).tiny)
+    return (scores.amax(-1) - other > margin) & measured, distance
 
 
 def relocation_step(tracker, solved, edge_index: Tensor, edge_attr: Tensor,
