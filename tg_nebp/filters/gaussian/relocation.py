@@ -120,8 +120,8 @@ class LinkSearch:
         steps (int, optional): Gauss-Newton steps of every candidate.
             (default: :obj:`2`)
     """
-    #: It searches one step's links: any Gaussian tracker takes it
-    #: (:class:`~tg_nebp.filters.TrajectorySearch` needs a window).
+    #: Whether the search needs a window of steps, which only a window
+    #: tracker has; this one does not, and any Gaussian tracker takes it.
     needs_window = False
 
     def __init__(self, margin: float = 10.0, directions: int = 8,

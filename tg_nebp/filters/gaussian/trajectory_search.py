@@ -134,7 +134,8 @@ class TrajectorySearch(LinkSearch):
         mirror (bool, optional): Add the reflection of the trajectory
             across its neighbours' line (plane). (default: :obj:`True`)
     """
-    #: It searches a window: only a window tracker takes it.
+    #: Whether the search needs a window of steps, which only a window
+    #: tracker has; this one does.
     needs_window = True
 
     def __init__(self, margin: float = 10.0, directions: int = 8,
