@@ -6,9 +6,9 @@ rows (``tg-nebp compare --scenario tiers-uwb-test3-second-half`` and
 :math:`[\mathbf{p}, \mathbf{v}]` per step (a vector variable); the prior at
 :math:`t_0` a Gaussian prior factor; each step's constant-velocity
 transition a factor whose error is :math:`\mathbf{L}^{-1}(\mathbf{x}_t -
-f(\mathbf{x}_{t-1}))` (:math:`\mathbf{L}` the Cholesky factor of the
-model's own noise covariance, :math:`f` its own transition with its
-Jacobian: the motion model's linearize and noise_covariance, nothing
+\mathbf{F} \mathbf{x}_{t-1})` (:math:`\mathbf{L}` the Cholesky factor of
+the model's own noise covariance, :math:`\mathbf{F}` its own transition:
+tg_nebp.models.ConstantVelocity's mean and noise_covariance, nothing
 re-derived here); each link a range factor to the other agent's state or
 to the anchor's known position, with the link's sensor's noise: the
 fitted Student-t as GTSAM's Cauchy m-estimator (benchmarks/mrclam_gtsam.py's
@@ -49,18 +49,14 @@ def state_key(agent, step, agents):
     return gtsam.symbol('x', step * agents + agent)
 
 
-def _motion_error(motion, whitener, this, values, jacobians):
-    # the transition's whitened error and Jacobians: the model's own mean
-    # and Jacobian at the state it leaves (linear for constant velocity,
-    # the drag's at its velocity)
+def _motion_error(transition, whitener, this, values, jacobians):
+    # the constant-velocity transition's whitened error and Jacobians
     before = values.atVector(this.keys()[0])
     after = values.atVector(this.keys()[1])
-    moved, jacobian, _ = (part[0].numpy() for part in motion.linearize(
-        torch.from_numpy(before).view(1, -1)))
     if jacobians is not None:
-        jacobians[0] = -whitener @ jacobian
+        jacobians[0] = -whitener @ transition
         jacobians[1] = whitener
-    return whitener @ (after - moved)
+    return whitener @ (after - transition @ before)
 
 
 def _range_error(z, dim, anchor, this, values, jacobians):
@@ -86,24 +82,23 @@ def sensor_noises(measurement, robust):
     return [noise(s.sigma, robust, getattr(s, 'nu', None)) for s in sensors]
 
 
-def step_factors(data, motion, measurement, robust, jitter=1e-6):
+def step_factors(data, motion, measurement, robust):
     r"""Per step :math:`0..T` its factors: the priors at step 0, then each
-    step's transitions (their noise given full rank by :obj:`jitter` times
-    its largest variance) and links."""
+    step's transitions and links."""
     agents = torch.nonzero(~data.anchor).flatten().tolist()
     index = {node: k for k, node in enumerate(agents)}
     count = len(agents)
     dim = data.states.size(-1) // 2
     size = 2 * dim
     zero = torch.zeros(1, size, dtype=torch.float64)
-    # the model's own transition (its Jacobian at rest: the initial
-    # guesses' prediction) and noise (the same at every state)
-    transition = motion.jacobian(zero)[0].numpy()
+    # the model's own transition and noise (linear: its Jacobian at zero)
+    transition = torch.autograd.functional.jacobian(
+        lambda x: motion.mean(x), zero).reshape(size, size).numpy()
     cov = motion.noise_covariance(zero)[0].numpy()
     # sigma_a^2 W W^T has rank D: a factor needs full rank, so a jitter of
-    # a millionth of its largest variance (a 1e-3 relative spread) by
-    # default along the directions the acceleration does not reach
-    cov = cov + jitter * float(np.diag(cov).max()) * np.eye(size)
+    # a millionth of its largest variance (a 1e-3 relative spread) along
+    # the directions the acceleration does not reach
+    cov = cov + 1e-6 * float(np.diag(cov).max()) * np.eye(size)
     whitener = np.linalg.inv(np.linalg.cholesky(cov))
     unit = gtsam.noiseModel.Unit.Create(size)
     noises = sensor_noises(measurement, robust)
@@ -118,7 +113,7 @@ def step_factors(data, motion, measurement, robust, jitter=1e-6):
         for k in range(count):
             out[t].append(gtsam.CustomFactor(
                 unit, [state_key(k, t - 1, count), state_key(k, t, count)],
-                partial(_motion_error, motion, whitener)))
+                partial(_motion_error, transition, whitener)))
     several = data.edge_attr.size(1) > 1 and len(noises) > 1
     for (j, i), z, step in zip(data.edge_index.t().tolist(),
                                data.edge_attr.double().tolist(),
@@ -137,13 +132,12 @@ def step_factors(data, motion, measurement, robust, jitter=1e-6):
     return out, agents, transition
 
 
-def run(data, motion, measurement, robust, jitter=1e-6):
+def run(data, motion, measurement, robust):
     r"""iSAM2 over the steps: the filtered and smoothed means and
     covariances :math:`(A, T, S)`, :math:`(A, T, S, S)` of the agents and
-    the seconds of the incremental part (:obj:`jitter` as
-    :func:`step_factors`)."""
+    the seconds of the incremental part."""
     steps, agents, transition = step_factors(data, motion, measurement,
-                                             robust, jitter)
+                                             robust)
     count, total = len(agents), int(data.num_steps)
     size = data.states.size(-1)
     params = gtsam.ISAM2Params()
