@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -7,7 +9,8 @@ from tg_nebp.filters import CentralizedIEKF, CentralizedSmoother, Smoothed
 from helpers import (assert_batch_equals_alone,
                      assert_kalman_filter_and_smoother, assert_same_minimum,
                      assert_symmetric_positive_definite, gen,
-                     linear_rts_smoother, linear_scenario, tiny_scenario)
+                     linear_rts_smoother, linear_scenario, mirror,
+                     tiny_scenario)
 
 
 def linear_problem(steps=6):
@@ -117,3 +120,42 @@ def test_the_whole_sequence_smoother_iterates_to_its_tolerance_by_default():
     assert gap() < 1e-5
     assert CentralizedSmoother(None).num_iterations == 50
     assert CentralizedSmoother(4).num_iterations == 5
+
+
+def test_the_whole_sequence_from_a_start_is_that_start_s_optimum():
+    # linear-Gaussian: one optimum, reached from any start (the RTS
+    # smoother's means), its own solution a fixed point
+    scenario, data = linear_problem()
+    models = dict(motion=scenario.motion_model,
+                  measurement=scenario.measurement_model)
+    means, _, agents = linear_rts_smoother(data, models['motion'],
+                                           models['measurement'])
+    smoother = CentralizedSmoother(None, **models)
+    far = data.states.double() + 3.0
+    out = smoother.smoothed_from(data, far)
+    np.testing.assert_allclose(out.mean[agents].numpy(), means, rtol=1e-7,
+                               atol=1e-7)
+    # a mirror: from its filter the smoother keeps the mirror its prior
+    # put the agent on; from the truth it finds the true optimum
+    data, models = mirror((20.0, 1.5), steps=12, third_from=0, velocity=0.3)
+    smoother = CentralizedSmoother(None, **models)
+    filtered_start = smoother(data)
+    fixed = smoother.smoothed_from(data, filtered_start.mean)
+    torch.testing.assert_close(fixed.mean, filtered_start.mean, rtol=0,
+                               atol=1e-9)
+    truth = data.states[0, :, :2].double()
+    assert float((filtered_start.mean[0, :, :2] - truth).norm(
+        dim=-1).min()) > 8
+    found = smoother.smoothed_from(data, data.states)
+    assert float((found.mean[0, :, :2] - truth).norm(dim=-1).max()) < 2
+
+
+def test_a_start_is_checked():
+    data, models = mirror(steps=4)
+    smoother = CentralizedSmoother(None, **models)
+    with pytest.raises(ValueError, match="'start' must be a tensor of shape"):
+        smoother.smoothed_from(data, data.states[:, :3])
+    with pytest.raises(ValueError, match="'start' must be finite"):
+        smoother.smoothed_from(data, torch.full_like(data.states, math.nan))
+    with pytest.raises(ValueError, match='needs lag=None'):
+        CentralizedSmoother(3, **models).smoothed_from(data, data.states)

@@ -4,10 +4,10 @@ from typing import Iterator, List, NamedTuple, Optional, Tuple
 import torch
 from torch import Tensor
 
-from tg_nebp.data.realization import Realization
+from tg_nebp.data.realization import Realization, num_steps_of
 from tg_nebp.data.validation import check_lag
 from tg_nebp.filters.centralized.centralized_iekf import CentralizedIEKF
-from tg_nebp.filters.tracker import StepOutput
+from tg_nebp.filters.tracker import StepOutput, TrackOutput
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior, block_diagonal,
                               check_dense_joint, check_predicted_prior,
                               joint_cross, marginal_blocks, predict_joint,
@@ -210,11 +210,51 @@ class CentralizedSmoother(CentralizedIEKF):
                     points[g].popleft()
             yield t, means, covs
 
-    def _batch(self, data: Realization, layout: GraphLayout
+    def smoothed_from(self, data: Realization, start: Tensor
+                      ) -> TrackOutput:
+        r"""The whole sequence's maximum a posteriori states of a single
+        realization by the Gauss-Newton iterations of :obj:`lag=None`,
+        started from the states :obj:`start` :math:`(N, T, S)` (another
+        method's estimates, or the truth, to find the optimum of its
+        basin) instead of the filter's: the smoothed means and covariances
+        (anchors at their known states). The optimum is the start's basin's:
+        started from its filter, the full smoother keeps an agent that the
+        filter lost where the filter left it."""
+        self.check(data)
+        check_predicted_prior(data, self.motion, 'the centralized smoother',
+                              self.use_control)
+        if self.lag is not None:
+            raise ValueError(f"smoothed_from solves the whole sequence: it "
+                             f"needs lag=None, got lag={self.lag}")
+        layout = GraphLayout.of(data)
+        if len(layout.agents) != 1:
+            raise ValueError(f"smoothed_from takes a single realization, "
+                             f"got a batch of {len(layout.agents)}")
+        shape = (data.num_nodes, num_steps_of(data), data.prior_mean.size(1))
+        if not isinstance(start, Tensor) or tuple(start.shape) != shape:
+            raise ValueError(f"'start' must be a tensor of shape (N, T, S) "
+                             f"= {shape}, got "
+                             f"{getattr(start, 'shape', start)!r}")
+        nodes = layout.agents[0]
+        if not bool(torch.isfinite(start[nodes]).all()):
+            raise ValueError("'start' must be finite at every agent")
+        points = start.to(data.prior_mean.device).double()[nodes]
+        means, covs = [], []
+        # per step, per graph, a window of one step (as the filter's)
+        for output in self._batch(data, layout, [[state.unsqueeze(0)] for
+                                                 state in points.unbind(1)]):
+            means.append(output.mean)
+            covs.append(output.cov)
+        return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
+
+    def _batch(self, data: Realization, layout: GraphLayout,
+               start: Optional[List[List[Tensor]]] = None
                ) -> Iterator[StepOutput]:
         # the full smoother: Gauss-Newton over every step at once, from the
-        # filter's estimates
-        filtered = [means for _, means, _ in self._windows(data, layout, 1)]
+        # filter's estimates (or from 'start': per step, per graph, its
+        # agents' states as a window of one step)
+        filtered = start if start is not None else [
+            means for _, means, _ in self._windows(data, layout, 1)]
         known = data.prior_mean.double()
         prior_cov = data.prior_cov.double()
         size = known.size(1)
