@@ -141,8 +141,10 @@ def test_the_whole_sequence_from_a_start_is_that_start_s_optimum():
     smoother = CentralizedSmoother(None, **models)
     filtered_start = smoother(data)
     fixed = smoother.smoothed_from(data, filtered_start.mean)
+    # (to the iterations' tolerance, 1e-6: they stop once a step moves
+    # no more than that)
     torch.testing.assert_close(fixed.mean, filtered_start.mean, rtol=0,
-                               atol=1e-9)
+                               atol=1e-6)
     truth = data.states[0, :, :2].double()
     assert float((filtered_start.mean[0, :, :2] - truth).norm(
         dim=-1).min()) > 8
