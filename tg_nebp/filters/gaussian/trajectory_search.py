@@ -76,6 +76,15 @@ def mirror_transforms(points: Tensor, owner: Tensor, num: int, dim: int):
     return rotation, offset
 
 
+def spacetime(trajectories: Tensor) -> Tensor:
+    r"""Candidate trajectories :math:`(N, C, W, S)` as the candidates of
+    the window's space-time nodes :math:`(WN, C, S)` (node :math:`i` at
+    step :math:`k` is row :math:`kN + i`)."""
+    num, count, width, size = trajectories.shape
+    return trajectories.permute(2, 0, 1, 3).reshape(width * num, count,
+                                                    size)
+
+
 class TrajectorySearch(LinkSearch):
     r"""The search of every agent's trajectory over a window tracker's
     window (:class:`~tg_nebp.filters.FixedLagGaussianBP`), and the
@@ -264,10 +273,9 @@ class TrajectorySearch(LinkSearch):
         # the gradient (N, C, D) and curvature (N, C, D, D) of every
         # candidate's links over the window with respect to a translation
         # of the whole trajectory: the sums of its steps' position blocks
-        num, count, width, size = trajectories.shape
-        spacetime = trajectories.permute(2, 0, 1, 3).reshape(
-            width * num, count, size)
-        grad, curv = conv.target_linearization(spacetime, *linearized)
+        num, count, width, _ = trajectories.shape
+        grad, curv = conv.target_linearization(spacetime(trajectories),
+                                               *linearized)
         grad = grad[..., :dim].view(width, num, count, dim).sum(0)
         curv = curv[..., :dim, :dim].view(width, num, count, dim,
                                           dim).sum(0)
@@ -278,11 +286,10 @@ class TrajectorySearch(LinkSearch):
         # the window's log-likelihood (N, C) of every candidate trajectory
         # (N, C, W, S): its links' messages at every step and its
         # transitions
-        num, count, width, size = trajectories.shape
-        spacetime = trajectories.permute(2, 0, 1, 3).reshape(
-            width * num, count, size)
+        num, count, width, _ = trajectories.shape
         links = trajectories.new_zeros(width * num, count).index_add(
-            0, target, conv.log_messages(spacetime, *linearized)).view(
+            0, target, conv.log_messages(spacetime(trajectories),
+                                         *linearized)).view(
                 width, num, count).sum(0)
         return links + self._motion_scores(trajectories, start, motions,
                                            control)
