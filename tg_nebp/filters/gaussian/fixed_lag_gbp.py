@@ -147,8 +147,12 @@ class FixedLagGaussianBP(SlidingWindow, WindowChains, WindowRelocation,
         measurement (MeasurementModel, optional): Measurement model.
             (default: :obj:`GaussianRange()`)
         ends, damping, tolerance, inflation, compile, relocation: As
-            :class:`~tg_nebp.filters.GaussianBP` (a relocated agent rejoins
-            the window: :meth:`reinitialized`).
+            :class:`~tg_nebp.filters.GaussianBP` (an agent relocated by a
+            :class:`~tg_nebp.filters.LinkSearch` rejoins the window:
+            :meth:`reinitialized`); a
+            :class:`~tg_nebp.filters.TrajectorySearch` searches the
+            window's trajectories and moves an agent's whole window, its
+            links kept.
         schedule (str, optional): :obj:`"sweep"` sends every factor's
             messages and solves every agent's chain at every iteration;
             :obj:`"residual"` only those that can have changed: the

@@ -123,8 +123,10 @@ class TrajectorySearch(LinkSearch):
     window's link curvature there, what its links alone know of it), and
     its links keep their place in the window: their messages are computed
     again at the new trajectory (the window's hindsight stays, where
-    :class:`~tg_nebp.filters.LinkSearch`'s relocation drops them). An
-    agent uses its own links and its neighbours' beliefs only, as
+    :class:`~tg_nebp.filters.LinkSearch`'s relocation drops them; in a
+    learned window, :class:`~tg_nebp.filters.FixedLagGaussianNEBP`, they
+    are Gaussian BP's until the correction's next iterations reach them).
+    An agent uses its own links and its neighbours' beliefs only, as
     :class:`~tg_nebp.filters.LinkSearch` does.
 
     Args:
