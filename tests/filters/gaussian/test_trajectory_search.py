@@ -13,14 +13,14 @@ import pytest
 import torch
 
 from tg_nebp.filters import (HYBRID_RECOMMENDED, FixedLagGaussianBP,
-                             GaussianBP, HybridBP, LinkSearch,
-                             TrackingSession, TrajectorySearch)
+                             FixedLagGaussianNEBP, GaussianBP, HybridBP,
+                             LinkSearch, TrackingSession, TrajectorySearch)
 from tg_nebp.filters.gaussian.relocation import decisive_modes
 from tg_nebp.filters.gaussian.trajectory_search import mirror_transforms
 from tg_nebp.models import (ConstantVelocity, ConstantVelocityDrag,
                             UnicycleOdometry)
 
-from helpers import mirror, stream_realization
+from helpers import mirror, randomize, stream_realization
 
 #: The third anchor that decides the mirror over the window, not in one
 #: step: its range differs by about 3 standard deviations between the
@@ -247,3 +247,17 @@ def test_refusals():
         TrajectorySearch(steps=1.5)
     assert TrajectorySearch() == TrajectorySearch()
     assert TrajectorySearch().settings()['search'] == 'trajectory'
+
+
+def test_a_learned_window_relocates_too():
+    # the Gaussian NEBP's window (random weights): its moved agent's
+    # messages are computed again as Gaussian BP's, the correction's
+    # iterations take over
+    data, models = moving_mirror()
+    tracker = randomize(FixedLagGaussianNEBP.recommended(lag=LAG, **models),
+                        seed=2, scale=0.05).relocate_with(TrajectorySearch())
+    with torch.no_grad():
+        found = errors(tracker(data), data)
+    at = int((found < 1.0).nonzero()[0, 0])
+    assert at < LAG
+    assert bool((found[at:] < 1.0).all())
