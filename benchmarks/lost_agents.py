@@ -64,22 +64,29 @@ def line(name, errors, lost, seconds):
             f"{sum(lost)} {lost}, {seconds:.1f} s per realization")
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def realizations(parser: argparse.ArgumentParser):
+    r"""The run's arguments (a scenario, its test realizations and the
+    window's lag, with those :obj:`parser` adds), its realizations and the
+    scenario's models, one torch thread."""
     parser.add_argument('--scenario', default='paper_test_sparse')
     parser.add_argument('--realizations', type=int, default=20)
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--lag', type=int, default=10)
     parser.add_argument('--root', default='datasets')
-    parser.add_argument('--only', nargs='*', default=None,
-                        help='the methods to run (by name), all by default')
     args = parser.parse_args()
     torch.set_num_threads(1)
     scenario = scenario_of(args.scenario)
     dataset, = load_datasets(args.root, (scenario, args.realizations,
                                          args.seed))
-    models = dict(motion=scenario.motion_model,
-                  measurement=scenario.measurement_model)
+    return args, dataset, dict(motion=scenario.motion_model,
+                               measurement=scenario.measurement_model)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--only', nargs='*', default=None,
+                        help='the methods to run (by name), all by default')
+    args, dataset, models = realizations(parser)
     for name, (tracker, smooths) in methods(models, args.lag).items():
         if args.only and name not in args.only:
             continue

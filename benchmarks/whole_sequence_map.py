@@ -21,27 +21,14 @@ import time
 
 import torch
 
-from lost_agents import line, scored  # beside this one
-from tg_nebp.datasets import load_datasets
-from tg_nebp.experiments.evaluate import scenario_of
+from lost_agents import line, realizations, scored  # beside this one
 from tg_nebp.filters import (CentralizedSmoother, FixedLagGaussianBP,
                              Smoothed, TrajectorySearch)
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--scenario', default='paper_test_sparse')
-    parser.add_argument('--realizations', type=int, default=20)
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--lag', type=int, default=10)
-    parser.add_argument('--root', default='datasets')
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    scenario = scenario_of(args.scenario)
-    dataset, = load_datasets(args.root, (scenario, args.realizations,
-                                         args.seed))
-    models = dict(motion=scenario.motion_model,
-                  measurement=scenario.measurement_model)
+    args, dataset, models = realizations(argparse.ArgumentParser(
+        description=__doc__.splitlines()[0]))
     smoother = CentralizedSmoother(None, **models)
     window = Smoothed(FixedLagGaussianBP.recommended(
         lag=args.lag, relocation=TrajectorySearch(), **models))

@@ -318,8 +318,8 @@ class FixedLagGaussianBP(SlidingWindow, WindowChains, WindowRelocation,
         hindsight = None
         if isinstance(self.relocation, TrajectorySearch):
             relocated, hindsight = self._relocated_window(
-                state, window, belief, messages, covs, points, anchor,
-                graph_of, t, generator)
+                state, window, belief, messages, points, anchor, graph_of,
+                t, generator)
             if relocated is not None:
                 state, window, belief, messages, covs, points = relocated
                 settled = None, None  # its forward pass runs again

@@ -319,8 +319,8 @@ class WindowRelocation:
     over the window after a step's iterations, and the moved agents'
     windows, priors and messages set where the search put them."""
 
-    def _relocated_window(self, state, window, belief, messages, covs,
-                          points, anchor, graph_of, t, generator):
+    def _relocated_window(self, state, window, belief, messages, points,
+                          anchor, graph_of, t, generator):
         # the window after the search of the agents due at time index t:
         # (state, window, belief, messages, covs, points) with every moved
         # agent's trajectory, Gaussian before the window and first prior
