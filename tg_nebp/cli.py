@@ -237,6 +237,11 @@ def _add_method_options(parser: argparse.ArgumentParser):
         "sequence (as iSAM2: each step relinearizes only the past states "
         "that moved; its filtered entry is each step's newest states with "
         "the past relinearized, iekf-incremental)")
+    add('--escape', action='store_true',
+        help="iekf with --lag all: the full smoother started from the "
+        "incremental smoother's last step, every agent's trajectory then "
+        "searched for a better basin by a conditional particle filter "
+        "(ParticleTrajectorySearch; iekf-smoother-escape)")
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '
         'ideal of a distributed filter)')

@@ -356,10 +356,11 @@ def test_smoother_rows_each_beside_its_bound(tmp_path, capsys):
         'gbp-lag3 gaussian', 'gbp-lag3-smoothed gaussian',
         'iekf-lag3-smoothed student-t', 'iekf-smoother gaussian',
         'gbp-plain gaussian', 'iekf-incremental gaussian',
-        'iekf-incremental-smoothed gaussian')] == [
+        'iekf-incremental-smoothed gaussian',
+        'iekf-smoother-escape gaussian')] == [
             'pcrb', 'pcrb-lag3', 'pcrb-smoother', 'pcrb', 'pcrb',
             'pcrb-lag3', 'pcrb-lag3', 'pcrb-smoother', 'pcrb', 'pcrb',
-            'pcrb-smoother']
+            'pcrb-smoother', 'pcrb-smoother']
     scenarios = scenario_files(tmp_path)[:1]
     assert main(['compare', '--scenario', *scenarios, '--realizations',
                  '2', '--lag', '3', '--methods', 'pcrb', 'gbp-lag3 gaussian',

@@ -12,7 +12,7 @@ from tg_nebp.experiments.evaluate import evaluate_scenario, method_tracker
 from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS, MethodOptions
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
                              FixedLagGaussianNEBP, GaussianBP, GaussianNEBP,
-                             ParticleBP)
+                             ParticleBP, ParticleTrajectorySearch)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
 
@@ -34,6 +34,11 @@ def test_method_tracker_builds_each_method(scenario):
     tracker, key = method_tracker('iekf', scenario, marginal=True,
                                   measurement='student-t')
     assert key == 'iekf-marginal'
+    escape, escape_key = method_tracker('iekf', scenario, lag='all',
+                                        escape=True)
+    assert escape_key == 'iekf-smoother-escape'
+    assert escape.start == 'incremental'
+    assert escape.search == ParticleTrajectorySearch()
     assert isinstance(tracker.measurement, StudentTRange)
     # the scenario's sigma and range are kept
     assert tracker.measurement.sigma == scenario.measurement_model.sigma
@@ -68,7 +73,7 @@ GIVEN = dict(checkpoint='nebp.pt', particles=8, samples=2, compile=True,
              resampler='systematic', regularize=0.2, ess_threshold=0.5,
              measurement='student-t', iterations=2, ends='both',
              marginal=True, inflation=1.2, tolerance=0.0, no_control=True,
-             lag=3, incremental=True, report_inflation=2.0,
+             lag=3, incremental=True, escape=True, report_inflation=2.0,
              adapt_noise=True)
 
 

@@ -41,6 +41,10 @@ def test_a_record_is_made_from_keywords_or_parsed_arguments():
      r"bp or nebp or hybrid, not gbp"),
     ('iekf', dict(incremental=True), "'incremental' is the smoother of the "
      "whole sequence"),
+    ('iekf', dict(escape=True, lag=5), r"'escape' \(--escape\) is the full "
+     r"smoother's search"),
+    ('iekf', dict(escape=True, lag='all', incremental=True),
+     "without 'incremental'"),
     ('gbp', dict(lag='all'), r"'lag' 'all' \(the whole sequence\) is for "
      r"method iekf or pcrb"),
     ('iekf', dict(lag=3, marginal=True), "'lag' and 'marginal'"),

@@ -4,13 +4,14 @@ of a turn in its estimate's error, and every reported heading is wrapped;
 every measurement model of the library on every smoother."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from tg_nebp.filters import (CentralizedIEKF, CentralizedSmoother,
                              FixedLagGaussianBP, GaussianBP, GaussianNEBP,
                              HybridBP, IncrementalSmoother, ParticleBP,
-                             Smoothed)
+                             ParticleTrajectorySearch, Smoothed)
 from tg_nebp.metrics import angle_errors
 from tg_nebp.models import (GaussianRange, GaussianRangeBearing, NLOSRange,
                             StudentTRange, StudentTRangeBearing,
@@ -53,6 +54,11 @@ TRACKERS = {
                                                      measurement=z),
     'iekf-incremental': lambda m, z: IncrementalSmoother(motion=m,
                                                          measurement=z),
+    # the whole sequence's smoother from the incremental smoother's wrapped
+    # estimates, searched by particles that turn across the cut
+    'iekf-escape': lambda m, z: CentralizedSmoother(
+        None, start='incremental', search=ParticleTrajectorySearch(
+            num_particles=100, separation=0.5), motion=m, measurement=z),
 }
 SMOOTHERS = ('gbp-lag5', 'iekf-lag5', 'hybrid-lag3', 'iekf-incremental')
 
@@ -128,3 +134,25 @@ def test_the_particles_of_hybrid_bp_stay_on_one_turn(lag):
         truth = data.states[:2, step.t]
         assert float((mean[:, :2] - truth[:, :2]).norm(dim=-1).max()) < 0.5
         assert float(angle_errors(mean[:, 2], truth[:, 2]).max()) < 0.15
+
+
+def test_a_wrapped_start_or_estimate_is_lifted_along_the_sequence():
+    # the full smoother's estimates cross the cut wrapped; as a start, or
+    # as the states whose cost is asked, they are the lifted track (numpy's
+    # unwrap from the prior's heading), not a track that turns a whole turn
+    # between two steps
+    data, motion, measurement = _circling()
+    smoother = CentralizedSmoother(None, motion=motion,
+                                   measurement=measurement)
+    wrapped = smoother(data).mean
+    lifted = wrapped.clone()
+    lifted[..., 2] = torch.from_numpy(np.unwrap(torch.cat([
+        data.prior_mean[:, 2:].double(), wrapped[..., 2]], 1).numpy(),
+        axis=1))[:, 1:]
+    assert bool((lifted != wrapped).any())
+    cost = float(smoother.sequence_cost(data, lifted))
+    np.testing.assert_allclose(float(smoother.sequence_cost(data, wrapped)),
+                               cost, rtol=1e-9)
+    again = smoother.smoothed_from(data, wrapped)
+    np.testing.assert_allclose(float(smoother.sequence_cost(
+        data, again.mean)), cost, rtol=1e-9)

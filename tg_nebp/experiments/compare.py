@@ -28,7 +28,8 @@ from tg_nebp.experiments.options import WHOLE_SEQUENCE
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              GaussianBP, HybridBP, IncrementalSmoother,
-                             LinkSearch, ParticleBP, Smoothed, Tracker)
+                             LinkSearch, ParticleBP,
+                             ParticleTrajectorySearch, Smoothed, Tracker)
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
@@ -46,6 +47,9 @@ COMPARE_SCENARIOS = ('paper_test', 'paper_test_nlos')
 BOUND = 'pcrb'
 #: The end of the first word of a smoother's row of smoothed estimates.
 SMOOTHED = '-smoothed'
+#: The suffix of the full smoother's row with the search of better basins
+#: (:class:`~tg_nebp.filters.ParticleTrajectorySearch`).
+ESCAPE = '-escape'
 #: The suffix of a bound of the ranges alone (a scenario with bearings)
 RANGE_ONLY = '-range-only'
 #: The first word of a checkpoint's row, by the checkpoint's base.
@@ -98,7 +102,9 @@ def compare_methods(scenario: Scenario,
     range-only rows) and of the whole sequence
     (:obj:`"pcrb-smoother"`), the centralized fixed-lag smoother with the
     scenario's likelihood (:obj:`"iekf-lagL ..."`), the full one
-    (:obj:`"iekf-smoother ..."`) and the incremental one
+    (:obj:`"iekf-smoother ..."`; :obj:`"iekf-smoother-escape ..."` from
+    the incremental smoother's last step with the search of better
+    basins) and the incremental one
     (:obj:`"iekf-incremental ..."`, filtered and smoothed), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
     :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
@@ -187,6 +193,13 @@ def compare_methods(scenario: Scenario,
             'centralized full smoother (Gauss-Newton over all steps)',
             lambda: CentralizedSmoother(None, motion=motion,
                                         measurement=own))
+        methods[f'iekf{lag_key(WHOLE_SEQUENCE)}{ESCAPE} {own.name}'] = (
+            "centralized full smoother from the incremental smoother's "
+            "last step, every agent's trajectory searched for a better "
+            "basin (ParticleTrajectorySearch)",
+            lambda: CentralizedSmoother(
+                None, start='incremental', search=ParticleTrajectorySearch(),
+                motion=motion, measurement=own))
     for likelihood in likelihoods:
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (
@@ -541,7 +554,8 @@ def floor_row(key: str) -> str:
     smoother's smoothed estimates (:obj:`"...-lagL-smoothed ..."`) by the
     smoothing bound at its lag (:obj:`"pcrb-lagL"`), the full smoother
     (:obj:`"iekf-smoother ..."`) and the incremental smoother's smoothed
-    row (:obj:`"iekf-incremental-smoothed ..."`) by that of the whole
+    row (:obj:`"iekf-incremental-smoothed ..."`), and the full smoother
+    with its search (:obj:`"iekf-smoother-escape ..."`) by that of the whole
     sequence (:obj:`"pcrb-smoother"`), a smoothing bound by itself, every other row
     (filters, and the smoothers' filtered estimates) by the filtering
     bound (:data:`BOUND`)."""
@@ -549,7 +563,7 @@ def floor_row(key: str) -> str:
     whole = lag_key(WHOLE_SEQUENCE)
     if first.startswith(BOUND + '-lag') or first == BOUND + whole:
         return first
-    if first.endswith(whole):
+    if first.endswith(whole) or first.endswith(whole + ESCAPE):
         return BOUND + whole
     if first.endswith(SMOOTHED):
         window = first[:-len(SMOOTHED)]

@@ -20,7 +20,8 @@ from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              FixedLagGaussianNEBP, GaussianBP, HybridBP,
                              IncrementalSmoother, LinkSearch,
-                             NoiseAdaptation, ParticleBP, Smoothed, Tracker)
+                             NoiseAdaptation, ParticleBP,
+                             ParticleTrajectorySearch, Smoothed, Tracker)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -220,6 +221,11 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
             return IncrementalSmoother(
                 **_given(num_iterations=iterations),
                 **models), 'iekf-incremental'
+        if options.escape:
+            return CentralizedSmoother(
+                None, **_given(num_iterations=iterations), **models,
+                start='incremental',
+                search=ParticleTrajectorySearch()), 'iekf-smoother-escape'
         if lag is not None:
             return CentralizedSmoother(
                 window, **_given(num_iterations=iterations),

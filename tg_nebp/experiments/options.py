@@ -81,6 +81,9 @@ class MethodOptions:
     lag: Union[int, str, None] = _option(('gbp', 'hybrid', 'iekf', 'pcrb'))
     #: The incremental smoother of the whole sequence.
     incremental: bool = _option(('iekf', ), False)
+    #: The full smoother started from the incremental smoother's last step,
+    #: with the search of every agent's trajectory for a better basin.
+    escape: bool = _option(('iekf', ), False)
 
     @classmethod
     def of(cls, given: Union[Mapping[str, Any], Any]) -> 'MethodOptions':
@@ -146,6 +149,10 @@ class MethodOptions:
         if self.incremental and lag != WHOLE_SEQUENCE:
             raise ValueError(f"'incremental' is the smoother of the whole "
                              f"sequence: give 'lag' {WHOLE_SEQUENCE!r}")
+        if self.escape and (lag != WHOLE_SEQUENCE or self.incremental):
+            raise ValueError(f"'escape' (--escape) is the full smoother's "
+                             f"search of the whole sequence: give 'lag' "
+                             f"{WHOLE_SEQUENCE!r} without 'incremental'")
         if lag is not None and self.report_inflation is not None:
             raise ValueError("'report_inflation' (--report-inflation) and "
                              "'lag': a window reports its beliefs as they "

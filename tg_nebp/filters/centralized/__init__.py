@@ -1,9 +1,12 @@
 r"""The centralized references: the iterated EKF over the joint of all
 agents (or their marginals), the fixed-lag and full smoothers, and the
-incremental smoother of the whole sequence (as iSAM2)."""
+incremental smoother of the whole sequence (as iSAM2), and the full
+smoother's search for better basins than its start's."""
 from .centralized_iekf import CentralizedIEKF, JointState
 from .centralized_smoother import CentralizedSmoother
 from .incremental_smoother import IncrementalSmoother, SmootherState
+from .particle_trajectory_search import (EscapeSweep,
+                                         ParticleTrajectorySearch)
 
 __all__ = [
     'CentralizedIEKF',
@@ -11,4 +14,6 @@ __all__ = [
     'CentralizedSmoother',
     'IncrementalSmoother',
     'SmootherState',
+    'ParticleTrajectorySearch',
+    'EscapeSweep',
 ]

@@ -248,10 +248,13 @@ class CentralizedIEKF(Tracker):
     def _ends(state: Tensor, sender: Tensor, receiver: Tensor,
               known: Tensor):
         # the states [E, S] of the links' two ends: the agents' from
-        # 'state' [A, S], an anchor sender's from 'known'
+        # 'state' [A, S], a known end's (index -1: an anchor sender, or a
+        # neighbour held fixed while one agent is searched) from 'known'
         at_sender = torch.where((sender >= 0).view(-1, 1),
                                 state[sender.clamp_min(0)], known)
-        return at_sender, state[receiver]
+        at_receiver = torch.where((receiver >= 0).view(-1, 1),
+                                  state[receiver.clamp_min(0)], known)
+        return at_sender, at_receiver
 
     def _log_likelihood(self, state: Tensor, z: Tensor, *links) -> Tensor:
         # the log-likelihood of a step's links at the agents' 'state': the
@@ -288,10 +291,12 @@ class CentralizedIEKF(Tracker):
             state.new_zeros(count * width, count * width), blocks, sender,
             receiver)
         grads = grads.view(-1, 2, width)
-        links = grads.new_zeros(count, width).index_add_(0, receiver,
-                                                         grads[:, 1])
-        agent = sender >= 0
-        links.index_add_(0, sender[agent], grads[agent, 0])
+        links = grads.new_zeros(count, width)
+        # (the receivers' first: the sums of the links into an agent in
+        # the order they always had)
+        for end, index in ((1, receiver), (0, sender)):
+            agent = index >= 0
+            links.index_add_(0, index[agent], grads[agent, end])
         return info, links
 
     def _linearized(self, state: Tensor, woodbury: WoodburyPrior,

@@ -7,6 +7,8 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization, num_steps_of
 from tg_nebp.data.validation import check_lag
 from tg_nebp.filters.centralized.centralized_iekf import CentralizedIEKF
+from tg_nebp.filters.centralized.particle_trajectory_search import \
+    ParticleTrajectorySearch
 from tg_nebp.filters.tracker import StepOutput, TrackOutput
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior, block_diagonal,
                               check_dense_joint, check_predicted_prior,
@@ -46,6 +48,10 @@ class _Pass(NamedTuple):
     filtered: List[Tuple[Tensor, Tensor]]
     smoothed: List[Tuple[Tensor, Tensor]]
 
+
+#: Where the whole sequence's iterations can start (the :obj:`start` of
+#: :class:`CentralizedSmoother`).
+STARTS = ('filter', 'incremental')
 
 #: The Gauss-Newton iterations of the whole sequence's smoother by default
 #: (it stops early at its tolerance).
@@ -95,12 +101,14 @@ class CentralizedSmoother(CentralizedIEKF):
     :math:`L`. With :obj:`lag=1` it is the centralized IEKF (equal to
     rounding once the iterations converge). With :obj:`lag=None` it is the
     full batch smoother: the whole sequence is one window, started from
-    the filtered estimates of :obj:`lag=1`, and every step's smoothed
-    estimate is yielded at the end.
+    the filtered estimates of :obj:`lag=1` (or the incremental smoother's,
+    :obj:`start`), then searched for better basins (:obj:`search`, a
+    :class:`~tg_nebp.filters.ParticleTrajectorySearch`), and every step's
+    smoothed estimate is yielded at the end.
 
     Float64 inside, dense :math:`(AS)^2` joints per step of the window;
     time grows as :math:`L A^3` per iteration. Offline only (no live
-    session): it is the reference. No random draws.
+    session): it is the reference. No random draws but the search's.
 
     Args:
         lag (int, optional): Steps in the window :math:`L` (the newest
@@ -122,6 +130,18 @@ class CentralizedSmoother(CentralizedIEKF):
             the iterations stop at the current point. (default: :obj:`10`)
         tolerance (float, optional): The iterations stop after a step
             whose largest entry is at most this. (default: :obj:`1e-6`)
+        start (str, optional): With :obj:`lag=None`, where the iterations
+            start: :obj:`"filter"` (the filtered estimates of
+            :obj:`lag=1`) or :obj:`"incremental"` (the whole sequence's
+            estimates of the incremental smoother,
+            :class:`~tg_nebp.filters.IncrementalSmoother`, at the last step:
+            the past relinearized as every step arrived, which keeps fewer
+            of the filter's lost agents). (default: :obj:`"filter"`)
+        search (ParticleTrajectorySearch, optional): With :obj:`lag=None`,
+            the search of every agent's trajectory for a better basin
+            than its start's, after the iterations converge (its sweeps
+            draw from the :obj:`generator`); :obj:`None` keeps the start's
+            basin. (default: :obj:`None`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -137,13 +157,32 @@ class CentralizedSmoother(CentralizedIEKF):
                  num_iterations: Optional[int] = None,
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
-                 max_halvings: int = 10, tolerance: float = 1e-6):
+                 max_halvings: int = 10, tolerance: float = 1e-6,
+                 start: str = 'filter',
+                 search: Optional[ParticleTrajectorySearch] = None):
         lag = check_lag(lag)
+        if start not in STARTS:
+            raise ValueError(f"'start' must be one of {STARTS}, got "
+                             f"{start!r}")
+        if start != 'filter' and lag is not None:
+            raise ValueError(f"start={start!r} starts the whole sequence's "
+                             f"smoother: it needs lag=None, got lag={lag}")
+        if search is not None:
+            if not isinstance(search, ParticleTrajectorySearch):
+                raise TypeError(f"'search' must be a "
+                                f"ParticleTrajectorySearch or None, got "
+                                f"{type(search).__name__}")
+            if lag is not None:
+                raise ValueError(f"'search' escapes the whole sequence's "
+                                 f"smoother: it needs lag=None, got "
+                                 f"lag={lag}")
         if num_iterations is None:
             num_iterations = WHOLE_SEQUENCE_ITERATIONS if lag is None else 5
         super().__init__(num_iterations, motion, measurement,
                          max_halvings=max_halvings, tolerance=tolerance)
         self.lag = lag
+        self.start = start
+        self.search = search
 
     def initial_state(self, data, generator=None):
         raise NotImplementedError(
@@ -159,7 +198,9 @@ class CentralizedSmoother(CentralizedIEKF):
 
         Args:
             data (Realization): A single or batched realization.
-            generator: Unused (the smoother draws nothing).
+            generator (torch.Generator or list, optional): The draws of
+                the :obj:`search` (the smoother draws nothing without
+                one), one generator for all graphs or one per graph.
                 (default: :obj:`None`)
         """
         self.check(data)
@@ -170,7 +211,7 @@ class CentralizedSmoother(CentralizedIEKF):
         check_dense_joint(max(a.numel() for a in layout.agents), size,
                           'the centralized smoother', data.prior_mean.device)
         if self.lag is None:
-            yield from self._batch(data, layout)
+            yield from self._batch(data, layout, generator=generator)
             return
         for t, means, covs in self._windows(data, layout, self.lag):
             yield self._output(t, data, layout, means, covs)
@@ -210,7 +251,8 @@ class CentralizedSmoother(CentralizedIEKF):
                     points[g].popleft()
             yield t, means, covs
 
-    def smoothed_from(self, data: Realization, start: Tensor
+    def smoothed_from(self, data: Realization, start: Tensor,
+                      generator: Optional[torch.Generator] = None
                       ) -> TrackOutput:
         r"""The whole sequence's maximum a posteriori states of a single
         realization by the Gauss-Newton iterations of :obj:`lag=None`,
@@ -219,59 +261,128 @@ class CentralizedSmoother(CentralizedIEKF):
         basin) instead of the filter's: the smoothed means and covariances
         (anchors at their known states). The optimum is the start's basin's:
         started from its filter, the full smoother keeps an agent that the
-        filter lost where the filter left it."""
+        filter lost where the filter left it, unless the :obj:`search`
+        moves it (drawing from :obj:`generator`)."""
         self.check(data)
         check_predicted_prior(data, self.motion, 'the centralized smoother',
                               self.use_control)
-        if self.lag is not None:
-            raise ValueError(f"smoothed_from solves the whole sequence: it "
-                             f"needs lag=None, got lag={self.lag}")
-        layout = GraphLayout.of(data)
-        if len(layout.agents) != 1:
-            raise ValueError(f"smoothed_from takes a single realization, "
-                             f"got a batch of {len(layout.agents)}")
-        shape = (data.num_nodes, num_steps_of(data), data.prior_mean.size(1))
-        if not isinstance(start, Tensor) or tuple(start.shape) != shape:
-            raise ValueError(f"'start' must be a tensor of shape (N, T, S) "
-                             f"= {shape}, got "
-                             f"{getattr(start, 'shape', start)!r}")
-        nodes = layout.agents[0]
-        if not bool(torch.isfinite(start[nodes]).all()):
-            raise ValueError("'start' must be finite at every agent")
-        points = start.to(data.prior_mean.device).double()[nodes]
+        layout = self._single(data, start, 'start')
+        points = start.to(data.prior_mean.device).double()[layout.agents[0]]
         means, covs = [], []
         # per step, per graph, a window of one step (as the filter's)
         for output in self._batch(data, layout, [[state.unsqueeze(0)] for
-                                                 state in points.unbind(1)]):
+                                                 state in points.unbind(1)],
+                                  generator):
             means.append(output.mean)
             covs.append(output.cov)
         return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
 
+    def sequence_cost(self, data: Realization, states: Tensor) -> Tensor:
+        r"""The whole sequence's cost at the states :obj:`states`
+        :math:`(N, T, S)` of a single realization's nodes (the agents'
+        read; on the motion model's trajectories, as every smoothed track
+        is): the negative log-posterior that :obj:`lag=None` minimizes, up
+        to a constant, as its iterations weigh it (each transition by the
+        driving noise that makes it). Lower is a better basin: what the
+        :obj:`search` compares."""
+        self.check(data)
+        layout = self._single(data, states, 'states')
+        base, slots, points = self._problem(data, layout, [
+            [state.unsqueeze(0)] for state in
+            states.to(data.prior_mean.device).double()[
+                layout.agents[0]].unbind(1)])[0]
+        return self._cost_of(base, slots, points)
+
+    def _single(self, data: Realization, states, name: str) -> GraphLayout:
+        # the layout of a single realization whose agents' whole-sequence
+        # 'states' (N, T, S) are given as 'name'
+        if self.lag is not None:
+            raise ValueError(f"'{name}' is the whole sequence's: it needs "
+                             f"lag=None, got lag={self.lag}")
+        layout = GraphLayout.of(data)
+        if len(layout.agents) != 1:
+            raise ValueError(f"a single realization is needed, got a batch "
+                             f"of {len(layout.agents)}")
+        shape = (data.num_nodes, num_steps_of(data), data.prior_mean.size(1))
+        if not isinstance(states, Tensor) or tuple(states.shape) != shape:
+            raise ValueError(f"'{name}' must be a tensor of shape (N, T, S) "
+                             f"= {shape}, got "
+                             f"{getattr(states, 'shape', states)!r}")
+        if not bool(torch.isfinite(states[layout.agents[0]]).all()):
+            raise ValueError(f"'{name}' must be finite at every agent")
+        return layout
+
     def _batch(self, data: Realization, layout: GraphLayout,
-               start: Optional[List[List[Tensor]]] = None
+               start: Optional[List[List[Tensor]]] = None,
+               generator: Optional[torch.Generator] = None
                ) -> Iterator[StepOutput]:
         # the full smoother: Gauss-Newton over every step at once, from the
         # filter's estimates (or from 'start': per step, per graph, its
-        # agents' states as a window of one step)
-        filtered = start if start is not None else [
-            means for _, means, _ in self._windows(data, layout, 1)]
-        known = data.prior_mean.double()
-        prior_cov = data.prior_cov.double()
-        size = known.size(1)
-        slots = list(self._slots(data, layout))
+        # agents' states as a window of one step), then the search's
+        # escapes
+        size = data.prior_mean.size(1)
         means, covs = [], []
-        for g, nodes in enumerate(layout.agents):
-            base = _Base(known[nodes], block_diagonal(prior_cov[nodes]),
-                         known[nodes])
-            solved, final = self._solve(base, [step[g] for step in slots],
-                                        [step[g][0] for step in filtered])
+        # one generator per graph (as the evaluation passes them), or one
+        # for all
+        generators = (generator if isinstance(generator, (list, tuple))
+                      else [generator] * len(layout.agents))
+        for (base, mine, points), drawn in zip(
+                self._problem(data, layout, start), generators):
+            solved, final = self._solve(base, mine, points)
+            if self.search is not None:
+                solved, final = self.search.escaped(
+                    self, base, mine, (solved, final), drawn)
             means.append(torch.stack(solved))
             covs.append(torch.stack([marginal_blocks(cov, size)
                                      for _, cov in final.smoothed]))
-        output = self._output(len(slots) - 1, data, layout, means, covs)
-        for t in range(len(slots)):
+        output = self._output(means[0].size(0) - 1, data, layout, means,
+                              covs)
+        for t in range(output.window_mean.size(1)):
             yield StepOutput(t, output.window_mean[:, t],
                              output.window_cov[:, t])
+
+    def _problem(self, data: Realization, layout: GraphLayout,
+                 start: Optional[List[List[Tensor]]] = None):
+        # per graph the whole sequence's problem: the Gaussian before it
+        # (the prior), every step's links and the start of the iterations
+        # (the filter's or the incremental smoother's estimates unless
+        # 'start' gives them; a given one's angles lifted along the
+        # sequence, as the filter's are)
+        if start is None and self.start == 'filter':
+            lifted = [means for _, means, _ in self._windows(data, layout, 1)]
+        else:
+            if start is None:
+                start = self._incremental_start(data, layout)
+            # each step within half a turn of the one before, the first of
+            # the prior's mean
+            nearest = self.motion.layout(data.prior_mean.size(1)).nearest
+            lifted = [[data.prior_mean.double()[nodes].unsqueeze(0)
+                       for nodes in layout.agents]]
+            for step in start:
+                lifted.append([nearest(here.double(), before) for
+                               here, before in zip(step, lifted[-1])])
+            lifted = lifted[1:]
+        known = data.prior_mean.double()
+        prior_cov = data.prior_cov.double()
+        slots = list(self._slots(data, layout))
+        return [(_Base(known[nodes], block_diagonal(prior_cov[nodes]),
+                       known[nodes]), [step[g] for step in slots],
+                 [step[g][0] for step in lifted])
+                for g, nodes in enumerate(layout.agents)]
+
+    def _incremental_start(self, data: Realization, layout: GraphLayout):
+        # the incremental smoother's whole-sequence estimates at the last
+        # step, per step, per graph (as a window of one step)
+        from tg_nebp.filters.centralized.incremental_smoother import \
+            IncrementalSmoother  # (it builds on this one)
+        incremental = IncrementalSmoother(
+            motion=self.motion, measurement=self.measurement,
+            max_halvings=self.max_halvings, tolerance=self.tolerance)
+        for last in incremental.steps(data):
+            pass
+        means = last.window_mean.double()
+        return [[means[nodes, t].unsqueeze(0) for nodes in layout.agents]
+                for t in range(means.size(1))]
 
     def _slots(self, data: Realization, layout: GraphLayout):
         # every step's links per graph, as the IEKF's update reads them
@@ -372,6 +483,16 @@ class CentralizedSmoother(CentralizedIEKF):
                         inverse.unsqueeze(-1) * vectors.transpose(-1, -2)))
         return out
 
+    def _noises(self, slots: List[_Slot], points: List[Tensor],
+                factors) -> List[Tensor]:
+        # the driving noise of every transition of the window at 'points'
+        # (the move off f(x_{k-1}) mapped by the pseudo-inverse of its
+        # noise's square root: the part the noise reaches)
+        return [(inverse @ (points[k] - self.motion.mean(
+            points[k - 1], **inputs(slots[k].control))).unsqueeze(-1)
+                 ).squeeze(-1)
+                for k, (_, _, inverse) in enumerate(factors, 1)]
+
     def _rolled_out(self, slots: List[_Slot], first: Tensor,
                     noises: List[Tensor], factors) -> List[Tensor]:
         # the window's states from its first step's and every transition's
@@ -402,8 +523,18 @@ class CentralizedSmoother(CentralizedIEKF):
                                                slot.known)
         return cost
 
-    def _solve(self, base: _Base, slots: List[_Slot],
-               points: List[Tensor]) -> Tuple[List[Tensor], _Pass]:
+    def _cost_of(self, base: _Base, slots: List[_Slot],
+                 points: List[Tensor]) -> Tensor:
+        # the window's cost at 'points' (on the motion model's
+        # trajectories, as every iterate is), as the iterations weigh it
+        prior, prior_cov, _ = self._predicted(base, slots[0].control)
+        factors = self._noise_factors(slots, points)
+        return self._window_cost(slots, points, self._noises(
+            slots, points, factors), torch.linalg.cholesky(prior_cov), prior)
+
+    def _solve(self, base: _Base, slots: List[_Slot], points: List[Tensor],
+               iterations: Optional[int] = None
+               ) -> Tuple[List[Tensor], _Pass]:
         # Gauss-Newton over the window from 'points' with step halving:
         # the solution and the forward-backward pass at it. The window is
         # parametrized by its first state and the driving noise of every
@@ -411,12 +542,10 @@ class CentralizedSmoother(CentralizedIEKF):
         # to them, and a trial is rolled out through the motion model
         prior, prior_cov, _ = self._predicted(base, slots[0].control)
         factor = torch.linalg.cholesky(prior_cov)
-        for _ in range(self.num_iterations):
+        for _ in range(self.num_iterations if iterations is None
+                       else iterations):
             factors = self._noise_factors(slots, points)
-            noises = [(inverse @ (points[k] - self.motion.mean(
-                points[k - 1], **inputs(slots[k].control))).unsqueeze(-1)
-                      ).squeeze(-1)
-                      for k, (_, _, inverse) in enumerate(factors, 1)]
+            noises = self._noises(slots, points, factors)
             points = self._rolled_out(slots, points[0], noises, factors)
             cost = self._window_cost(slots, points, noises, factor, prior)
             step = [offset for offset, _ in
@@ -443,9 +572,14 @@ class CentralizedSmoother(CentralizedIEKF):
         return points, self._forward_backward(base, slots, points)
 
     def settings(self) -> dict:
-        return dict(super().settings(), lag=self.lag)
+        return dict(super().settings(), lag=self.lag, **(
+            {} if self.start == 'filter' else dict(start=self.start)), **(
+            {} if self.search is None else
+            dict(search=self.search.settings())))
 
     def __repr__(self) -> str:
+        start = '' if self.start == 'filter' else f', start={self.start!r}'
+        search = '' if self.search is None else f', search={self.search}'
         return (f'{self.__class__.__name__}(lag={self.lag}, num_iterations='
                 f'{self.num_iterations}, motion={self.motion}, '
-                f'measurement={self.measurement})')
+                f'measurement={self.measurement}{start}{search})')
