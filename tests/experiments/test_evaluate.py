@@ -12,7 +12,8 @@ from tg_nebp.experiments.evaluate import evaluate_scenario, method_tracker
 from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS, MethodOptions
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
                              FixedLagGaussianNEBP, GaussianBP, GaussianNEBP,
-                             ParticleBP, ParticleTrajectorySearch)
+                             IncrementalSmoother, ParticleBP,
+                             ParticleTrajectorySearch)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
 
@@ -37,7 +38,7 @@ def test_method_tracker_builds_each_method(scenario):
     escape, escape_key = method_tracker('iekf', scenario, lag='all',
                                         escape=True)
     assert escape_key == 'iekf-smoother-escape'
-    assert escape.start == 'incremental'
+    assert isinstance(escape.start.tracker, IncrementalSmoother)
     assert escape.search == ParticleTrajectorySearch()
     assert isinstance(tracker.measurement, StudentTRange)
     # the scenario's sigma and range are kept

@@ -57,7 +57,8 @@ TRACKERS = {
     # the whole sequence's smoother from the incremental smoother's wrapped
     # estimates, searched by particles that turn across the cut
     'iekf-escape': lambda m, z: CentralizedSmoother(
-        None, start='incremental', search=ParticleTrajectorySearch(
+        None, start=Smoothed(IncrementalSmoother(motion=m, measurement=z)),
+        search=ParticleTrajectorySearch(
             num_particles=100, separation=0.5), motion=m, measurement=z),
 }
 SMOOTHERS = ('gbp-lag5', 'iekf-lag5', 'hybrid-lag3', 'iekf-incremental')

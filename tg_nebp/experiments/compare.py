@@ -198,8 +198,10 @@ def compare_methods(scenario: Scenario,
             "last step, every agent's trajectory searched for a better "
             "basin (ParticleTrajectorySearch)",
             lambda: CentralizedSmoother(
-                None, start='incremental', search=ParticleTrajectorySearch(),
-                motion=motion, measurement=own))
+                None, start=Smoothed(IncrementalSmoother(
+                    motion=motion, measurement=own)),
+                search=ParticleTrajectorySearch(), motion=motion,
+                measurement=own))
     for likelihood in likelihoods:
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (

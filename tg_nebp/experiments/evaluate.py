@@ -224,7 +224,7 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
         if options.escape:
             return CentralizedSmoother(
                 None, **_given(num_iterations=iterations), **models,
-                start='incremental',
+                start=Smoothed(IncrementalSmoother(**models)),
                 search=ParticleTrajectorySearch()), 'iekf-smoother-escape'
         if lag is not None:
             return CentralizedSmoother(

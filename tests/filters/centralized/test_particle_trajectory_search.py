@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from tg_nebp.filters import (CentralizedSmoother, IncrementalSmoother,
-                             ParticleTrajectorySearch)
+                             ParticleTrajectorySearch, Smoothed)
 from tg_nebp.filters.centralized.centralized_smoother import _Slot as Slot
 from tg_nebp.filters.centralized.particle_trajectory_search import (
     _unlinked_movers, agent_costs, held_slot, link_log_likelihoods)
@@ -234,16 +234,17 @@ def test_the_incremental_start_is_the_incremental_smoothers_last_step():
     data = tiny_scenario(steps=6).generate(gen(4))
     incremental = IncrementalSmoother()
     *_, last = incremental.steps(data)
-    smoother = CentralizedSmoother(None, start='incremental')
+    smoother = CentralizedSmoother(None, start=Smoothed(incremental))
     from_it = smoother.smoothed_from(data, last.window_mean)
     torch.testing.assert_close(smoother(data).mean, from_it.mean, rtol=0,
                                atol=0)
-    assert smoother.settings()['start'] == 'incremental'
+    assert smoother.settings()['start'] == dict(incremental.settings(),
+                                                smoothed=True)
     assert 'start' not in CentralizedSmoother(None).settings()
-    with pytest.raises(ValueError, match="'start' must be one of"):
-        CentralizedSmoother(None, start='truth')
+    with pytest.raises(TypeError, match="'start' must be a Tracker"):
+        CentralizedSmoother(None, start='incremental')
     with pytest.raises(ValueError, match='needs lag=None'):
-        CentralizedSmoother(4, start='incremental')
+        CentralizedSmoother(4, start=Smoothed(incremental))
 
 
 def test_the_sequence_cost_is_the_smoothers_and_lower_at_the_better_basin():

@@ -9,7 +9,7 @@ from tg_nebp.data.validation import check_lag
 from tg_nebp.filters.centralized.centralized_iekf import CentralizedIEKF
 from tg_nebp.filters.centralized.particle_trajectory_search import \
     ParticleTrajectorySearch
-from tg_nebp.filters.tracker import StepOutput, TrackOutput
+from tg_nebp.filters.tracker import StepOutput, Tracker, TrackOutput
 from tg_nebp.gaussian import (GraphLayout, WoodburyPrior, block_diagonal,
                               check_dense_joint, check_predicted_prior,
                               joint_cross, marginal_blocks, predict_joint,
@@ -48,10 +48,6 @@ class _Pass(NamedTuple):
     filtered: List[Tuple[Tensor, Tensor]]
     smoothed: List[Tuple[Tensor, Tensor]]
 
-
-#: Where the whole sequence's iterations can start (the :obj:`start` of
-#: :class:`CentralizedSmoother`).
-STARTS = ('filter', 'incremental')
 
 #: The Gauss-Newton iterations of the whole sequence's smoother by default
 #: (it stops early at its tolerance).
@@ -130,13 +126,14 @@ class CentralizedSmoother(CentralizedIEKF):
             the iterations stop at the current point. (default: :obj:`10`)
         tolerance (float, optional): The iterations stop after a step
             whose largest entry is at most this. (default: :obj:`1e-6`)
-        start (str, optional): With :obj:`lag=None`, where the iterations
-            start: :obj:`"filter"` (the filtered estimates of
-            :obj:`lag=1`) or :obj:`"incremental"` (the whole sequence's
-            estimates of the incremental smoother,
-            :class:`~tg_nebp.filters.IncrementalSmoother`, at the last step:
-            the past relinearized as every step arrived, which keeps fewer
-            of the filter's lost agents). (default: :obj:`"filter"`)
+        start (Tracker, optional): With :obj:`lag=None`, a tracker whose
+            estimates of the whole sequence start the iterations, for
+            example ``Smoothed(IncrementalSmoother())`` (the incremental
+            smoother's at the last step: the past relinearized as every
+            step arrived, which keeps fewer of the filter's lost agents);
+            :obj:`None` starts from the filtered estimates of
+            :obj:`lag=1`. It draws from the same :obj:`generator`.
+            (default: :obj:`None`)
         search (ParticleTrajectorySearch, optional): With :obj:`lag=None`,
             the search of every agent's trajectory for a better basin
             than its start's, after the iterations converge (its sweeps
@@ -158,15 +155,17 @@ class CentralizedSmoother(CentralizedIEKF):
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
                  max_halvings: int = 10, tolerance: float = 1e-6,
-                 start: str = 'filter',
+                 start: Optional[Tracker] = None,
                  search: Optional[ParticleTrajectorySearch] = None):
         lag = check_lag(lag)
-        if start not in STARTS:
-            raise ValueError(f"'start' must be one of {STARTS}, got "
-                             f"{start!r}")
-        if start != 'filter' and lag is not None:
-            raise ValueError(f"start={start!r} starts the whole sequence's "
-                             f"smoother: it needs lag=None, got lag={lag}")
+        if start is not None:
+            if not isinstance(start, Tracker):
+                raise TypeError(f"'start' must be a Tracker or None, got "
+                                f"{type(start).__name__}")
+            if lag is not None:
+                raise ValueError(f"'start' starts the whole sequence's "
+                                 f"smoother: it needs lag=None, got "
+                                 f"lag={lag}")
         if search is not None:
             if not isinstance(search, ParticleTrajectorySearch):
                 raise TypeError(f"'search' must be a "
@@ -327,7 +326,7 @@ class CentralizedSmoother(CentralizedIEKF):
         generators = (generator if isinstance(generator, (list, tuple))
                       else [generator] * len(layout.agents))
         for (base, mine, points), drawn in zip(
-                self._problem(data, layout, start), generators):
+                self._problem(data, layout, start, generator), generators):
             solved, final = self._solve(base, mine, points)
             if self.search is not None:
                 solved, final = self.search.escaped(
@@ -342,17 +341,21 @@ class CentralizedSmoother(CentralizedIEKF):
                              output.window_cov[:, t])
 
     def _problem(self, data: Realization, layout: GraphLayout,
-                 start: Optional[List[List[Tensor]]] = None):
+                 start: Optional[List[List[Tensor]]] = None,
+                 generator=None):
         # per graph the whole sequence's problem: the Gaussian before it
         # (the prior), every step's links and the start of the iterations
         # (the filter's or the incremental smoother's estimates unless
         # 'start' gives them; a given one's angles lifted along the
         # sequence, as the filter's are)
-        if start is None and self.start == 'filter':
+        if start is None and self.start is None:
             lifted = [means for _, means, _ in self._windows(data, layout, 1)]
         else:
             if start is None:
-                start = self._incremental_start(data, layout)
+                means = self.start(data, generator).mean.to(
+                    data.prior_mean.device).double()
+                start = [[means[nodes, t].unsqueeze(0) for nodes in
+                          layout.agents] for t in range(means.size(1))]
             # each step within half a turn of the one before, the first of
             # the prior's mean
             nearest = self.motion.layout(data.prior_mean.size(1)).nearest
@@ -370,19 +373,7 @@ class CentralizedSmoother(CentralizedIEKF):
                  [step[g][0] for step in lifted])
                 for g, nodes in enumerate(layout.agents)]
 
-    def _incremental_start(self, data: Realization, layout: GraphLayout):
-        # the incremental smoother's whole-sequence estimates at the last
-        # step, per step, per graph (as a window of one step)
-        from tg_nebp.filters.centralized.incremental_smoother import \
-            IncrementalSmoother  # (it builds on this one)
-        incremental = IncrementalSmoother(
-            motion=self.motion, measurement=self.measurement,
-            max_halvings=self.max_halvings, tolerance=self.tolerance)
-        for last in incremental.steps(data):
-            pass
-        means = last.window_mean.double()
-        return [[means[nodes, t].unsqueeze(0) for nodes in layout.agents]
-                for t in range(means.size(1))]
+
 
     def _slots(self, data: Realization, layout: GraphLayout):
         # every step's links per graph, as the IEKF's update reads them
@@ -573,12 +564,13 @@ class CentralizedSmoother(CentralizedIEKF):
 
     def settings(self) -> dict:
         return dict(super().settings(), lag=self.lag, **(
-            {} if self.start == 'filter' else dict(start=self.start)), **(
+            {} if self.start is None else
+            dict(start=self.start.settings())), **(
             {} if self.search is None else
             dict(search=self.search.settings())))
 
     def __repr__(self) -> str:
-        start = '' if self.start == 'filter' else f', start={self.start!r}'
+        start = '' if self.start is None else f', start={self.start!r}'
         search = '' if self.search is None else f', search={self.search}'
         return (f'{self.__class__.__name__}(lag={self.lag}, num_iterations='
                 f'{self.num_iterations}, motion={self.motion}, '
