@@ -2,7 +2,8 @@ r"""The whole sequence's smoothers and MAP of each realization, the
 references of issue 64: the centralized full smoother (``tg-nebp evaluate
 --method iekf --lag all``, the scenario's own models) started from its
 filter (as it runs by default), from the incremental smoother's last step
-(``start=Smoothed(IncrementalSmoother())``), from there with the search of better basins
+(``start=Smoothed(IncrementalSmoother())``, ``--escape`` without the
+search), from there with the search of better basins
 (:class:`~tg_nebp.filters.ParticleTrajectorySearch`, drawing from a
 generator seeded with the realization's index), and, by
 :meth:`CentralizedSmoother.smoothed_from
