@@ -262,9 +262,6 @@ class CentralizedSmoother(CentralizedIEKF):
         started from its filter, the full smoother keeps an agent that the
         filter lost where the filter left it, unless the :obj:`search`
         moves it (drawing from :obj:`generator`)."""
-        self.check(data)
-        check_predicted_prior(data, self.motion, 'the centralized smoother',
-                              self.use_control)
         layout = self._single(data, start, 'start')
         points = start.to(data.prior_mean.device).double()[layout.agents[0]]
         means, covs = [], []
@@ -284,7 +281,6 @@ class CentralizedSmoother(CentralizedIEKF):
         to a constant, as its iterations weigh it (each transition by the
         driving noise that makes it). Lower is a better basin: what the
         :obj:`search` compares."""
-        self.check(data)
         layout = self._single(data, states, 'states')
         base, slots, points = self._problem(data, layout, [
             [state.unsqueeze(0)] for state in
@@ -293,8 +289,12 @@ class CentralizedSmoother(CentralizedIEKF):
         return self._cost_of(base, slots, points)
 
     def _single(self, data: Realization, states, name: str) -> GraphLayout:
-        # the layout of a single realization whose agents' whole-sequence
-        # 'states' (N, T, S) are given as 'name'
+        # the layout of a single realization, checked as the time loop
+        # checks it, whose agents' whole-sequence 'states' (N, T, S) are
+        # given as 'name'
+        self.check(data)
+        check_predicted_prior(data, self.motion, 'the centralized smoother',
+                              self.use_control)
         if self.lag is not None:
             raise ValueError(f"'{name}' is the whole sequence's: it needs "
                              f"lag=None, got lag={self.lag}")

@@ -250,21 +250,24 @@ class ParticleTrajectorySearch:
         dim = smoother.measurement.position_dim(paths.size(-1))
         position = paths[..., :dim]  # (T, A, P, D)
         order = score.argsort(1, descending=True)
-        taken = [torch.stack(points)[..., :dim].unsqueeze(2)]  # (T, A, 1, D)
+
+        def apart_from(trajectory: Tensor) -> Tensor:
+            # (A, P): the lineages farther than 'separation' from it at
+            # some step
+            return (position - trajectory[..., :dim].unsqueeze(2)).norm(
+                dim=-1).amax(0) > self.separation
+
+        apart = apart_from(torch.stack(points))
+        agents = torch.arange(score.size(0), device=score.device)
         chosen = []
         for _ in range(self.candidates):
-            apart = torch.stack([(position - other).norm(dim=-1).amax(0) >
-                                 self.separation for other in
-                                 (t.expand_as(position) for t in taken)]
-                                ).all(0)  # (A, P)
             ranked = apart.gather(1, order)
             exists = ranked.any(1)
             pick = order.gather(1, ranked.to(torch.uint8).argmax(
                 1, keepdim=True)).squeeze(1)
-            path = paths[:, torch.arange(pick.numel(), device=pick.device),
-                         pick]  # (T, A, S)
+            path = paths[:, agents, pick]  # (T, A, S)
             chosen.append((path, exists))
-            taken.append(path[..., :dim].unsqueeze(2))
+            apart = apart & apart_from(path)
         return chosen
 
     def settings(self) -> dict:
