@@ -64,6 +64,23 @@ def line(name, errors, lost, seconds):
             f"{sum(lost)} {lost}, {seconds:.1f} s per realization")
 
 
+def report(key, method, dataset, before=None):
+    r"""Runs :obj:`method` on every realization of :obj:`dataset` (a
+    generator seeded 0 each; :obj:`before`, where given, called with the
+    realization first) and prints its :func:`line` as :obj:`key`."""
+    errors, lost, start = [], [], time.perf_counter()
+    for data in dataset:
+        if before is not None:
+            before(data)
+        with torch.no_grad():
+            out = method(data, generator=torch.Generator().manual_seed(0))
+        error, count = scored(out, data)
+        errors.append(error)
+        lost.append(count)
+    seconds = (time.perf_counter() - start) / len(dataset)
+    print(line(key, errors, lost, seconds), flush=True)
+
+
 def realizations(parser: argparse.ArgumentParser):
     r"""The run's arguments (a scenario, its test realizations and the
     window's lag, with those :obj:`parser` adds), its realizations and the
@@ -94,16 +111,7 @@ def main():
         if smooths:
             runs.append((name + ', smoothed', Smoothed(tracker)))
         for key, method in runs:
-            errors, lost, start = [], [], time.perf_counter()
-            for data in dataset:
-                with torch.no_grad():
-                    out = method(data, generator=torch.Generator().manual_seed(
-                        0))
-                error, count = scored(out, data)
-                errors.append(error)
-                lost.append(count)
-            seconds = (time.perf_counter() - start) / len(dataset)
-            print(line(key, errors, lost, seconds), flush=True)
+            report(key, method, dataset)
 
 
 if __name__ == '__main__':

@@ -239,8 +239,10 @@ def _add_method_options(parser: argparse.ArgumentParser):
         "the past relinearized, iekf-incremental)")
     add('--escape', action='store_true',
         help="iekf with --lag all: the full smoother started from the "
-        "incremental smoother's last step, every agent's trajectory then "
-        "searched for a better basin by a conditional particle filter "
+        "incremental smoother's last step and from fixed-lag Gaussian BP's "
+        "smoothed estimates (lag 10, TrajectorySearch), the optimum of "
+        "lower cost kept, every agent's trajectory then searched for a "
+        "better basin by a conditional particle filter "
         "(ParticleTrajectorySearch; iekf-smoother-escape)")
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '

@@ -11,9 +11,10 @@ from tg_nebp.datasets import Scenario, load_scenario
 from tg_nebp.experiments.evaluate import evaluate_scenario, method_tracker
 from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS, MethodOptions
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
-                             FixedLagGaussianNEBP, GaussianBP, GaussianNEBP,
-                             IncrementalSmoother, ParticleBP,
-                             ParticleTrajectorySearch)
+                             FixedLagGaussianBP, FixedLagGaussianNEBP,
+                             GaussianBP, GaussianNEBP, IncrementalSmoother,
+                             ParticleBP, ParticleTrajectorySearch,
+                             TrajectorySearch)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
 
@@ -38,7 +39,10 @@ def test_method_tracker_builds_each_method(scenario):
     escape, escape_key = method_tracker('iekf', scenario, lag='all',
                                         escape=True)
     assert escape_key == 'iekf-smoother-escape'
-    assert isinstance(escape.start.tracker, IncrementalSmoother)
+    incremental, window = escape.starts
+    assert isinstance(incremental.tracker, IncrementalSmoother)
+    assert window.tracker.settings() == FixedLagGaussianBP.recommended(
+        lag=10, relocation=TrajectorySearch()).settings()
     assert escape.search == ParticleTrajectorySearch()
     assert isinstance(tracker.measurement, StudentTRange)
     # the scenario's sigma and range are kept

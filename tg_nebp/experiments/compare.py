@@ -22,14 +22,13 @@ from tg_nebp.datasets import MRCLAMScenario, Scenario, load_datasets
 from tg_nebp.evaluation import (bound_dataset, spread, summarize_result,
                                 track_dataset)
 from tg_nebp.experiments.evaluate import (SCENARIO_TYPES, check_run,
-                                          lag_key, realizations_of,
-                                          scenario_of)
+                                          escaping_smoother, lag_key,
+                                          realizations_of, scenario_of)
 from tg_nebp.experiments.options import WHOLE_SEQUENCE
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              GaussianBP, HybridBP, IncrementalSmoother,
-                             LinkSearch, ParticleBP,
-                             ParticleTrajectorySearch, Smoothed, Tracker)
+                             LinkSearch, ParticleBP, Smoothed, Tracker)
 from tg_nebp.io import Number, read_resumable, write_json, write_text
 from tg_nebp.models import model_like
 
@@ -102,9 +101,10 @@ def compare_methods(scenario: Scenario,
     range-only rows) and of the whole sequence
     (:obj:`"pcrb-smoother"`), the centralized fixed-lag smoother with the
     scenario's likelihood (:obj:`"iekf-lagL ..."`), the full one
-    (:obj:`"iekf-smoother ..."`; :obj:`"iekf-smoother-escape ..."` from
-    the incremental smoother's last step with the search of better
-    basins) and the incremental one
+    (:obj:`"iekf-smoother ..."`; :obj:`"iekf-smoother-escape ..."`,
+    :func:`~tg_nebp.experiments.evaluate.escaping_smoother`: from the
+    better of the incremental smoother's last step and a window's
+    smoothed estimates, with the search of better basins) and the incremental one
     (:obj:`"iekf-incremental ..."`, filtered and smoothed), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
     :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
@@ -194,14 +194,11 @@ def compare_methods(scenario: Scenario,
             lambda: CentralizedSmoother(None, motion=motion,
                                         measurement=own))
         methods[f'iekf{lag_key(WHOLE_SEQUENCE)}{ESCAPE} {own.name}'] = (
-            "centralized full smoother from the incremental smoother's "
-            "last step, every agent's trajectory searched for a better "
-            "basin (ParticleTrajectorySearch)",
-            lambda: CentralizedSmoother(
-                None, start=Smoothed(IncrementalSmoother(
-                    motion=motion, measurement=own)),
-                search=ParticleTrajectorySearch(), motion=motion,
-                measurement=own))
+            "centralized full smoother from the better of the incremental "
+            "smoother's last step and a window's smoothed estimates, every "
+            "agent's trajectory searched for a better basin "
+            "(ParticleTrajectorySearch)",
+            lambda: escaping_smoother(motion, own))
     for likelihood in likelihoods:
         measurement = model_like(likelihood, 'measurement', own)
         methods[f'gbp {likelihood}'] = (

@@ -21,7 +21,8 @@ from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              FixedLagGaussianNEBP, GaussianBP, HybridBP,
                              IncrementalSmoother, LinkSearch,
                              NoiseAdaptation, ParticleBP,
-                             ParticleTrajectorySearch, Smoothed, Tracker)
+                             ParticleTrajectorySearch, Smoothed, Tracker,
+                             TrajectorySearch)
 from tg_nebp.models import model_like
 from tg_nebp.training import (PRETRAINED, gaussian_nebp_from_checkpoint,
                               nebp_from_checkpoint)
@@ -30,7 +31,34 @@ from tg_nebp.utils import check_device, process_group
 __all__ = ['method_tracker',
            'tracker_measurement', 'evaluate_scenario', 'scenario_of',
            'check_run', 'realizations_of', 'checked_models',
-           'SCENARIO_TYPES', 'REAL_SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key']
+           'SCENARIO_TYPES', 'REAL_SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key',
+           'escaping_smoother', 'ESCAPE_WINDOW']
+
+#: The lag of the window whose smoothed estimates start the escaping
+#: smoother beside the incremental smoother's (issue 64's window).
+ESCAPE_WINDOW = 10
+
+
+def escaping_smoother(motion, measurement, **options) -> CentralizedSmoother:
+    r"""The full smoother that escapes its filter's basin (``--escape``,
+    :obj:`"iekf-smoother-escape"`): started from the incremental
+    smoother's last step and from the smoothed estimates of fixed-lag
+    Gaussian BP over :obj:`ESCAPE_WINDOW` steps with the relocation with
+    hindsight (the better optimum by the whole sequence's cost kept: on the
+    validation realizations of ``paper_test_sparse`` each start's basin was
+    the better in some), then every agent's trajectory searched for a
+    better basin (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
+    the models :obj:`motion` and :obj:`measurement` throughout and
+    :obj:`options` of :class:`~tg_nebp.filters.CentralizedSmoother`."""
+    models = dict(motion=motion, measurement=measurement)
+    return CentralizedSmoother(
+        None, **options, **models, start=(
+            Smoothed(IncrementalSmoother(**models)),
+            Smoothed(FixedLagGaussianBP.recommended(
+                lag=ESCAPE_WINDOW, relocation=TrajectorySearch(),
+                **models))),
+        search=ParticleTrajectorySearch())
+
 
 def lag_key(lag) -> str:
     r"""The suffix of a smoother's :obj:`metrics.json` key:
@@ -222,10 +250,9 @@ def _method_tracker(method: str, scenario, options: MethodOptions):
                 **_given(num_iterations=iterations),
                 **models), 'iekf-incremental'
         if options.escape:
-            return CentralizedSmoother(
-                None, **_given(num_iterations=iterations), **models,
-                start=Smoothed(IncrementalSmoother(**models)),
-                search=ParticleTrajectorySearch()), 'iekf-smoother-escape'
+            return escaping_smoother(
+                **models, **_given(num_iterations=iterations)
+            ), 'iekf-smoother-escape'
         if lag is not None:
             return CentralizedSmoother(
                 window, **_given(num_iterations=iterations),

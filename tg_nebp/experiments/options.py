@@ -81,7 +81,8 @@ class MethodOptions:
     lag: Union[int, str, None] = _option(('gbp', 'hybrid', 'iekf', 'pcrb'))
     #: The incremental smoother of the whole sequence.
     incremental: bool = _option(('iekf', ), False)
-    #: The full smoother started from the incremental smoother's last step,
+    #: The full smoother started from the incremental smoother's last step
+    #: and from a window's smoothed estimates (the better optimum kept),
     #: with the search of every agent's trajectory for a better basin.
     escape: bool = _option(('iekf', ), False)
 

@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from tg_nebp.filters import (CentralizedSmoother, IncrementalSmoother,
-                             ParticleTrajectorySearch, Smoothed)
+                             ParticleTrajectorySearch, Smoothed, StepOutput,
+                             Tracker)
 from tg_nebp.filters.centralized.centralized_smoother import _Slot as Slot
 from tg_nebp.filters.centralized.particle_trajectory_search import (
     _unlinked_movers, agent_costs, held_slot, link_log_likelihoods)
@@ -63,13 +64,50 @@ def test_a_truly_ambiguous_agent_is_never_moved():
     assert torch.equal(searched.cov, plain.cov)
 
 
+class Given(Tracker):
+    # a tracker whose estimates are the given states (N, T, S): a start in
+    # a chosen basin
+    def __init__(self, states, **models):
+        super().__init__(**models)
+        self.states = states
+
+    def steps(self, data, generator=None):
+        for t, state in enumerate(self.states.unbind(1)):
+            yield StepOutput(t, state, state.new_zeros(
+                state.shape + state.shape[-1:]))
+
+
+def test_of_several_starts_the_lowest_cost_basin_wins_in_either_order():
+    data, models = broad_mirror()
+    plain = CentralizedSmoother(None, **models)
+    truth_basin = plain.smoothed_from(data, data.states.double()).mean
+    on_mirror = Given(flipped(data), **models)
+    on_truth = Given(data.states.double(), **models)
+    alone = CentralizedSmoother(None, start=on_mirror, **models)(data).mean
+    assert float((alone[0, :, :2] - truth_basin[0, :, :2]).norm(
+        dim=-1).min()) > 8  # the mirror's start alone keeps its basin
+    for starts in ([on_mirror, on_truth], (on_truth, on_mirror)):
+        smoother = CentralizedSmoother(None, start=starts, **models)
+        torch.testing.assert_close(smoother(data).mean, truth_basin,
+                                   rtol=0, atol=1e-9)
+        assert smoother.starts == tuple(starts)
+        assert len(smoother.settings()['start']) == 2
+    with pytest.raises(TypeError, match="'start' must be a Tracker, a "
+                       "non-empty sequence"):
+        CentralizedSmoother(None, start=[])
+    with pytest.raises(TypeError, match=r"'start\[1\]' must be a Tracker"):
+        CentralizedSmoother(None, start=[on_truth, 'incremental'])
+    with pytest.raises(ValueError, match='needs lag=None'):
+        CentralizedSmoother(4, start=[on_truth])
+
+
 def smoother_problem(seed=2):
     # a tiny scenario's whole sequence as the smoother holds it: its prior,
     # every step's links, and the filter's estimates, a solution to hold
     data = tiny_scenario(steps=6).generate(gen(seed))
     smoother = CentralizedSmoother(None)
     layout = GraphLayout.of(data)
-    base, slots, points = smoother._problem(data, layout)[0]
+    base, slots, (points, ) = smoother._problem(data, layout)[0]
     return data, smoother, base, slots, points
 
 
@@ -175,7 +213,7 @@ def test_lineages_keep_the_current_trajectory_and_are_the_models_own():
 def test_a_move_lowers_the_smoothers_cost_by_its_gain_at_least():
     data, models = broad_mirror()
     smoother = CentralizedSmoother(None, **models)
-    base, slots, start = smoother._problem(data, GraphLayout.of(data), [
+    base, slots, (start, ) = smoother._problem(data, GraphLayout.of(data), [
         [state[~data.anchor].unsqueeze(0)] for state in
         flipped(data).unbind(1)])[0]
     solved = smoother._solve(base, slots, start)[0]
@@ -243,6 +281,8 @@ def test_the_incremental_start_is_the_incremental_smoothers_last_step():
     assert 'start' not in CentralizedSmoother(None).settings()
     with pytest.raises(TypeError, match="'start' must be a Tracker"):
         CentralizedSmoother(None, start='incremental')
+    assert smoother.starts == (smoother.start, )
+    assert CentralizedSmoother(None).starts == ()
     with pytest.raises(ValueError, match='needs lag=None'):
         CentralizedSmoother(4, start=Smoothed(incremental))
 
@@ -252,7 +292,7 @@ def test_the_sequence_cost_is_the_smoothers_and_lower_at_the_better_basin():
     smoother = CentralizedSmoother(None, **models)
     truth_basin = smoother.smoothed_from(data, data.states)
     mirror_basin = smoother.smoothed_from(data, flipped(data))
-    base, slots, points = smoother._problem(data, GraphLayout.of(data), [
+    base, slots, (points, ) = smoother._problem(data, GraphLayout.of(data), [
         [state[~data.anchor].unsqueeze(0)] for state in
         truth_basin.mean.double().unbind(1)])[0]
     assert float(smoother.sequence_cost(data, truth_basin.mean)) == float(

@@ -1,5 +1,6 @@
 from collections import deque
-from typing import Iterator, List, NamedTuple, Optional, Tuple
+from typing import Iterator, List, NamedTuple, Optional, Sequence, Tuple, \
+    Union
 
 import torch
 from torch import Tensor
@@ -126,14 +127,18 @@ class CentralizedSmoother(CentralizedIEKF):
             the iterations stop at the current point. (default: :obj:`10`)
         tolerance (float, optional): The iterations stop after a step
             whose largest entry is at most this. (default: :obj:`1e-6`)
-        start (Tracker, optional): With :obj:`lag=None`, a tracker whose
-            estimates of the whole sequence start the iterations, for
-            example ``Smoothed(IncrementalSmoother())`` (the incremental
-            smoother's at the last step: the past relinearized as every
-            step arrived, which keeps fewer of the filter's lost agents);
-            :obj:`None` starts from the filtered estimates of
-            :obj:`lag=1`. It draws from the same :obj:`generator`.
-            (default: :obj:`None`)
+        start (Tracker or sequence of Tracker, optional): With
+            :obj:`lag=None`, a tracker whose estimates of the whole
+            sequence start the iterations, for example
+            ``Smoothed(IncrementalSmoother())`` (the incremental smoother's
+            at the last step: the past relinearized as every step arrived,
+            which keeps fewer of the filter's lost agents), or several:
+            the iterations run from each, and each graph keeps the optimum
+            of lowest cost (:meth:`sequence_cost`; the first of equal
+            ones), so a start in a better basin than the others' wins
+            outright. :obj:`None` starts from the filtered estimates of
+            :obj:`lag=1`. They draw from the same :obj:`generator`, in
+            turn. (default: :obj:`None`)
         search (ParticleTrajectorySearch, optional): With :obj:`lag=None`,
             the search of every agent's trajectory for a better basin
             than its start's, after the iterations converge (its sweeps
@@ -155,13 +160,19 @@ class CentralizedSmoother(CentralizedIEKF):
                  motion: Optional[MotionModel] = None,
                  measurement: Optional[MeasurementModel] = None,
                  max_halvings: int = 10, tolerance: float = 1e-6,
-                 start: Optional[Tracker] = None,
+                 start: Union[None, Tracker, Sequence[Tracker]] = None,
                  search: Optional[ParticleTrajectorySearch] = None):
         lag = check_lag(lag)
         if start is not None:
-            if not isinstance(start, Tracker):
-                raise TypeError(f"'start' must be a Tracker or None, got "
+            starts = (start, ) if isinstance(start, Tracker) else start
+            if not isinstance(starts, (list, tuple)) or not starts:
+                raise TypeError(f"'start' must be a Tracker, a non-empty "
+                                f"sequence of them or None, got "
                                 f"{type(start).__name__}")
+            for index, one in enumerate(starts):
+                if not isinstance(one, Tracker):
+                    raise TypeError(f"'start[{index}]' must be a Tracker, "
+                                    f"got {type(one).__name__}")
             if lag is not None:
                 raise ValueError(f"'start' starts the whole sequence's "
                                  f"smoother: it needs lag=None, got "
@@ -180,8 +191,18 @@ class CentralizedSmoother(CentralizedIEKF):
         super().__init__(num_iterations, motion, measurement,
                          max_halvings=max_halvings, tolerance=tolerance)
         self.lag = lag
-        self.start = start
+        self.start = start if start is None or isinstance(
+            start, Tracker) else tuple(start)
         self.search = search
+
+    @property
+    def starts(self) -> Tuple[Tracker, ...]:
+        r"""The trackers whose estimates start the whole sequence's
+        iterations (none: the filter's)."""
+        if self.start is None:
+            return ()
+        return (self.start, ) if isinstance(self.start, Tracker) else \
+            self.start
 
     def initial_state(self, data, generator=None):
         raise NotImplementedError(
@@ -282,7 +303,7 @@ class CentralizedSmoother(CentralizedIEKF):
         driving noise that makes it). Lower is a better basin: what the
         :obj:`search` compares."""
         layout = self._single(data, states, 'states')
-        base, slots, points = self._problem(data, layout, [
+        base, slots, (points, ) = self._problem(data, layout, [
             [state.unsqueeze(0)] for state in
             states.to(data.prior_mean.device).double()[
                 layout.agents[0]].unbind(1)])[0]
@@ -325,9 +346,16 @@ class CentralizedSmoother(CentralizedIEKF):
         # for all
         generators = (generator if isinstance(generator, (list, tuple))
                       else [generator] * len(layout.agents))
-        for (base, mine, points), drawn in zip(
+        for (base, mine, starts), drawn in zip(
                 self._problem(data, layout, start, generator), generators):
-            solved, final = self._solve(base, mine, points)
+            solutions = [self._solve(base, mine, points) for points in
+                         starts]
+            costs = [float(self._cost_of(base, mine, solved)) for solved, _
+                     in solutions]
+            # the first of equal costs (min keeps it), a NaN cost never
+            solved, final = solutions[min(
+                range(len(costs)), key=lambda k: (
+                    costs[k] != costs[k], costs[k]))]
             if self.search is not None:
                 solved, final = self.search.escaped(
                     self, base, mine, (solved, final), drawn)
@@ -344,34 +372,43 @@ class CentralizedSmoother(CentralizedIEKF):
                  start: Optional[List[List[Tensor]]] = None,
                  generator=None):
         # per graph the whole sequence's problem: the Gaussian before it
-        # (the prior), every step's links and the start of the iterations
-        # (the filter's or the incremental smoother's estimates unless
-        # 'start' gives them; a given one's angles lifted along the
-        # sequence, as the filter's are)
-        if start is None and self.start is None:
-            lifted = [means for _, means, _ in self._windows(data, layout, 1)]
+        # (the prior), every step's links and the starts of the iterations
+        # (one per start tracker, or the filter's estimates, unless
+        # 'start' gives one: per step, per graph, its agents' states as a
+        # window of one step)
+        if start is not None:
+            starts = [self._lifted(data, layout, start)]
+        elif self.start is None:
+            starts = [[means for _, means, _ in
+                       self._windows(data, layout, 1)]]
         else:
-            if start is None:
-                means = self.start(data, generator).mean.to(
+            starts = []
+            for tracker in self.starts:
+                means = tracker(data, generator).mean.to(
                     data.prior_mean.device).double()
-                start = [[means[nodes, t].unsqueeze(0) for nodes in
-                          layout.agents] for t in range(means.size(1))]
-            # each step within half a turn of the one before, the first of
-            # the prior's mean
-            nearest = self.motion.layout(data.prior_mean.size(1)).nearest
-            lifted = [[data.prior_mean.double()[nodes].unsqueeze(0)
-                       for nodes in layout.agents]]
-            for step in start:
-                lifted.append([nearest(here.double(), before) for
-                               here, before in zip(step, lifted[-1])])
-            lifted = lifted[1:]
+                starts.append(self._lifted(data, layout, [
+                    [means[nodes, t].unsqueeze(0) for nodes in
+                     layout.agents] for t in range(means.size(1))]))
         known = data.prior_mean.double()
         prior_cov = data.prior_cov.double()
         slots = list(self._slots(data, layout))
         return [(_Base(known[nodes], block_diagonal(prior_cov[nodes]),
                        known[nodes]), [step[g] for step in slots],
-                 [step[g][0] for step in lifted])
+                 [[step[g][0] for step in lifted] for lifted in starts])
                 for g, nodes in enumerate(layout.agents)]
+
+    def _lifted(self, data: Realization, layout: GraphLayout,
+                start: List[List[Tensor]]) -> List[List[Tensor]]:
+        # a given start with its angles lifted along the sequence, as the
+        # filter's are: each step within half a turn of the one before,
+        # the first of the prior's mean
+        nearest = self.motion.layout(data.prior_mean.size(1)).nearest
+        lifted = [[data.prior_mean.double()[nodes].unsqueeze(0)
+                   for nodes in layout.agents]]
+        for step in start:
+            lifted.append([nearest(here.double(), before) for
+                           here, before in zip(step, lifted[-1])])
+        return lifted[1:]
 
 
 
@@ -563,9 +600,10 @@ class CentralizedSmoother(CentralizedIEKF):
         return points, self._forward_backward(base, slots, points)
 
     def settings(self) -> dict:
+        starts = [tracker.settings() for tracker in self.starts]
         return dict(super().settings(), lag=self.lag, **(
-            {} if self.start is None else
-            dict(start=self.start.settings())), **(
+            {} if not starts else dict(start=starts[0] if isinstance(
+                self.start, Tracker) else starts)), **(
             {} if self.search is None else
             dict(search=self.search.settings())))
 
