@@ -350,12 +350,14 @@ class CentralizedSmoother(CentralizedIEKF):
                 self._problem(data, layout, start, generator), generators):
             solutions = [self._solve(base, mine, points) for points in
                          starts]
-            costs = [float(self._cost_of(base, mine, solved)) for solved, _
-                     in solutions]
-            # the first of equal costs (min keeps it), a NaN cost never
-            solved, final = solutions[min(
-                range(len(costs)), key=lambda k: (
-                    costs[k] != costs[k], costs[k]))]
+            solved, final = solutions[0]
+            if len(solutions) > 1:
+                costs = [float(self._cost_of(base, mine, one)) for one, _
+                         in solutions]
+                # the first of equal costs (min keeps it), a NaN never
+                solved, final = solutions[min(
+                    range(len(costs)), key=lambda k: (
+                        costs[k] != costs[k], costs[k]))]
             if self.search is not None:
                 solved, final = self.search.escaped(
                     self, base, mine, (solved, final), drawn)
