@@ -104,8 +104,9 @@ def compare_methods(scenario: Scenario,
     (:obj:`"iekf-smoother ..."`; :obj:`"iekf-smoother-escape ..."`,
     :func:`~tg_nebp.experiments.evaluate.escaping_smoother`: from the
     better of the incremental smoother's last step and a window's
-    smoothed estimates, with the search of better basins) and the incremental one
-    (:obj:`"iekf-incremental ..."`, filtered and smoothed), and fixed-lag Gaussian BP with every
+    smoothed estimates, with the search of better basins) and the
+    incremental one (:obj:`"iekf-incremental ..."`, filtered and
+    smoothed), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
     :class:`~tg_nebp.filters.FixedLagGaussianBP`, recommended), and
     hybrid BP over it (:obj:`"hybrid-lagL ..."`, filtered)."""

@@ -31,8 +31,8 @@ from tg_nebp.utils import check_device, process_group
 __all__ = ['method_tracker',
            'tracker_measurement', 'evaluate_scenario', 'scenario_of',
            'check_run', 'realizations_of', 'checked_models',
-           'SCENARIO_TYPES', 'REAL_SCENARIO_TYPES', 'WHOLE_SEQUENCE', 'lag_key',
-           'escaping_smoother', 'ESCAPE_WINDOW']
+           'SCENARIO_TYPES', 'REAL_SCENARIO_TYPES', 'WHOLE_SEQUENCE',
+           'lag_key', 'escaping_smoother', 'ESCAPE_WINDOW']
 
 #: The lag of the window whose smoothed estimates start the escaping
 #: smoother beside the incremental smoother's (issue 64's window).

@@ -275,7 +275,7 @@ def test_the_incremental_start_is_the_incremental_smoothers_last_step():
     smoother = CentralizedSmoother(None, start=Smoothed(incremental))
     from_it = smoother.smoothed_from(data, last.window_mean)
     torch.testing.assert_close(smoother(data).mean, from_it.mean, rtol=0,
-                               atol=0)
+                               atol=1e-12)
     assert smoother.settings()['start'] == dict(incremental.settings(),
                                                 smoothed=True)
     assert 'start' not in CentralizedSmoother(None).settings()

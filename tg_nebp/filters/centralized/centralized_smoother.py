@@ -98,8 +98,9 @@ class CentralizedSmoother(CentralizedIEKF):
     :math:`L`. With :obj:`lag=1` it is the centralized IEKF (equal to
     rounding once the iterations converge). With :obj:`lag=None` it is the
     full batch smoother: the whole sequence is one window, started from
-    the filtered estimates of :obj:`lag=1` (or the incremental smoother's,
-    :obj:`start`), then searched for better basins (:obj:`search`, a
+    the filtered estimates of :obj:`lag=1` (or from other trackers',
+    :obj:`start`, the optimum of lowest cost kept), then searched for
+    better basins (:obj:`search`, a
     :class:`~tg_nebp.filters.ParticleTrajectorySearch`), and every step's
     smoothed estimate is yielded at the end.
 
@@ -411,8 +412,6 @@ class CentralizedSmoother(CentralizedIEKF):
             lifted.append([nearest(here.double(), before) for
                            here, before in zip(step, lifted[-1])])
         return lifted[1:]
-
-
 
     def _slots(self, data: Realization, layout: GraphLayout):
         # every step's links per graph, as the IEKF's update reads them
