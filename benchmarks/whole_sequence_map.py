@@ -8,8 +8,10 @@ with hindsight, :class:`~tg_nebp.filters.TrajectorySearch`), from the
 better of those two optima by the whole sequence's cost (what a
 ``start`` of both keeps), from there with the search of better basins
 (:class:`~tg_nebp.filters.ParticleTrajectorySearch`, drawing from a
-generator seeded with the realization's index: what ``--escape`` runs,
-with ``--lag`` 10), and started from the true states (the optimum of the
+generator seeded with the realization's index), with groups of agents
+exchanged between the two optima first
+(:class:`~tg_nebp.filters.GroupExchange`), and with both (what
+``--escape`` runs, with ``--lag`` 10), and started from the true states (the optimum of the
 truth's basin, the best the data allow; the truth only starts the
 solver), each by :meth:`CentralizedSmoother.smoothed_from
 <tg_nebp.filters.CentralizedSmoother.smoothed_from>`. On the test
@@ -30,7 +32,8 @@ import torch
 
 from lost_agents import line, realizations, scored  # beside this one
 from tg_nebp.filters import (CentralizedSmoother, FixedLagGaussianBP,
-                             IncrementalSmoother, ParticleTrajectorySearch,
+                             GroupExchange, IncrementalSmoother,
+                             ParticleTrajectorySearch,
                              Smoothed, TrackOutput, TrajectorySearch)
 
 FILTER = 'full smoother from its filter'
@@ -38,6 +41,8 @@ INCREMENTAL = 'incremental smoother, last step'
 FROM_INCREMENTAL = "full smoother from the incremental smoother's"
 BEST = 'full smoother from the better of both starts'
 SEARCH = f'{BEST} + ParticleTrajectorySearch'
+EXCHANGE = f'{BEST}, groups exchanged'
+ESCAPE = f'{EXCHANGE} + ParticleTrajectorySearch'
 TRUTH = 'MAP from the truth'
 
 
@@ -49,12 +54,14 @@ def main():
     smoother = CentralizedSmoother(None, **models)
     searching = CentralizedSmoother(None, search=ParticleTrajectorySearch(),
                                     **models)
+    exchanging = CentralizedSmoother(None, exchange=GroupExchange(),
+                                     **models)
     window = Smoothed(FixedLagGaussianBP.recommended(
         lag=args.lag, relocation=TrajectorySearch(), **models))
     name = f'gbp-lag{args.lag} + TrajectorySearch, smoothed'
     from_window = f'MAP from {name}'
     names = [FILTER, INCREMENTAL, FROM_INCREMENTAL, name, from_window, BEST,
-             SEARCH, TRUTH]
+             SEARCH, EXCHANGE, ESCAPE, TRUTH]
     rows = names if args.only is None else args.only
     unknown = sorted(set(rows) - set(names))
     if unknown:
@@ -80,7 +87,7 @@ def main():
         text = []
         if FILTER in rows:
             run(FILTER, data, lambda: smoother(data))
-        both = {BEST, SEARCH} & set(rows)
+        both = {BEST, SEARCH, EXCHANGE, ESCAPE} & set(rows)
         starts = []  # (optimum, seconds) of each start
         if both or {INCREMENTAL, FROM_INCREMENTAL} & set(rows):
             began = time.perf_counter()
@@ -109,6 +116,16 @@ def main():
                 run(SEARCH, data, lambda: searching.smoothed_from(
                     data, kept.mean, torch.Generator().manual_seed(index)),
                     spent)
+            if {EXCHANGE, ESCAPE} & set(rows):
+                exchanged, spent = run(EXCHANGE, data, lambda: (
+                    exchanging.smoothed_from(data, [
+                        out.mean for out, _ in starts])), spent)
+            if ESCAPE in rows:
+                # the search after the exchange, as a smoother with both
+                # runs them (the exchange draws nothing)
+                run(ESCAPE, data, lambda: searching.smoothed_from(
+                    data, exchanged.mean,
+                    torch.Generator().manual_seed(index)), spent)
         if TRUTH in rows:
             run(TRUTH, data, lambda: smoother.smoothed_from(data,
                                                             data.states))

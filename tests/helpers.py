@@ -12,6 +12,7 @@ import torch
 
 import tg_nebp
 from tg_nebp.datasets import Scenario
+from tg_nebp.filters import StepOutput, Tracker
 from tg_nebp.models import GaussianRange
 
 PACKAGE_ROOT = str(Path(tg_nebp.__file__).resolve().parents[1])
@@ -705,6 +706,20 @@ def loads_after_bit_flips(path, load, count, seed):
     finally:
         path.write_bytes(original)
     return refused, loaded
+
+
+class Given(Tracker):
+    r"""A tracker whose estimates are the given states :math:`(N, T, S)`,
+    with zero covariances: a start of the whole sequence's smoother in a
+    chosen basin."""
+    def __init__(self, states, **models):
+        super().__init__(**models)
+        self.states = states
+
+    def steps(self, data, generator=None):
+        for t, state in enumerate(self.states.unbind(1)):
+            yield StepOutput(t, state, state.new_zeros(
+                state.shape + state.shape[-1:]))
 
 
 def mirror(third=(15.0, 3.0), prior_y=-5.0, steps=8, prior_sd=0.5,

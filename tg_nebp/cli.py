@@ -241,8 +241,9 @@ def _add_method_options(parser: argparse.ArgumentParser):
         help="iekf with --lag all: the full smoother started from the "
         "incremental smoother's last step and from fixed-lag Gaussian BP's "
         "smoothed estimates (lag 10, TrajectorySearch), the optimum of "
-        "lower cost kept, every agent's trajectory then searched for a "
-        "better basin by a conditional particle filter "
+        "lower cost kept, connected groups of agents taken from the other "
+        "where that costs less (GroupExchange), every agent's trajectory "
+        "then searched for a better basin by a conditional particle filter "
         "(ParticleTrajectorySearch; iekf-smoother-escape)")
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '

@@ -12,9 +12,9 @@ from tg_nebp.experiments.evaluate import evaluate_scenario, method_tracker
 from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS, MethodOptions
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
                              FixedLagGaussianBP, FixedLagGaussianNEBP,
-                             GaussianBP, GaussianNEBP, IncrementalSmoother,
-                             ParticleBP, ParticleTrajectorySearch,
-                             TrajectorySearch)
+                             GaussianBP, GaussianNEBP, GroupExchange,
+                             IncrementalSmoother, ParticleBP,
+                             ParticleTrajectorySearch, TrajectorySearch)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
 
@@ -44,6 +44,7 @@ def test_method_tracker_builds_each_method(scenario):
     assert window.tracker.settings() == FixedLagGaussianBP.recommended(
         lag=10, relocation=TrajectorySearch()).settings()
     assert escape.search == ParticleTrajectorySearch()
+    assert escape.exchange == GroupExchange()
     assert isinstance(tracker.measurement, StudentTRange)
     # the scenario's sigma and range are kept
     assert tracker.measurement.sigma == scenario.measurement_model.sigma

@@ -46,8 +46,9 @@ COMPARE_SCENARIOS = ('paper_test', 'paper_test_nlos')
 BOUND = 'pcrb'
 #: The end of the first word of a smoother's row of smoothed estimates.
 SMOOTHED = '-smoothed'
-#: The suffix of the full smoother's row with the search of better basins
-#: (:class:`~tg_nebp.filters.ParticleTrajectorySearch`).
+#: The suffix of the full smoother's row that escapes its filter's basin
+#: (two starts, :class:`~tg_nebp.filters.GroupExchange` and
+#: :class:`~tg_nebp.filters.ParticleTrajectorySearch`).
 ESCAPE = '-escape'
 #: The suffix of a bound of the ranges alone (a scenario with bearings)
 RANGE_ONLY = '-range-only'
@@ -196,7 +197,8 @@ def compare_methods(scenario: Scenario,
                                         measurement=own))
         methods[f'iekf{lag_key(WHOLE_SEQUENCE)}{ESCAPE} {own.name}'] = (
             "centralized full smoother from the better of the incremental "
-            "smoother's last step and a window's smoothed estimates, every "
+            "smoother's last step and a window's smoothed estimates, groups "
+            "of agents exchanged between both optima (GroupExchange), every "
             "agent's trajectory searched for a better basin "
             "(ParticleTrajectorySearch)",
             lambda: escaping_smoother(motion, own))

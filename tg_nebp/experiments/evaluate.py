@@ -18,7 +18,8 @@ from tg_nebp.evaluation import evaluate_method
 from tg_nebp.experiments.options import WHOLE_SEQUENCE, MethodOptions
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
-                             FixedLagGaussianNEBP, GaussianBP, HybridBP,
+                             FixedLagGaussianNEBP, GaussianBP,
+                             GroupExchange, HybridBP,
                              IncrementalSmoother, LinkSearch,
                              NoiseAdaptation, ParticleBP,
                              ParticleTrajectorySearch, Smoothed, Tracker,
@@ -46,8 +47,11 @@ def escaping_smoother(motion, measurement, **options) -> CentralizedSmoother:
     Gaussian BP over :obj:`ESCAPE_WINDOW` steps with the relocation with
     hindsight (the better optimum by the whole sequence's cost kept: on the
     validation realizations of ``paper_test_sparse`` each start's basin was
-    the better in some), then every agent's trajectory searched for a
-    better basin (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
+    the better in some), connected groups of agents taken from the other
+    optimum where that costs less (:class:`~tg_nebp.filters.GroupExchange`:
+    each start can lose a different group), then every agent's trajectory
+    searched for a better basin
+    (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
     the models :obj:`motion` and :obj:`measurement` throughout and
     :obj:`options` of :class:`~tg_nebp.filters.CentralizedSmoother`."""
     models = dict(motion=motion, measurement=measurement)
@@ -57,7 +61,7 @@ def escaping_smoother(motion, measurement, **options) -> CentralizedSmoother:
             Smoothed(FixedLagGaussianBP.recommended(
                 lag=ESCAPE_WINDOW, relocation=TrajectorySearch(),
                 **models))),
-        search=ParticleTrajectorySearch())
+        search=ParticleTrajectorySearch(), exchange=GroupExchange())
 
 
 def lag_key(lag) -> str:

@@ -3,14 +3,13 @@ import pytest
 import torch
 
 from tg_nebp.filters import (CentralizedSmoother, IncrementalSmoother,
-                             ParticleTrajectorySearch, Smoothed, StepOutput,
-                             Tracker)
+                             ParticleTrajectorySearch, Smoothed)
 from tg_nebp.filters.centralized.centralized_smoother import _Slot as Slot
 from tg_nebp.filters.centralized.particle_trajectory_search import (
     _unlinked_movers, agent_costs, held_slot, link_log_likelihoods)
 from tg_nebp.gaussian import GraphLayout
 
-from helpers import gen, mirror, tiny_scenario
+from helpers import Given, gen, mirror, tiny_scenario
 
 #: The third anchor of the mirror's test: 1.5 m off the line of the other
 #: two, so that the whole sequence's links decide the side (the smoother's
@@ -62,19 +61,6 @@ def test_a_truly_ambiguous_agent_is_never_moved():
         data, flipped(data), gen(0))
     assert torch.equal(searched.mean, plain.mean)
     assert torch.equal(searched.cov, plain.cov)
-
-
-class Given(Tracker):
-    # a tracker whose estimates are the given states (N, T, S): a start in
-    # a chosen basin
-    def __init__(self, states, **models):
-        super().__init__(**models)
-        self.states = states
-
-    def steps(self, data, generator=None):
-        for t, state in enumerate(self.states.unbind(1)):
-            yield StepOutput(t, state, state.new_zeros(
-                state.shape + state.shape[-1:]))
 
 
 def test_of_several_starts_the_lowest_cost_basin_wins_in_either_order():
@@ -213,9 +199,9 @@ def test_lineages_keep_the_current_trajectory_and_are_the_models_own():
 def test_a_move_lowers_the_smoothers_cost_by_its_gain_at_least():
     data, models = broad_mirror()
     smoother = CentralizedSmoother(None, **models)
-    base, slots, (start, ) = smoother._problem(data, GraphLayout.of(data), [
+    base, slots, (start, ) = smoother._problem(data, GraphLayout.of(data), [[
         [state[~data.anchor].unsqueeze(0)] for state in
-        flipped(data).unbind(1)])[0]
+        flipped(data).unbind(1)]])[0]
     solved = smoother._solve(base, slots, start)[0]
     search = ParticleTrajectorySearch()
     result = search.sweep(smoother, base, slots, solved, gen(0))
@@ -292,9 +278,9 @@ def test_the_sequence_cost_is_the_smoothers_and_lower_at_the_better_basin():
     smoother = CentralizedSmoother(None, **models)
     truth_basin = smoother.smoothed_from(data, data.states)
     mirror_basin = smoother.smoothed_from(data, flipped(data))
-    base, slots, (points, ) = smoother._problem(data, GraphLayout.of(data), [
+    base, slots, (points, ) = smoother._problem(data, GraphLayout.of(data), [[
         [state[~data.anchor].unsqueeze(0)] for state in
-        truth_basin.mean.double().unbind(1)])[0]
+        truth_basin.mean.double().unbind(1)]])[0]
     assert float(smoother.sequence_cost(data, truth_basin.mean)) == float(
         smoother._cost_of(base, slots, points))
     # the third anchor's ranges decide: its basin is the better by far

@@ -1,9 +1,11 @@
 r"""The centralized references: the iterated EKF over the joint of all
 agents (or their marginals), the fixed-lag and full smoothers, and the
 incremental smoother of the whole sequence (as iSAM2), and the full
-smoother's search for better basins than its start's."""
+smoother's search for better basins than its start's and exchange of
+groups between its starts' optima."""
 from .centralized_iekf import CentralizedIEKF, JointState
 from .centralized_smoother import CentralizedSmoother
+from .group_exchange import GroupExchange
 from .incremental_smoother import IncrementalSmoother, SmootherState
 from .particle_trajectory_search import (EscapeSweep,
                                          ParticleTrajectorySearch)
@@ -16,4 +18,5 @@ __all__ = [
     'SmootherState',
     'ParticleTrajectorySearch',
     'EscapeSweep',
+    'GroupExchange',
 ]

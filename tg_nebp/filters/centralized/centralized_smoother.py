@@ -8,6 +8,7 @@ from torch import Tensor
 from tg_nebp.data.realization import Realization, num_steps_of
 from tg_nebp.data.validation import check_lag
 from tg_nebp.filters.centralized.centralized_iekf import CentralizedIEKF
+from tg_nebp.filters.centralized.group_exchange import GroupExchange
 from tg_nebp.filters.centralized.particle_trajectory_search import \
     ParticleTrajectorySearch
 from tg_nebp.filters.tracker import StepOutput, Tracker, TrackOutput
@@ -48,6 +49,20 @@ class _Pass(NamedTuple):
     predicted: List[Tuple[Tensor, Tensor, Tensor]]
     filtered: List[Tuple[Tensor, Tensor]]
     smoothed: List[Tuple[Tensor, Tensor]]
+
+
+def _check_component(value, name: str, kind: type, does: str,
+                     lag: Optional[int]):
+    # a component of the whole sequence's smoother: None, or a 'kind' with
+    # lag=None
+    if value is None:
+        return
+    if not isinstance(value, kind):
+        raise TypeError(f"'{name}' must be a {kind.__name__} or None, got "
+                        f"{type(value).__name__}")
+    if lag is not None:
+        raise ValueError(f"'{name}' {does}: it needs lag=None, got "
+                         f"lag={lag}")
 
 
 #: The Gauss-Newton iterations of the whole sequence's smoother by default
@@ -99,7 +114,9 @@ class CentralizedSmoother(CentralizedIEKF):
     rounding once the iterations converge). With :obj:`lag=None` it is the
     full batch smoother: the whole sequence is one window, started from
     the filtered estimates of :obj:`lag=1` (or from other trackers',
-    :obj:`start`, the optimum of lowest cost kept), then searched for
+    :obj:`start`, the optimum of lowest cost kept, and groups of agents
+    taken from the others' where that costs less, :obj:`exchange`, a
+    :class:`~tg_nebp.filters.GroupExchange`), then searched for
     better basins (:obj:`search`, a
     :class:`~tg_nebp.filters.ParticleTrajectorySearch`), and every step's
     smoothed estimate is yielded at the end.
@@ -145,6 +162,13 @@ class CentralizedSmoother(CentralizedIEKF):
             than its start's, after the iterations converge (its sweeps
             draw from the :obj:`generator`); :obj:`None` keeps the start's
             basin. (default: :obj:`None`)
+        exchange (GroupExchange, optional): With :obj:`lag=None` and
+            several starts (:obj:`start` trackers, or the states given to
+            :meth:`smoothed_from`), the exchange of connected groups of
+            agents between their optima, from the one of lowest cost,
+            before the :obj:`search`: where each start lost a different
+            group; :obj:`None` keeps the optimum of lowest cost as it is.
+            (default: :obj:`None`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -162,7 +186,8 @@ class CentralizedSmoother(CentralizedIEKF):
                  measurement: Optional[MeasurementModel] = None,
                  max_halvings: int = 10, tolerance: float = 1e-6,
                  start: Union[None, Tracker, Sequence[Tracker]] = None,
-                 search: Optional[ParticleTrajectorySearch] = None):
+                 search: Optional[ParticleTrajectorySearch] = None,
+                 exchange: Optional[GroupExchange] = None):
         lag = check_lag(lag)
         if start is not None:
             starts = (start, ) if isinstance(start, Tracker) else start
@@ -178,15 +203,11 @@ class CentralizedSmoother(CentralizedIEKF):
                 raise ValueError(f"'start' starts the whole sequence's "
                                  f"smoother: it needs lag=None, got "
                                  f"lag={lag}")
-        if search is not None:
-            if not isinstance(search, ParticleTrajectorySearch):
-                raise TypeError(f"'search' must be a "
-                                f"ParticleTrajectorySearch or None, got "
-                                f"{type(search).__name__}")
-            if lag is not None:
-                raise ValueError(f"'search' escapes the whole sequence's "
-                                 f"smoother: it needs lag=None, got "
-                                 f"lag={lag}")
+        _check_component(search, 'search', ParticleTrajectorySearch,
+                         "escapes the whole sequence's smoother", lag)
+        _check_component(exchange, 'exchange', GroupExchange,
+                         "exchanges groups between the whole sequence's "
+                         "optima", lag)
         if num_iterations is None:
             num_iterations = WHOLE_SEQUENCE_ITERATIONS if lag is None else 5
         super().__init__(num_iterations, motion, measurement,
@@ -195,6 +216,7 @@ class CentralizedSmoother(CentralizedIEKF):
         self.start = start if start is None or isinstance(
             start, Tracker) else tuple(start)
         self.search = search
+        self.exchange = exchange
 
     @property
     def starts(self) -> Tuple[Tracker, ...]:
@@ -272,7 +294,8 @@ class CentralizedSmoother(CentralizedIEKF):
                     points[g].popleft()
             yield t, means, covs
 
-    def smoothed_from(self, data: Realization, start: Tensor,
+    def smoothed_from(self, data: Realization,
+                      start: Union[Tensor, Sequence[Tensor]],
                       generator: Optional[torch.Generator] = None
                       ) -> TrackOutput:
         r"""The whole sequence's maximum a posteriori states of a single
@@ -283,14 +306,26 @@ class CentralizedSmoother(CentralizedIEKF):
         (anchors at their known states). The optimum is the start's basin's:
         started from its filter, the full smoother keeps an agent that the
         filter lost where the filter left it, unless the :obj:`search`
-        moves it (drawing from :obj:`generator`)."""
-        layout = self._single(data, start, 'start')
-        points = start.to(data.prior_mean.device).double()[layout.agents[0]]
+        moves it (drawing from :obj:`generator`). Several states
+        :obj:`start` (a sequence of them) start the iterations each, as
+        several :obj:`start` trackers do: the optimum of lowest cost kept,
+        the :obj:`exchange`'s groups taken from the others'."""
+        given = [start] if isinstance(start, Tensor) else list(start)
+        if not given:
+            raise ValueError("'start' must be a tensor or a non-empty "
+                             "sequence of them")
+        layout = None
+        for index, one in enumerate(given):
+            layout = self._single(data, one, 'start' if isinstance(
+                start, Tensor) else f'start[{index}]')
         means, covs = [], []
-        # per step, per graph, a window of one step (as the filter's)
-        for output in self._batch(data, layout, [[state.unsqueeze(0)] for
-                                                 state in points.unbind(1)],
-                                  generator):
+        # per start, per step, per graph, a window of one step (as the
+        # filter's)
+        for output in self._batch(data, layout, [
+                [[state.unsqueeze(0)] for state in one.to(
+                    data.prior_mean.device).double()[
+                    layout.agents[0]].unbind(1)] for one in given],
+                generator):
             means.append(output.mean)
             covs.append(output.cov)
         return TrackOutput(torch.stack(means, 1), torch.stack(covs, 1))
@@ -304,10 +339,10 @@ class CentralizedSmoother(CentralizedIEKF):
         driving noise that makes it). Lower is a better basin: what the
         :obj:`search` compares."""
         layout = self._single(data, states, 'states')
-        base, slots, (points, ) = self._problem(data, layout, [
+        base, slots, (points, ) = self._problem(data, layout, [[
             [state.unsqueeze(0)] for state in
             states.to(data.prior_mean.device).double()[
-                layout.agents[0]].unbind(1)])[0]
+                layout.agents[0]].unbind(1)]])[0]
         return self._cost_of(base, slots, points)
 
     def _single(self, data: Realization, states, name: str) -> GraphLayout:
@@ -334,13 +369,13 @@ class CentralizedSmoother(CentralizedIEKF):
         return layout
 
     def _batch(self, data: Realization, layout: GraphLayout,
-               start: Optional[List[List[Tensor]]] = None,
+               start: Optional[List[List[List[Tensor]]]] = None,
                generator: Optional[torch.Generator] = None
                ) -> Iterator[StepOutput]:
         # the full smoother: Gauss-Newton over every step at once, from the
-        # filter's estimates (or from 'start': per step, per graph, its
-        # agents' states as a window of one step), then the search's
-        # escapes
+        # filter's estimates (or the start trackers', or from 'start': per
+        # start, per step, per graph, its agents' states as a window of one
+        # step), the groups exchanged, then the search's escapes
         size = data.prior_mean.size(1)
         means, covs = [], []
         # one generator per graph (as the evaluation passes them), or one
@@ -355,10 +390,14 @@ class CentralizedSmoother(CentralizedIEKF):
             if len(solutions) > 1:
                 costs = [float(self._cost_of(base, mine, one)) for one, _
                          in solutions]
-                # the first of equal costs (min keeps it), a NaN never
-                solved, final = solutions[min(
-                    range(len(costs)), key=lambda k: (
-                        costs[k] != costs[k], costs[k]))]
+                # the first of equal costs (sorted keeps it), a NaN last
+                order = sorted(range(len(costs)), key=lambda k: (
+                    costs[k] != costs[k], costs[k]))
+                solved, final = solutions[order[0]]
+                if self.exchange is not None:
+                    solved, final = self.exchange.exchanged(
+                        self, base, mine, (solved, final),
+                        [solutions[k][0] for k in order[1:]])
             if self.search is not None:
                 solved, final = self.search.escaped(
                     self, base, mine, (solved, final), drawn)
@@ -372,15 +411,15 @@ class CentralizedSmoother(CentralizedIEKF):
                              output.window_cov[:, t])
 
     def _problem(self, data: Realization, layout: GraphLayout,
-                 start: Optional[List[List[Tensor]]] = None,
+                 start: Optional[List[List[List[Tensor]]]] = None,
                  generator=None):
         # per graph the whole sequence's problem: the Gaussian before it
         # (the prior), every step's links and the starts of the iterations
         # (one per start tracker, or the filter's estimates, unless
-        # 'start' gives one: per step, per graph, its agents' states as a
-        # window of one step)
+        # 'start' gives them: per start, per step, per graph, its agents'
+        # states as a window of one step)
         if start is not None:
-            starts = [self._lifted(data, layout, start)]
+            starts = [self._lifted(data, layout, one) for one in start]
         elif self.start is None:
             starts = [[means for _, means, _ in
                        self._windows(data, layout, 1)]]
@@ -606,11 +645,15 @@ class CentralizedSmoother(CentralizedIEKF):
             {} if not starts else dict(start=starts[0] if isinstance(
                 self.start, Tracker) else starts)), **(
             {} if self.search is None else
-            dict(search=self.search.settings())))
+            dict(search=self.search.settings())), **(
+            {} if self.exchange is None else
+            dict(exchange=self.exchange.settings())))
 
     def __repr__(self) -> str:
         start = '' if self.start is None else f', start={self.start!r}'
         search = '' if self.search is None else f', search={self.search}'
+        exchange = '' if self.exchange is None else \
+            f', exchange={self.exchange}'
         return (f'{self.__class__.__name__}(lag={self.lag}, num_iterations='
                 f'{self.num_iterations}, motion={self.motion}, '
-                f'measurement={self.measurement}{start}{search})')
+                f'measurement={self.measurement}{start}{search}{exchange})')

@@ -1,0 +1,187 @@
+import pytest
+import torch
+
+from tg_nebp.data import Realization
+from tg_nebp.filters import (CentralizedSmoother, GroupExchange,
+                             ParticleTrajectorySearch)
+from tg_nebp.filters.centralized.centralized_smoother import _Slot as Slot
+from tg_nebp.gaussian import GraphLayout
+from tg_nebp.models import ConstantVelocity, GaussianRange
+
+from helpers import Given, gen
+
+#: Two clusters 100 m apart, each with anchors on a line (y = 0) and a
+#: third 1.5 m off it, so that the whole sequence's links decide each
+#: agent's side: agents 0 and 1 (which range to each other) by the first,
+#: agent 2 by the second (as the search's mirror test).
+CLUSTERS = ((0.0, ((5.0, 5.0), (12.0, 5.0))), (100.0, ((105.0, 5.0), )))
+STEPS = 12
+VELOCITY = 0.3
+
+
+def two_groups(third_y=1.5):
+    # the agents moving along x at 0.3 m/s, their priors on the anchors'
+    # line and broad, so that either side is as likely before the links;
+    # the third anchor of each cluster 'third_y' off the line (0: every
+    # link symmetric about it, the mirror as likely as the truth)
+    agents, anchors, owner = [], [], []
+    for offset, starts in CLUSTERS:
+        base = len(anchors)
+        anchors += [(offset, 0.0), (offset + 10.0, 0.0),
+                    (offset + 20.0, third_y)]
+        for start in starts:
+            agents.append(start)
+            owner.append(base)
+    count = len(agents)
+    num = count + len(anchors)
+    states = torch.zeros(num, STEPS, 4)
+    for a, (x, y) in enumerate(agents):
+        states[a, :, 0] = x + VELOCITY * torch.arange(STEPS)
+        states[a, :, 1] = y
+        states[a, :, 2] = VELOCITY
+    states[count:, :, :2] = torch.tensor(anchors).unsqueeze(1)
+    g = gen(1)
+    edges, ranges, times = [], [], []
+    for t in range(STEPS):
+        for a in range(count):
+            for k in range(3):
+                edges.append((count + owner[a] + k, a))
+            if a == 1:  # agents 0 and 1 range to each other
+                edges.append((0, 1))
+        for sender, receiver in edges[len(ranges):]:
+            ranges.append(float((states[sender, t, :2] - states[
+                receiver, t, :2]).norm() + 0.3 * torch.randn(
+                (), generator=g, dtype=torch.float64)))
+            times.append(t)
+    prior_mean = states[:, 0].clone()
+    prior_mean[:count, 1] = 0.0
+    prior_cov = torch.zeros(num, 4, 4)
+    prior_cov[:count] = torch.diag(torch.tensor([25.0, 25.0, 0.01, 0.01]))
+    data = Realization(
+        states=states, edge_index=torch.tensor(edges).t(),
+        edge_attr=torch.tensor(ranges).view(-1, 1),
+        edge_time=torch.tensor(times),
+        anchor=torch.arange(num) >= count, prior_mean=prior_mean,
+        prior_cov=prior_cov, num_steps=STEPS, num_nodes=num)
+    return data, dict(motion=ConstantVelocity(sigma_a=0.05),
+                      measurement=GaussianRange(sigma=0.3))
+
+
+def flipped(data, agents):
+    # the truth with 'agents' reflected across their anchors' line (y = 0),
+    # their velocities too: a start with that group lost on the mirror
+    start = data.states.double().clone()
+    start[agents, :, 1] = -start[agents, :, 1]
+    start[agents, :, 3] = -start[agents, :, 3]
+    return start
+
+
+def lost(estimate, data):
+    # the agents farther than 8 m from the truth at every step
+    error = (estimate[:3, :, :2] - data.states[:3, :, :2].double()).norm(
+        dim=-1)
+    return (error.amin(1) > 8).nonzero().flatten().tolist()
+
+
+def test_groups_lost_in_different_starts_are_exchanged_into_one_solution():
+    data, models = two_groups()
+    plain = CentralizedSmoother(None, **models)
+    truth_basin = plain.smoothed_from(data, data.states.double()).mean
+    # each start lost a different group: the pair in one, agent 2 in the
+    # other
+    starts = [Given(flipped(data, [0, 1]), **models),
+              Given(flipped(data, [2]), **models)]
+    for order in (starts, starts[::-1]):
+        chosen = CentralizedSmoother(None, start=order, **models)(data).mean
+        assert lost(chosen, data) in ([0, 1], [2])  # one basin or the other
+        exchanging = CentralizedSmoother(None, start=order,
+                                         exchange=GroupExchange(), **models)
+        found = exchanging(data).mean
+        assert lost(found, data) == []
+        torch.testing.assert_close(found, truth_basin, rtol=0, atol=1e-5)
+        assert float(plain.sequence_cost(data, found)) < float(
+            plain.sequence_cost(data, chosen)) - 10
+        # the same from the states themselves
+        torch.testing.assert_close(exchanging.smoothed_from(data, [
+            start.states for start in order]).mean, found, rtol=0, atol=0)
+    # the search, one agent at a time with its neighbours held, cannot move
+    # the pair: each of its agents alone would break their link
+    searching = CentralizedSmoother(None, start=starts[0],
+                                    search=ParticleTrajectorySearch(),
+                                    **models)
+    assert lost(searching(data, gen(0)).mean, data) == [0, 1]
+
+
+def test_groups_are_the_differing_agents_connected_by_their_links():
+    data, models = two_groups()
+    smoother = CentralizedSmoother(None, **models)
+    layout = GraphLayout.of(data)
+    base, slots, _ = smoother._problem(data, layout)[0]
+    truth = [state[:3] for state in data.states.double().unbind(1)]
+
+    def groups(agents, separation=2.0):
+        other = [state[:3] for state in flipped(data, agents).unbind(1)]
+        return [group.tolist() for group in GroupExchange(
+            separation).groups(smoother, slots, truth, other)]
+
+    assert groups([0, 1, 2]) == [[0, 1], [2]]  # the largest first
+    assert groups([2, 0]) == [[0], [2]]  # linked only if both differ
+    assert groups([1]) == [[1]]
+    # 10 m apart at most (the flip of y = 5): not farther than 10
+    assert groups([0, 1, 2], separation=10.0) == []
+
+
+def test_a_chain_of_links_over_several_steps_is_one_group():
+    # agents 0-1 linked at step 0, 1-2 at step 1 (0 and 2 never), 3 and 4
+    # to an anchor only: all five differ, 4 by less than the separation
+    smoother = CentralizedSmoother(None)
+    links = ([(0, 1), (-1, 3)], [(2, 1), (-1, 4)])
+    slots = [Slot(torch.ones(len(step), 1), torch.tensor([s for s, _ in
+                                                          step]),
+                  torch.tensor([r for _, r in step]), torch.zeros(
+                      len(step), 4), None) for step in links]
+    here = [torch.zeros(5, 4)] * 2
+    other = [torch.tensor([[3.0, 0, 0, 0]] * 4 + [[1.0, 0, 0, 0]])] * 2
+    assert [group.tolist() for group in GroupExchange().groups(
+        smoother, slots, here, other)] == [[0, 1, 2], [3]]
+
+
+def test_basins_the_data_do_not_separate_are_never_exchanged():
+    # every link symmetric about the anchors' line: each start's optimum
+    # costs what its mirror does, so the margin keeps the better one as it
+    # is
+    data, models = two_groups(third_y=0.0)
+    starts = [Given(flipped(data, [0, 1]), **models),
+              Given(flipped(data, [2]), **models)]
+    chosen = CentralizedSmoother(None, start=starts, **models)(data)
+    exchanged = CentralizedSmoother(None, start=starts,
+                                    exchange=GroupExchange(), **models)(data)
+    assert lost(chosen.mean, data) != []
+    assert torch.equal(exchanged.mean, chosen.mean)
+    assert torch.equal(exchanged.cov, chosen.cov)
+
+
+def test_settings_and_refusals():
+    data, models = two_groups()
+    starts = [Given(data.states, **models)] * 2
+    smoother = CentralizedSmoother(None, start=starts,
+                                   exchange=GroupExchange(rounds=3))
+    assert smoother.settings()['exchange'] == dict(
+        exchange='group', separation=2.0, margin=10.0, rounds=3)
+    assert 'exchange=GroupExchange(separation=2.0' in repr(smoother)
+    assert 'exchange' not in CentralizedSmoother(None).settings()
+    assert GroupExchange() == GroupExchange()
+    assert GroupExchange() != GroupExchange(margin=5.0)
+    with pytest.raises(TypeError, match="'exchange' must be a "
+                       "GroupExchange or None, got str"):
+        CentralizedSmoother(None, start=starts, exchange='group')
+    with pytest.raises(ValueError, match="'exchange' .* needs lag=None"):
+        CentralizedSmoother(5, exchange=GroupExchange())
+    with pytest.raises(ValueError, match="'start' must be a tensor or a "
+                       "non-empty sequence"):
+        smoother.smoothed_from(data, [])
+    with pytest.raises(ValueError, match=r"'start\[1\]' must be a tensor "
+                       r"of shape \(N, T, S\)"):
+        smoother.smoothed_from(data, [data.states, data.states[:, 1:]])
+    with pytest.raises(ValueError, match="'rounds'"):
+        GroupExchange(rounds=0)
