@@ -9,11 +9,11 @@ better of those two optima by the whole sequence's cost (what a
 ``start`` of both keeps), from there with the search of better basins
 (:class:`~tg_nebp.filters.ParticleTrajectorySearch`, drawing from a
 generator seeded with the realization's index), with groups of agents
-exchanged between the two optima first
-(:class:`~tg_nebp.filters.GroupExchange`), and with both (what
-``--escape`` runs, with ``--lag`` 10), and started from the true states (the optimum of the
-truth's basin, the best the data allow; the truth only starts the
-solver), each by :meth:`CentralizedSmoother.smoothed_from
+exchanged between the two optima
+(:class:`~tg_nebp.filters.GroupExchange`), with the exchange and then
+the search (what ``--escape`` runs, with ``--lag`` 10), and started
+from the true states (the optimum of the truth's basin, the best the
+data allow; the truth only starts the solver), each by :meth:`CentralizedSmoother.smoothed_from
 <tg_nebp.filters.CentralizedSmoother.smoothed_from>`. On the test
 realizations of ``tg-nebp evaluate --scenario S --realizations R --seed
 K``, one torch thread. Printed: each realization's RMSE and agents more

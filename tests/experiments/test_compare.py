@@ -86,6 +86,20 @@ def test_compare_runs_resumes_and_adds_checkpoints(tmp_path):
     assert f"| {iekf['0.95']:.3f} / {iekf['0.99']:.3f} |" in table
     assert '| 0.950 / 0.990 |' in table  # the bound's: the levels
 
+    # a row whose method's description changed since is run again, alone
+    stored = read_json(tmp_path / 'out' / 'compare.json')
+    described = stored['results']['tiny']['iekf gaussian']['method']
+    stored['results']['tiny']['iekf gaussian']['method'] = 'an older IEKF'
+    write_json(tmp_path / 'out' / 'compare.json', stored, sort_keys=False)
+    lines.clear()
+    rerun = run_compare(methods=['pcrb', 'iekf '], **common)
+    assert [line.split(':')[:2] for line in lines if 'run again' not in
+            line] == [['tiny', ' iekf gaussian']]
+    assert sum("('an older IEKF'): run again" in line for line in lines) == 1
+    assert rerun['results']['tiny']['iekf gaussian']['method'] == described
+    assert rerun['results']['tiny']['iekf gaussian']['rmse'] == rows[
+        'iekf gaussian']['rmse']
+
 
 def test_changed_scenario_under_the_same_name_is_refused(tmp_path):
     common = dict(root=str(tmp_path / 'data'), realizations=1,

@@ -355,7 +355,9 @@ def run_compare(root: str = 'datasets',
     Every method sees the same realizations and, through
     :func:`~tg_nebp.evaluation.track_dataset` with :obj:`seed`, the same
     prior particle draws. Rows already in the file are skipped (resuming,
-    or adding checkpoints), as long as it was made with the same
+    or adding checkpoints), unless their method's description has changed
+    since (the method is then another: its row is run again), as long as
+    it was made with the same
     realizations, seed, device and scenarios (compared by their
     :meth:`~tg_nebp.datasets.Scenario.fingerprint`, so a scenario file
     changed under the same name is not mixed in); another file is an
@@ -458,10 +460,14 @@ def run_compare(root: str = 'datasets',
     for name, key, what, method in plan:
         dataset = by_name[name]
         steps = len(dataset) * dataset.scenario.num_steps
-        if key in result['results'].get(name, {}):
+        stored = result['results'].get(name, {}).get(key)
+        if stored is not None and stored.get('method', what) == what:
             if progress is not None:
                 progress(steps)
             continue
+        if stored is not None:
+            log(f"{name}: {key}: the method has changed since its row was "
+                f"written ({stored['method']!r}): run again")
         entry = _run_one(method, dataset, seed, device, batch_size, progress)
         entry['method'] = what
         result['results'].setdefault(name, {})[key] = entry

@@ -48,10 +48,10 @@ def escaping_smoother(motion, measurement, **options) -> CentralizedSmoother:
     hindsight (the better optimum by the whole sequence's cost kept: on the
     validation realizations of ``paper_test_sparse`` each start's basin was
     the better in some), connected groups of agents taken from the other
-    optimum where that costs less (:class:`~tg_nebp.filters.GroupExchange`:
-    each start can lose a different group), then every agent's trajectory
-    searched for a better basin
-    (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
+    optimum where that costs more than 10 nats less
+    (:class:`~tg_nebp.filters.GroupExchange`: each start can lose a
+    different group), then every agent's trajectory searched for a better
+    basin (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
     the models :obj:`motion` and :obj:`measurement` throughout and
     :obj:`options` of :class:`~tg_nebp.filters.CentralizedSmoother`."""
     models = dict(motion=motion, measurement=measurement)

@@ -1,5 +1,6 @@
 import pytest
 import torch
+from torch_geometric.loader import DataLoader
 
 from tg_nebp.data import Realization
 from tg_nebp.filters import (CentralizedSmoother, GroupExchange,
@@ -132,18 +133,22 @@ def test_groups_are_the_differing_agents_connected_by_their_links():
 
 
 def test_a_chain_of_links_over_several_steps_is_one_group():
-    # agents 0-1 linked at step 0, 1-2 at step 1 (0 and 2 never), 3 and 4
-    # to an anchor only: all five differ, 4 by less than the separation
+    # a path 0-1-2-3-4-5, one link per step (agents 0 and 5 never linked,
+    # nor linked to a common one), 6 and 7 to an anchor only, 6 also to a
+    # held end (-1 as a receiver), 8 to nothing: all differ, 7 by less than
+    # the separation
     smoother = CentralizedSmoother(None)
-    links = ([(0, 1), (-1, 3)], [(2, 1), (-1, 4)])
+    links = [[(k, k + 1)] for k in range(5)] + [[(-1, 6), (-1, 7), (6, -1)]]
     slots = [Slot(torch.ones(len(step), 1), torch.tensor([s for s, _ in
                                                           step]),
                   torch.tensor([r for _, r in step]), torch.zeros(
                       len(step), 4), None) for step in links]
-    here = [torch.zeros(5, 4)] * 2
-    other = [torch.tensor([[3.0, 0, 0, 0]] * 4 + [[1.0, 0, 0, 0]])] * 2
+    here = [torch.zeros(9, 4)] * len(links)
+    apart = torch.full((9, 4), 3.0)
+    apart[7] = 1.0
     assert [group.tolist() for group in GroupExchange().groups(
-        smoother, slots, here, other)] == [[0, 1, 2], [3]]
+        smoother, slots, here, [apart] * len(links))] == [
+        [0, 1, 2, 3, 4, 5], [6], [8]]
 
 
 def test_basins_the_data_do_not_separate_are_never_exchanged():
@@ -159,6 +164,33 @@ def test_basins_the_data_do_not_separate_are_never_exchanged():
     assert lost(chosen.mean, data) != []
     assert torch.equal(exchanged.mean, chosen.mean)
     assert torch.equal(exchanged.cov, chosen.cov)
+    # where they do, a margin beyond the gain keeps the better as it is too
+    data, models = two_groups()
+    starts = [Given(flipped(data, [0, 1]), **models),
+              Given(flipped(data, [2]), **models)]
+    chosen = CentralizedSmoother(None, start=starts, **models)(data)
+    beyond = CentralizedSmoother(None, start=starts, exchange=GroupExchange(
+        margin=1e6), **models)(data)
+    assert torch.equal(beyond.mean, chosen.mean)
+
+
+def test_each_graph_of_a_batch_exchanges_its_own_groups():
+    data, models = two_groups()
+    batch = next(iter(DataLoader([data, data], batch_size=2)))
+    # the first graph lost the pair in the first start, the second graph
+    # in the second
+    first = torch.cat([flipped(data, [0, 1]), flipped(data, [2])])
+    second = torch.cat([flipped(data, [2]), flipped(data, [0, 1])])
+    truth_basin = CentralizedSmoother(None, **models).smoothed_from(
+        data, data.states.double()).mean
+    found = CentralizedSmoother(None, start=[Given(first, **models),
+                                             Given(second, **models)],
+                                exchange=GroupExchange(), **models)(batch)
+    count = data.num_nodes
+    for graph in range(2):
+        torch.testing.assert_close(found.mean[graph * count:(graph + 1) *
+                                              count], truth_basin, rtol=0,
+                                   atol=1e-5)
 
 
 def test_settings_and_refusals():
@@ -177,11 +209,15 @@ def test_settings_and_refusals():
         CentralizedSmoother(None, start=starts, exchange='group')
     with pytest.raises(ValueError, match="'exchange' .* needs lag=None"):
         CentralizedSmoother(5, exchange=GroupExchange())
-    with pytest.raises(ValueError, match="'start' must be a tensor or a "
-                       "non-empty sequence"):
-        smoother.smoothed_from(data, [])
     with pytest.raises(ValueError, match=r"'start\[1\]' must be a tensor "
                        r"of shape \(N, T, S\)"):
         smoother.smoothed_from(data, [data.states, data.states[:, 1:]])
     with pytest.raises(ValueError, match="'rounds'"):
         GroupExchange(rounds=0)
+    for name in ('separation', 'margin'):
+        with pytest.raises((TypeError, ValueError), match=f"'{name}'"):
+            GroupExchange(**{name: float('nan')})
+    for start in (None, data.states.numpy(), []):
+        with pytest.raises(ValueError, match="'start' must be a tensor of "
+                           "shape"):
+            smoother.smoothed_from(data, start)

@@ -306,14 +306,24 @@ class CentralizedSmoother(CentralizedIEKF):
         (anchors at their known states). The optimum is the start's basin's:
         started from its filter, the full smoother keeps an agent that the
         filter lost where the filter left it, unless the :obj:`search`
-        moves it (drawing from :obj:`generator`). Several states
-        :obj:`start` (a sequence of them) start the iterations each, as
-        several :obj:`start` trackers do: the optimum of lowest cost kept,
-        the :obj:`exchange`'s groups taken from the others'."""
-        given = [start] if isinstance(start, Tensor) else list(start)
-        if not given:
-            raise ValueError("'start' must be a tensor or a non-empty "
-                             "sequence of them")
+        moves it (drawing from :obj:`generator`).
+
+        Args:
+            data (Realization): A single realization.
+            start (Tensor or sequence of Tensor): The states
+                :math:`(N, T, S)` that start the iterations, or several
+                (a list or tuple of them), each starting them as several
+                :obj:`start` trackers do: the optimum of lowest cost is
+                kept, with an :obj:`exchange` the groups it takes from the
+                others'.
+            generator (torch.Generator, optional): The :obj:`search`'s
+                draws. (default: :obj:`None`)
+        """
+        given = [start] if isinstance(start, Tensor) else start
+        if not isinstance(given, (list, tuple)) or not given:
+            raise ValueError(f"'start' must be a tensor of shape (N, T, S) "
+                             f"or a non-empty list or tuple of them, got "
+                             f"{type(start).__name__}")
         layout = None
         for index, one in enumerate(given):
             layout = self._single(data, one, 'start' if isinstance(

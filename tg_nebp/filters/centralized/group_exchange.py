@@ -42,7 +42,8 @@ class GroupExchange:
        sequence's Gauss-Newton iterations start from there, and the
        optimum they reach replaces :math:`\hat{\mathbf{x}}` where its cost
        (:meth:`~tg_nebp.filters.CentralizedSmoother.sequence_cost`) is
-       lower by more than :obj:`margin` nats;
+       lower by more than :obj:`margin` nats (any finite cost where
+       :math:`\hat{\mathbf{x}}`'s is NaN);
     3. the groups are found again and exchanged, at most :obj:`rounds`
        times, while a round takes one.
 
@@ -74,6 +75,8 @@ class GroupExchange:
         starts' optima :obj:`others` (each per step :math:`(A, S)`, in
         order of cost), in the same form."""
         cost = float(smoother._cost_of(base, slots, kept[0]))
+        if cost != cost:  # a NaN optimum: any finite one is better
+            cost = float('inf')
         for other in others:
             for _ in range(self.rounds):
                 taken = False
@@ -104,7 +107,8 @@ class GroupExchange:
             ..., :dim]).norm(dim=-1).amax(0) > self.separation
         linked = torch.eye(count, dtype=torch.bool, device=apart.device)
         for slot in slots:
-            both = slot.sender >= 0
+            # a link between two agents (-1: an anchor, or a held end)
+            both = (slot.sender >= 0) & (slot.receiver >= 0)
             linked[slot.sender[both], slot.receiver[both]] = True
         linked = (linked | linked.T) & apart.view(-1, 1) & apart.view(1, -1)
         # connected components by closure: each agent reaches what its
