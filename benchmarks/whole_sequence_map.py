@@ -13,7 +13,8 @@ exchanged between the two optima
 (:class:`~tg_nebp.filters.GroupExchange`), with the exchange and then
 the search (what ``--escape`` runs, with ``--lag`` 10), and started
 from the true states (the optimum of the truth's basin, the best the
-data allow; the truth only starts the solver), each by :meth:`CentralizedSmoother.smoothed_from
+data allow; the truth only starts the solver), each by
+:meth:`CentralizedSmoother.smoothed_from
 <tg_nebp.filters.CentralizedSmoother.smoothed_from>`. On the test
 realizations of ``tg-nebp evaluate --scenario S --realizations R --seed
 K``, one torch thread. Printed: each realization's RMSE and agents more

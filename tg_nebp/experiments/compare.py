@@ -105,7 +105,8 @@ def compare_methods(scenario: Scenario,
     (:obj:`"iekf-smoother ..."`; :obj:`"iekf-smoother-escape ..."`,
     :func:`~tg_nebp.experiments.evaluate.escaping_smoother`: from the
     better of the incremental smoother's last step and a window's
-    smoothed estimates, with the search of better basins) and the
+    smoothed estimates, groups exchanged between both, with the search of
+    better basins) and the
     incremental one (:obj:`"iekf-incremental ..."`, filtered and
     smoothed), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,

@@ -104,7 +104,8 @@ def test_groups_lost_in_different_starts_are_exchanged_into_one_solution():
             plain.sequence_cost(data, chosen)) - 10
         # the same from the states themselves
         torch.testing.assert_close(exchanging.smoothed_from(data, [
-            start.states for start in order]).mean, found, rtol=0, atol=0)
+            start.states for start in order]).mean, found, rtol=0,
+            atol=1e-12)
     # the search, one agent at a time with its neighbours held, cannot move
     # the pair: each of its agents alone would break their link
     searching = CentralizedSmoother(None, start=starts[0],

@@ -10,6 +10,8 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number, check_positive_int
+from tg_nebp.filters.centralized.particle_trajectory_search import \
+    linked_agents
 
 __all__ = ['GroupExchange']
 
@@ -105,12 +107,10 @@ class GroupExchange:
         dim = smoother.measurement.position_dim(size)
         apart = (torch.stack(points)[..., :dim] - torch.stack(other)[
             ..., :dim]).norm(dim=-1).amax(0) > self.separation
-        linked = torch.eye(count, dtype=torch.bool, device=apart.device)
-        for slot in slots:
-            # a link between two agents (-1: an anchor, or a held end)
-            both = (slot.sender >= 0) & (slot.receiver >= 0)
-            linked[slot.sender[both], slot.receiver[both]] = True
-        linked = (linked | linked.T) & apart.view(-1, 1) & apart.view(1, -1)
+        # every differing agent reaches itself and its differing neighbours
+        linked = (linked_agents(slots, count, apart.device) | torch.eye(
+            count, dtype=torch.bool, device=apart.device)) & \
+            apart.view(-1, 1) & apart.view(1, -1)
         # connected components by closure: each agent reaches what its
         # reachable agents reach, until nothing is added
         reach = linked

@@ -372,15 +372,22 @@ def link_log_likelihoods(smoother, slot, state: Tensor,
     return out
 
 
+def linked_agents(slots: List, count: int, device) -> Tensor:
+    r"""Which of :obj:`count` agents share a link at some step of
+    :obj:`slots` (a smoother's steps; :math:`-1`, an anchor or a held end,
+    links no agent): a symmetric :math:`(A, A)` boolean matrix."""
+    linked = torch.zeros(count, count, dtype=torch.bool, device=device)
+    for slot in slots:
+        both = (slot.sender >= 0) & (slot.receiver >= 0)
+        linked[slot.sender[both], slot.receiver[both]] = True
+    return linked | linked.T
+
+
 def _unlinked_movers(gain: Tensor, margin: float, slots: List) -> Tensor:
     # the agents whose gain beats the margin, best first, skipping any that
     # shares a link at some step with one already taken
     count = gain.numel()
-    linked = torch.zeros(count, count, dtype=torch.bool, device=gain.device)
-    for slot in slots:
-        both = slot.sender >= 0
-        linked[slot.sender[both], slot.receiver[both]] = True
-    linked = linked | linked.T
+    linked = linked_agents(slots, count, gain.device)
     moved = torch.zeros(count, dtype=torch.bool, device=gain.device)
     for agent in gain.argsort(descending=True).tolist():
         if not float(gain[agent]) > margin:
