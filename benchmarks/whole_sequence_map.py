@@ -11,7 +11,10 @@ better of those two optima by the whole sequence's cost (what a
 generator seeded with the realization's index), with groups of agents
 exchanged between the two optima
 (:class:`~tg_nebp.filters.GroupExchange`), with the exchange and then
-the search (what ``--escape`` runs, with ``--lag`` 10), and started
+the search, with the exchange and then groups flipped across their
+outside neighbours' line (:class:`~tg_nebp.filters.GroupFlip`), with the
+exchange, the flip and the search (what ``--escape`` runs, with
+``--lag`` 10), and started
 from the true states (the optimum of the truth's basin, the best the
 data allow; the truth only starts the solver), each by
 :meth:`CentralizedSmoother.smoothed_from
@@ -21,7 +24,9 @@ K``, one torch thread. Printed: each realization's RMSE and agents more
 than 5 m off at the last step and the whole sequence's cost (negative
 log-posterior, up to a constant) of each, then the pooled RMSE,
 P_out(1 m), largest error, lost agents and seconds per realization (a
-row that starts from others' includes their seconds).
+row that starts from others' includes their seconds). ``--indices`` runs
+some of the realizations only (each keeps its index, and so its search's
+seed), to split a run over processes.
 
     python benchmarks/whole_sequence_map.py --scenario paper_test_sparse \
         --realizations 20 --seed 0 --lag 10
@@ -33,7 +38,7 @@ import torch
 
 from lost_agents import line, realizations, scored  # beside this one
 from tg_nebp.filters import (CentralizedSmoother, FixedLagGaussianBP,
-                             GroupExchange, IncrementalSmoother,
+                             GroupExchange, GroupFlip, IncrementalSmoother,
                              ParticleTrajectorySearch,
                              Smoothed, TrackOutput, TrajectorySearch)
 
@@ -43,7 +48,9 @@ FROM_INCREMENTAL = "full smoother from the incremental smoother's"
 BEST = 'full smoother from the better of both starts'
 SEARCH = f'{BEST} + ParticleTrajectorySearch'
 EXCHANGE = f'{BEST}, groups exchanged'
-ESCAPE = f'{EXCHANGE} + ParticleTrajectorySearch'
+EXCHANGE_SEARCH = f'{EXCHANGE} + ParticleTrajectorySearch'
+FLIP = f'{EXCHANGE}, groups flipped'
+ESCAPE = f'{FLIP} + ParticleTrajectorySearch'
 TRUTH = 'MAP from the truth'
 
 
@@ -51,18 +58,21 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--only', nargs='+', default=None,
                         help='the rows to run (default: all)')
+    parser.add_argument('--indices', nargs='+', type=int, default=None,
+                        help='the realizations to run (default: all)')
     args, dataset, models = realizations(parser)
     smoother = CentralizedSmoother(None, **models)
     searching = CentralizedSmoother(None, search=ParticleTrajectorySearch(),
                                     **models)
     exchanging = CentralizedSmoother(None, exchange=GroupExchange(),
                                      **models)
+    flipping = CentralizedSmoother(None, flip=GroupFlip(), **models)
     window = Smoothed(FixedLagGaussianBP.recommended(
         lag=args.lag, relocation=TrajectorySearch(), **models))
     name = f'gbp-lag{args.lag} + TrajectorySearch, smoothed'
     from_window = f'MAP from {name}'
     names = [FILTER, INCREMENTAL, FROM_INCREMENTAL, name, from_window, BEST,
-             SEARCH, EXCHANGE, ESCAPE, TRUTH]
+             SEARCH, EXCHANGE, EXCHANGE_SEARCH, FLIP, ESCAPE, TRUTH]
     rows = names if args.only is None else args.only
     unknown = sorted(set(rows) - set(names))
     if unknown:
@@ -84,11 +94,15 @@ def main():
                     f"{float(smoother.sequence_cost(data, out.mean)):.1f}")
         return out, seconds
 
-    for index, data in enumerate(dataset):
+    run_indices = [index for index in range(len(dataset))
+                   if args.indices is None or index in args.indices]
+    for index in run_indices:
+        data = dataset[index]
         text = []
         if FILTER in rows:
             run(FILTER, data, lambda: smoother(data))
-        both = {BEST, SEARCH, EXCHANGE, ESCAPE} & set(rows)
+        both = {BEST, SEARCH, EXCHANGE, EXCHANGE_SEARCH, FLIP,
+                ESCAPE} & set(rows)
         starts = []  # (optimum, seconds) of each start
         if both or {INCREMENTAL, FROM_INCREMENTAL} & set(rows):
             began = time.perf_counter()
@@ -117,22 +131,29 @@ def main():
                 run(SEARCH, data, lambda: searching.smoothed_from(
                     data, kept.mean, torch.Generator().manual_seed(index)),
                     spent)
-            if {EXCHANGE, ESCAPE} & set(rows):
+            if {EXCHANGE, EXCHANGE_SEARCH, FLIP, ESCAPE} & set(rows):
                 exchanged, spent = run(EXCHANGE, data, lambda: (
                     exchanging.smoothed_from(data, [
                         out.mean for out, _ in starts])), spent)
-            if ESCAPE in rows:
-                # the search after the exchange, as a smoother with both
-                # runs them (the exchange draws nothing)
-                run(ESCAPE, data, lambda: searching.smoothed_from(
+            # the search after the others, as a smoother with them all
+            # runs it (the exchange and the flip draw nothing)
+            if EXCHANGE_SEARCH in rows:
+                run(EXCHANGE_SEARCH, data, lambda: searching.smoothed_from(
                     data, exchanged.mean,
+                    torch.Generator().manual_seed(index)), spent)
+            if {FLIP, ESCAPE} & set(rows):
+                flipped, spent = run(FLIP, data, lambda: (
+                    flipping.smoothed_from(data, exchanged.mean)), spent)
+            if ESCAPE in rows:
+                run(ESCAPE, data, lambda: searching.smoothed_from(
+                    data, flipped.mean,
                     torch.Generator().manual_seed(index)), spent)
         if TRUTH in rows:
             run(TRUTH, data, lambda: smoother.smoothed_from(data,
                                                             data.states))
         print(f"realization {index}: " + '; '.join(text), flush=True)
     for key, (errors, losts, total) in pooled.items():
-        print(line(key, errors, losts, total / len(dataset)))
+        print(line(key, errors, losts, total / len(run_indices)))
 
 
 if __name__ == '__main__':

@@ -790,3 +790,54 @@ def bounded_inflation_by_loops(cov, predicted, kappa):
         root = lower @ vectors
         out[i] = root @ torch.diag(factor) @ root.T
     return out
+
+
+def link_slots(links):
+    r"""A whole-sequence smoother's steps (its ``_Slot``s) from each step's
+    links, a list of ``(sender, receiver)`` agent indices (-1 for an
+    anchor or a held end), with unit ranges and no inputs: for the tests
+    of the components that read only which agents link."""
+    from tg_nebp.filters.centralized.centralized_smoother import _Slot
+    return [_Slot(torch.ones(len(step), 1),
+                  torch.tensor([s for s, _ in step]),
+                  torch.tensor([r for _, r in step]),
+                  torch.zeros(len(step), 4), None) for step in links]
+
+
+def assert_each_graph(mean, expected, graphs, atol):
+    r"""Each of the :obj:`graphs` equal graphs of a batch's estimates
+    :obj:`mean` is :obj:`expected` (one graph's) within :obj:`atol`."""
+    count = expected.size(0)
+    for graph in range(graphs):
+        torch.testing.assert_close(mean[graph * count:(graph + 1) * count],
+                                   expected, rtol=0, atol=atol)
+
+
+def ranged_realization(states, step_links, count, prior_cov, loose=None,
+                       sigma=0.3):
+    r"""A realization of the true :obj:`states` :math:`(N, T, 4)` (the
+    first :obj:`count` nodes agents, the rest anchors) whose links are the
+    same ``(sender, receiver)`` pairs :obj:`step_links` at every step,
+    each measured with Gaussian noise of :obj:`sigma` (drawn from
+    ``gen(1)`` in link order, step by step); the prior at the first
+    step's truth with the y of the first :obj:`loose` agents (all by
+    default) on 0 and covariances :obj:`prior_cov` :math:`(N, 4, 4)`."""
+    from tg_nebp.data import Realization
+    num, steps = states.shape[:2]
+    g = gen(1)
+    edges, ranges, times = [], [], []
+    for t in range(steps):
+        for sender, receiver in step_links:
+            edges.append((sender, receiver))
+            ranges.append(float((states[sender, t, :2] - states[
+                receiver, t, :2]).norm() + sigma * torch.randn(
+                (), generator=g, dtype=torch.float64)))
+            times.append(t)
+    prior_mean = states[:, 0].clone()
+    prior_mean[:count if loose is None else loose, 1] = 0.0
+    return Realization(
+        states=states, edge_index=torch.tensor(edges).t(),
+        edge_attr=torch.tensor(ranges).view(-1, 1),
+        edge_time=torch.tensor(times),
+        anchor=torch.arange(num) >= count, prior_mean=prior_mean,
+        prior_cov=prior_cov, num_steps=steps, num_nodes=num)

@@ -242,8 +242,10 @@ def _add_method_options(parser: argparse.ArgumentParser):
         "incremental smoother's last step and from fixed-lag Gaussian BP's "
         "smoothed estimates (lag 10, TrajectorySearch), the optimum of "
         "lower cost kept, connected groups of agents taken from the other "
-        "where that costs less (GroupExchange), every agent's trajectory "
-        "then searched for a better basin by a conditional particle filter "
+        "where that costs less (GroupExchange), groups that range to no "
+        "anchor flipped across their outside neighbours' line where that "
+        "costs less (GroupFlip), every agent's trajectory then searched "
+        "for a better basin by a conditional particle filter "
         "(ParticleTrajectorySearch; iekf-smoother-escape)")
     add('--marginal', action='store_true',
         help='iekf: keep only every agent\'s marginal between steps (the '

@@ -13,7 +13,7 @@ from tg_nebp.experiments.options import METHOD_OPTIONS, METHODS, MethodOptions
 from tg_nebp.filters import (RESAMPLERS, CentralizedIEKF,
                              FixedLagGaussianBP, FixedLagGaussianNEBP,
                              GaussianBP, GaussianNEBP, GroupExchange,
-                             IncrementalSmoother, ParticleBP,
+                             GroupFlip, IncrementalSmoother, ParticleBP,
                              ParticleTrajectorySearch, TrajectorySearch)
 from tg_nebp.models import StudentTRange
 from tg_nebp.training import save_checkpoint
@@ -45,6 +45,7 @@ def test_method_tracker_builds_each_method(scenario):
         lag=10, relocation=TrajectorySearch()).settings()
     assert escape.search == ParticleTrajectorySearch()
     assert escape.exchange == GroupExchange()
+    assert escape.flip == GroupFlip()
     assert isinstance(tracker.measurement, StudentTRange)
     # the scenario's sigma and range are kept
     assert tracker.measurement.sigma == scenario.measurement_model.sigma

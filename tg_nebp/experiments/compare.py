@@ -105,8 +105,9 @@ def compare_methods(scenario: Scenario,
     (:obj:`"iekf-smoother ..."`; :obj:`"iekf-smoother-escape ..."`,
     :func:`~tg_nebp.experiments.evaluate.escaping_smoother`: from the
     better of the incremental smoother's last step and a window's
-    smoothed estimates, groups exchanged between both, with the search of
-    better basins) and the
+    smoothed estimates, groups exchanged between both, groups flipped
+    across their outside neighbours' line, with the search of better
+    basins) and the
     incremental one (:obj:`"iekf-incremental ..."`, filtered and
     smoothed), and fixed-lag Gaussian BP with every
     likelihood of Gaussian BP (:obj:`"gbp-lagL ..."`,
@@ -199,8 +200,10 @@ def compare_methods(scenario: Scenario,
         methods[f'iekf{lag_key(WHOLE_SEQUENCE)}{ESCAPE} {own.name}'] = (
             "centralized full smoother from the better of the incremental "
             "smoother's last step and a window's smoothed estimates, groups "
-            "of agents exchanged between both optima (GroupExchange), every "
-            "agent's trajectory searched for a better basin "
+            "of agents exchanged between both optima (GroupExchange), groups "
+            "that range to no anchor flipped across their outside "
+            "neighbours' line (GroupFlip), every agent's trajectory searched "
+            "for a better basin "
             "(ParticleTrajectorySearch)",
             lambda: escaping_smoother(motion, own))
     for likelihood in likelihoods:

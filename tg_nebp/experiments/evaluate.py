@@ -19,7 +19,7 @@ from tg_nebp.experiments.options import WHOLE_SEQUENCE, MethodOptions
 from tg_nebp.filters import (HYBRID_RECOMMENDED, CentralizedIEKF,
                              CentralizedSmoother, FixedLagGaussianBP,
                              FixedLagGaussianNEBP, GaussianBP,
-                             GroupExchange, HybridBP,
+                             GroupExchange, GroupFlip, HybridBP,
                              IncrementalSmoother, LinkSearch,
                              NoiseAdaptation, ParticleBP,
                              ParticleTrajectorySearch, Smoothed, Tracker,
@@ -50,8 +50,11 @@ def escaping_smoother(motion, measurement, **options) -> CentralizedSmoother:
     the better in some), connected groups of agents taken from the other
     optimum where that costs more than 10 nats less
     (:class:`~tg_nebp.filters.GroupExchange`: each start can lose a
-    different group), then every agent's trajectory searched for a better
-    basin (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
+    different group), groups of agents that range to no anchor flipped
+    across their outside neighbours' line where that costs more than 10
+    nats less (:class:`~tg_nebp.filters.GroupFlip`: a group both starts
+    put on its mirror), then every agent's trajectory searched for a
+    better basin (:class:`~tg_nebp.filters.ParticleTrajectorySearch`);
     the models :obj:`motion` and :obj:`measurement` throughout and
     :obj:`options` of :class:`~tg_nebp.filters.CentralizedSmoother`."""
     models = dict(motion=motion, measurement=measurement)
@@ -61,7 +64,8 @@ def escaping_smoother(motion, measurement, **options) -> CentralizedSmoother:
             Smoothed(FixedLagGaussianBP.recommended(
                 lag=ESCAPE_WINDOW, relocation=TrajectorySearch(),
                 **models))),
-        search=ParticleTrajectorySearch(), exchange=GroupExchange())
+        search=ParticleTrajectorySearch(), exchange=GroupExchange(),
+        flip=GroupFlip())
 
 
 def lag_key(lag) -> str:

@@ -2,14 +2,13 @@ import pytest
 import torch
 from torch_geometric.loader import DataLoader
 
-from tg_nebp.data import Realization
 from tg_nebp.filters import (CentralizedSmoother, GroupExchange,
                              ParticleTrajectorySearch)
-from tg_nebp.filters.centralized.centralized_smoother import _Slot as Slot
 from tg_nebp.gaussian import GraphLayout
 from tg_nebp.models import ConstantVelocity, GaussianRange
 
-from helpers import Given, gen
+from helpers import (Given, assert_each_graph, gen, link_slots,
+                     ranged_realization)
 
 #: Two clusters 100 m apart, each with anchors on a line (y = 0) and a
 #: third 1.5 m off it, so that the whole sequence's links decide each
@@ -41,30 +40,14 @@ def two_groups(third_y=1.5):
         states[a, :, 1] = y
         states[a, :, 2] = VELOCITY
     states[count:, :, :2] = torch.tensor(anchors).unsqueeze(1)
-    g = gen(1)
-    edges, ranges, times = [], [], []
-    for t in range(STEPS):
-        for a in range(count):
-            for k in range(3):
-                edges.append((count + owner[a] + k, a))
-            if a == 1:  # agents 0 and 1 range to each other
-                edges.append((0, 1))
-        for sender, receiver in edges[len(ranges):]:
-            ranges.append(float((states[sender, t, :2] - states[
-                receiver, t, :2]).norm() + 0.3 * torch.randn(
-                (), generator=g, dtype=torch.float64)))
-            times.append(t)
-    prior_mean = states[:, 0].clone()
-    prior_mean[:count, 1] = 0.0
+    step = []
+    for a in range(count):
+        step += [(count + owner[a] + k, a) for k in range(3)]
+        if a == 1:  # agents 0 and 1 range to each other
+            step.append((0, 1))
     prior_cov = torch.zeros(num, 4, 4)
     prior_cov[:count] = torch.diag(torch.tensor([25.0, 25.0, 0.01, 0.01]))
-    data = Realization(
-        states=states, edge_index=torch.tensor(edges).t(),
-        edge_attr=torch.tensor(ranges).view(-1, 1),
-        edge_time=torch.tensor(times),
-        anchor=torch.arange(num) >= count, prior_mean=prior_mean,
-        prior_cov=prior_cov, num_steps=STEPS, num_nodes=num)
-    return data, dict(motion=ConstantVelocity(sigma_a=0.05),
+    return ranged_realization(states, step, count, prior_cov), dict(motion=ConstantVelocity(sigma_a=0.05),
                       measurement=GaussianRange(sigma=0.3))
 
 
@@ -140,10 +123,7 @@ def test_a_chain_of_links_over_several_steps_is_one_group():
     # the separation
     smoother = CentralizedSmoother(None)
     links = [[(k, k + 1)] for k in range(5)] + [[(-1, 6), (-1, 7), (6, -1)]]
-    slots = [Slot(torch.ones(len(step), 1), torch.tensor([s for s, _ in
-                                                          step]),
-                  torch.tensor([r for _, r in step]), torch.zeros(
-                      len(step), 4), None) for step in links]
+    slots = link_slots(links)
     here = [torch.zeros(9, 4)] * len(links)
     apart = torch.full((9, 4), 3.0)
     apart[7] = 1.0
@@ -187,11 +167,7 @@ def test_each_graph_of_a_batch_exchanges_its_own_groups():
     found = CentralizedSmoother(None, start=[Given(first, **models),
                                              Given(second, **models)],
                                 exchange=GroupExchange(), **models)(batch)
-    count = data.num_nodes
-    for graph in range(2):
-        torch.testing.assert_close(found.mean[graph * count:(graph + 1) *
-                                              count], truth_basin, rtol=0,
-                                   atol=1e-5)
+    assert_each_graph(found.mean, truth_basin, 2, atol=1e-5)
 
 
 def test_settings_and_refusals():

@@ -9,6 +9,7 @@ from tg_nebp.data.realization import Realization, num_steps_of
 from tg_nebp.data.validation import check_lag
 from tg_nebp.filters.centralized.centralized_iekf import CentralizedIEKF
 from tg_nebp.filters.centralized.group_exchange import GroupExchange
+from tg_nebp.filters.centralized.group_flip import GroupFlip
 from tg_nebp.filters.centralized.particle_trajectory_search import \
     ParticleTrajectorySearch
 from tg_nebp.filters.tracker import StepOutput, Tracker, TrackOutput
@@ -169,6 +170,12 @@ class CentralizedSmoother(CentralizedIEKF):
             before the :obj:`search`: where each start lost a different
             group; :obj:`None` keeps the optimum of lowest cost as it is.
             (default: :obj:`None`)
+        flip (GroupFlip, optional): With :obj:`lag=None`, the flip of
+            connected groups of agents that range to no anchor across
+            their outside neighbours' line, after the :obj:`exchange` and
+            before the :obj:`search`: a group on the mirror of its
+            position in every start; :obj:`None` flips none.
+            (default: :obj:`None`)
 
     Shapes:
         - **input:** a :class:`~tg_nebp.data.Realization`
@@ -187,7 +194,8 @@ class CentralizedSmoother(CentralizedIEKF):
                  max_halvings: int = 10, tolerance: float = 1e-6,
                  start: Union[None, Tracker, Sequence[Tracker]] = None,
                  search: Optional[ParticleTrajectorySearch] = None,
-                 exchange: Optional[GroupExchange] = None):
+                 exchange: Optional[GroupExchange] = None,
+                 flip: Optional[GroupFlip] = None):
         lag = check_lag(lag)
         if start is not None:
             starts = (start, ) if isinstance(start, Tracker) else start
@@ -208,6 +216,9 @@ class CentralizedSmoother(CentralizedIEKF):
         _check_component(exchange, 'exchange', GroupExchange,
                          "exchanges groups between the whole sequence's "
                          "optima", lag)
+        _check_component(flip, 'flip', GroupFlip,
+                         "flips groups of the whole sequence's solution",
+                         lag)
         if num_iterations is None:
             num_iterations = WHOLE_SEQUENCE_ITERATIONS if lag is None else 5
         super().__init__(num_iterations, motion, measurement,
@@ -217,6 +228,7 @@ class CentralizedSmoother(CentralizedIEKF):
             start, Tracker) else tuple(start)
         self.search = search
         self.exchange = exchange
+        self.flip = flip
 
     @property
     def starts(self) -> Tuple[Tracker, ...]:
@@ -408,6 +420,9 @@ class CentralizedSmoother(CentralizedIEKF):
                     solved, final = self.exchange.exchanged(
                         self, base, mine, (solved, final),
                         [solutions[k][0] for k in order[1:]])
+            if self.flip is not None:
+                solved, final = self.flip.flipped(self, base, mine,
+                                                  (solved, final))
             if self.search is not None:
                 solved, final = self.search.escaped(
                     self, base, mine, (solved, final), drawn)
@@ -657,13 +672,16 @@ class CentralizedSmoother(CentralizedIEKF):
             {} if self.search is None else
             dict(search=self.search.settings())), **(
             {} if self.exchange is None else
-            dict(exchange=self.exchange.settings())))
+            dict(exchange=self.exchange.settings())), **(
+            {} if self.flip is None else dict(flip=self.flip.settings())))
 
     def __repr__(self) -> str:
         start = '' if self.start is None else f', start={self.start!r}'
         search = '' if self.search is None else f', search={self.search}'
         exchange = '' if self.exchange is None else \
             f', exchange={self.exchange}'
+        flip = '' if self.flip is None else f', flip={self.flip}'
         return (f'{self.__class__.__name__}(lag={self.lag}, num_iterations='
                 f'{self.num_iterations}, motion={self.motion}, '
-                f'measurement={self.measurement}{start}{search}{exchange})')
+                f'measurement={self.measurement}{start}{search}{exchange}'
+                f'{flip})')

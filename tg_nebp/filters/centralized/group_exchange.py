@@ -10,8 +10,8 @@ import torch
 from torch import Tensor
 
 from tg_nebp.data.validation import check_number, check_positive_int
-from tg_nebp.filters.centralized.particle_trajectory_search import \
-    linked_agents
+from tg_nebp.filters.centralized.particle_trajectory_search import (
+    connected_groups, linked_agents)
 
 __all__ = ['GroupExchange']
 
@@ -107,25 +107,8 @@ class GroupExchange:
         dim = smoother.measurement.position_dim(size)
         apart = (torch.stack(points)[..., :dim] - torch.stack(other)[
             ..., :dim]).norm(dim=-1).amax(0) > self.separation
-        # every differing agent reaches itself and its differing neighbours
-        linked = (linked_agents(slots, count, apart.device) | torch.eye(
-            count, dtype=torch.bool, device=apart.device)) & \
-            apart.view(-1, 1) & apart.view(1, -1)
-        # connected components by closure: each agent reaches what its
-        # reachable agents reach, until nothing is added
-        reach = linked
-        while True:
-            wider = (reach.to(torch.float64) @ reach.to(torch.float64)) > 0
-            if torch.equal(wider, reach):
-                break
-            reach = wider
-        groups, seen = [], torch.zeros_like(apart)
-        for agent in apart.nonzero().flatten().tolist():
-            if not bool(seen[agent]):
-                groups.append(reach[agent].nonzero().flatten())
-                seen = seen | reach[agent]
-        return sorted(groups, key=lambda group: (-group.numel(),
-                                                 int(group[0])))
+        return connected_groups(linked_agents(slots, count, apart.device),
+                                apart)
 
     def settings(self) -> dict:
         return dict(exchange='group', separation=self.separation,

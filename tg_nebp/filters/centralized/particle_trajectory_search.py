@@ -383,6 +383,33 @@ def linked_agents(slots: List, count: int, device) -> Tensor:
     return linked | linked.T
 
 
+def connected_groups(linked: Tensor, members: Tensor) -> List[Tensor]:
+    r"""The :obj:`members` (a boolean mask :math:`(A)`) split into groups
+    connected by :obj:`linked` (a symmetric boolean :math:`(A, A)`, as
+    :func:`linked_agents` gives; two members in one group are joined by a
+    path of members): the index tensors of their agents, ascending, the
+    largest group first (the one of the lowest agent among equal sizes)."""
+    count = members.numel()
+    # every member reaches itself and its linked members
+    reach = (linked | torch.eye(count, dtype=torch.bool,
+                                device=members.device)) & \
+        members.view(-1, 1) & members.view(1, -1)
+    # connected components by closure: each member reaches what its
+    # reachable members reach, until nothing is added
+    while True:
+        wider = (reach.to(torch.float64) @ reach.to(torch.float64)) > 0
+        if torch.equal(wider, reach):
+            break
+        reach = wider
+    groups, seen = [], torch.zeros_like(members)
+    for agent in members.nonzero().flatten().tolist():
+        if not bool(seen[agent]):
+            groups.append(reach[agent].nonzero().flatten())
+            seen = seen | reach[agent]
+    return sorted(groups, key=lambda group: (-group.numel(),
+                                             int(group[0])))
+
+
 def _unlinked_movers(gain: Tensor, margin: float, slots: List) -> Tensor:
     # the agents whose gain beats the margin, best first, skipping any that
     # shares a link at some step with one already taken
