@@ -94,6 +94,10 @@ def main():
                     f"{float(smoother.sequence_cost(data, out.mean)):.1f}")
         return out, seconds
 
+    outside = sorted(set(args.indices or ()) - set(range(len(dataset))))
+    if outside:
+        parser.error(f'--indices {outside} are not realizations 0 to '
+                     f'{len(dataset) - 1}')
     run_indices = [index for index in range(len(dataset))
                    if args.indices is None or index in args.indices]
     for index in run_indices:

@@ -47,7 +47,8 @@ def two_groups(third_y=1.5):
             step.append((0, 1))
     prior_cov = torch.zeros(num, 4, 4)
     prior_cov[:count] = torch.diag(torch.tensor([25.0, 25.0, 0.01, 0.01]))
-    return ranged_realization(states, step, count, prior_cov), dict(motion=ConstantVelocity(sigma_a=0.05),
+    data = ranged_realization(states, step, count, prior_cov)
+    return data, dict(motion=ConstantVelocity(sigma_a=0.05),
                       measurement=GaussianRange(sigma=0.3))
 
 

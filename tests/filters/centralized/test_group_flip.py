@@ -42,7 +42,8 @@ def hinged_pair(third_y=1.5):
     prior_cov = torch.zeros(num, 4, 4)
     prior_cov[:2] = torch.diag(torch.tensor([25.0, 25.0, 0.01, 0.01]))
     prior_cov[2:count] = torch.diag(torch.tensor([0.25, 0.25, 0.01, 0.01]))
-    return ranged_realization(states, step, count, prior_cov, loose=2), dict(motion=ConstantVelocity(sigma_a=0.05),
+    data = ranged_realization(states, step, count, prior_cov, loose=2)
+    return data, dict(motion=ConstantVelocity(sigma_a=0.05),
                       measurement=GaussianRange(sigma=0.3))
 
 
@@ -92,12 +93,17 @@ def test_a_flip_the_links_leave_open_is_never_taken():
     # every hinge on the line: the mirror costs what the truth does, so the
     # margin keeps the solution as it is
     data, models = hinged_pair(third_y=0.0)
-    plain = CentralizedSmoother(None, **models).smoothed_from(
-        data, mirrored(data))
+    smoother = CentralizedSmoother(None, **models)
+    plain = smoother.smoothed_from(data, mirrored(data))
     flipped = CentralizedSmoother(None, flip=GroupFlip(),
                                   **models).smoothed_from(data,
                                                           mirrored(data))
     assert bool((off(plain.mean, data) > 6).all())
+    # the flip is tried (its hinges lie on their line), and refused
+    _, slots, _ = smoother._problem(data, GraphLayout.of(data))[0]
+    assert GroupFlip().reflected(smoother, slots, [
+        state[:5] for state in plain.mean.unbind(1)],
+        torch.tensor([0, 1])) is not None
     assert torch.equal(flipped.mean, plain.mean)
     assert torch.equal(flipped.cov, plain.cov)
     # where the data decide, a margin beyond the gain keeps it too
@@ -149,13 +155,50 @@ def test_the_reflection_is_across_the_hinges_line_at_each_step():
         3, 4, generator=gen(0))] * 3, torch.tensor([0, 1])) is None
 
 
+def test_a_step_without_outside_links_takes_the_nearest_steps():
+    # the pair (0, 1) ranges to agents 2 and 3 at steps 0 and 3 only: at
+    # steps 1 and 2 their hyperplane is that of agents 2 and 3, at those
+    # steps' positions (the line y = k at step k)
+    smoother = CentralizedSmoother(None)
+    slots = link_slots([[(2, 0), (3, 1)], [(0, 1)], [(0, 1)],
+                        [(2, 0), (3, 0)]])
+    points, expected = [], []
+    for k in range(4):
+        here = torch.tensor([[3.0, k + 2.0, 0.5, 0.1],
+                             [6.0, k + 3.0, 0.5, 0.1],
+                             [0.0, float(k), 0.0, 1.0],
+                             [10.0, float(k), 0.0, 1.0]],
+                            dtype=torch.float64)
+        points.append(here)
+        mirror = here.clone()
+        mirror[:2, 1] = 2 * k - here[:2, 1]
+        mirror[:2, 3] = -here[:2, 3]
+        expected.append(mirror)
+    torch.testing.assert_close(torch.stack(GroupFlip().reflected(
+        smoother, slots, points, torch.tensor([0, 1]))), torch.stack(
+        expected), rtol=0, atol=1e-9)
+    # a solution that is not finite has no hyperplane: nothing is tried,
+    # and the flip hands it back as it is
+    points[1] = points[1].clone()
+    points[1][2, 0] = float('nan')
+    assert GroupFlip().reflected(smoother, slots, points,
+                                 torch.tensor([0, 1])) is None
+    data, models = hinged_pair()
+    smoother = CentralizedSmoother(None, **models)
+    base, slots, _ = smoother._problem(data, GraphLayout.of(data))[0]
+    points = [state[:5].clone() for state in data.states.double().unbind(1)]
+    points[4][2, 1] = float('nan')
+    kept = (points, None)
+    assert GroupFlip().flipped(smoother, base, slots, kept) is kept
+
+
 def test_each_graph_of_a_batch_flips_its_own_groups():
     data, models = hinged_pair()
     batch = next(iter(DataLoader([data, data], batch_size=2)))
     truth_basin = CentralizedSmoother(None, **models).smoothed_from(
         data, data.states.double()).mean
-    # the first graph starts on the mirror, the second at the truth
-    start = torch.cat([mirrored(data), data.states.double()])
+    # both graphs start on the mirror
+    start = torch.cat([mirrored(data), mirrored(data)])
     found = CentralizedSmoother(None, start=Given(start, **models),
                                 flip=GroupFlip(), **models)(batch)
     assert_each_graph(found.mean, truth_basin, 2, atol=1e-5)

@@ -33,7 +33,9 @@ class GroupFlip:
     1. The groups: the agents that range to no anchor at any step, split
        into groups connected by their links (any step), those of two or
        more agents, the largest first. Such a group is placed only
-       relative to other agents; a flip keeps every range within it. A
+       relative to other agents; a flip keeps every range within it (not
+       a bearing, nor a unicycle's odometry turns, which a reflection
+       contradicts: there the flip is tried and its cost refuses it). A
        single agent is left to the :obj:`search`, whose particles reach
        its mirror; a group's are out of their reach, since the search
        moves one agent at a time, its neighbours held.
@@ -54,8 +56,12 @@ class GroupFlip:
        hyperplane (:meth:`MotionModel.rigidly_moved
        <tg_nebp.models.MotionModel.rigidly_moved>`: positions
        :math:`\mathbf{p} \mapsto \mathbf{R}_k \mathbf{p} + \mathbf{b}_k`,
-       the velocity with them), the others keeping theirs; the whole
-       sequence's Gauss-Newton iterations start from there, and the
+       the velocity by :math:`\mathbf{R}_k`, a heading on the lift of the
+       step before), the others keeping theirs; the whole sequence's
+       Gauss-Newton iterations start from there (where the hyperplane
+       moves from step to step, the velocities so reflected do not carry
+       the positions along it, and the iterations' first roll-out through
+       the motion model moves the start off the reflection), and the
        optimum they reach replaces the solution where its cost
        (:meth:`~tg_nebp.filters.CentralizedSmoother.sequence_cost`) is
        lower by more than :obj:`margin` nats (any finite cost where the
@@ -120,8 +126,9 @@ class GroupFlip:
         :math:`(A, S)`) with the agents of :obj:`group` reflected at every
         step across the hyperplane of their outside neighbours, or
         :obj:`None` where the flip is not tried (fewer than :math:`D`
-        outside neighbours over the whole sequence, or neighbours farther
-        than :obj:`spread` off their hyperplane)."""
+        outside neighbours over the whole sequence, neighbours farther
+        than :obj:`spread` off their hyperplane, or a solution that is
+        not finite there)."""
         count, size = points[0].shape
         dim = smoother.measurement.position_dim(size)
         inside = torch.zeros(count, dtype=torch.bool,
@@ -151,6 +158,9 @@ class GroupFlip:
             owner.append(torch.full((int(mask.sum()), ), k,
                                     device=mask.device))
         hinge, owner = torch.cat(hinges), torch.cat(owner)
+        if not bool(torch.isfinite(hinge).all()) or not all(
+                bool(torch.isfinite(here[group]).all()) for here in points):
+            return None  # a NaN solution has no hyperplane to flip across
         rotation, offset = mirror_transforms(hinge, owner, len(slots), dim)
         # a point's distance from the hyperplane is half its move by the
         # reflection
@@ -160,11 +170,20 @@ class GroupFlip:
                               device=off.device).index_add(
             0, owner, off.square()) / torch.bincount(
             owner, minlength=len(slots))).sqrt()
-        if float(spread.median()) > self.spread:
+        if not float(spread.median()) <= self.spread:
             return None
-        return [here.index_copy(0, group, smoother.motion.rigidly_moved(
-            here[group], rotation[k], offset[k]))
-            for k, here in enumerate(points)]
+        layout = smoother.motion.layout(size)
+        flipped = []
+        for k, here in enumerate(points):
+            moved = smoother.motion.rigidly_moved(here[group], rotation[k],
+                                                  offset[k])
+            if flipped:
+                # each angle (a heading) on the lift of the step before,
+                # as the iterations' transitions take it: a reflection
+                # wraps each step's on its own
+                moved = layout.nearest(moved, flipped[-1][group])
+            flipped.append(here.index_copy(0, group, moved))
+        return flipped
 
     def settings(self) -> dict:
         return dict(flip='group', spread=self.spread, margin=self.margin)
