@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from tg_nebp.filters import CentralizedIEKF, CentralizedSmoother, Smoothed
+from tg_nebp.gaussian import GraphLayout
 
 from helpers import (assert_batch_equals_alone,
                      assert_kalman_filter_and_smoother, assert_same_minimum,
@@ -161,3 +162,40 @@ def test_a_start_is_checked():
         smoother.smoothed_from(data, torch.full_like(data.states, math.nan))
     with pytest.raises(ValueError, match='needs lag=None'):
         CentralizedSmoother(3, **models).smoothed_from(data, data.states)
+
+
+def test_a_start_off_the_motion_model_s_trajectories_is_followed():
+    # a filter's estimates lie off the constant-velocity model's
+    # trajectories (its singular noise moves a position only together
+    # with its velocity): here the truth's positions with every velocity
+    # zero. The iterations start from the trajectory that follows them,
+    # on the model's trajectories; the given states' own noises, rolled
+    # out, add their errors up to metres
+    data, models = mirror(velocity=0.3, steps=40)
+    smoother = CentralizedSmoother(None, **models)
+    start = data.states.double().clone()
+    start[..., 2:] = 0.0
+    _, slots, (points, ) = smoother._problem(data, GraphLayout.of(data), [
+        [[state[:1].unsqueeze(0)] for state in start.unbind(1)]])[0]
+    factors = smoother._noise_factors(slots, points)
+    states, noises = smoother._followed(slots, points, factors)
+    # on the model's trajectory: the roll-out of its own noises
+    torch.testing.assert_close(torch.stack(smoother._rolled_out(
+        slots, states[0], noises, factors)), torch.stack(states), rtol=0,
+        atol=1e-12)
+    # within 0.75 m of the given positions throughout (the positions move
+    # 0.3 m a step, the velocities say 0: the trajectory settles two
+    # steps' moves behind); the open roll-out drifts off
+    def gap(rolled):
+        return float((torch.stack(rolled)[..., :2] - torch.stack(points)[
+            ..., :2]).norm(dim=-1).max())
+    assert gap(states) < 0.75
+    assert gap(smoother._rolled_out(slots, points[0], smoother._noises(
+        slots, points, factors), factors)) > 5.0
+    # a start on the model's trajectories (the truth, moving evenly) is
+    # kept (to the float32 rounding of the realization's states)
+    truth = [state[:1] for state in data.states.double().unbind(1)]
+    followed, _ = smoother._followed(slots, truth, smoother._noise_factors(
+        slots, truth))
+    torch.testing.assert_close(torch.stack(followed), torch.stack(truth),
+                               rtol=0, atol=1e-5)

@@ -49,12 +49,13 @@ def hinged_pair(third_y=1.5):
 
 def mirrored(data):
     # the truth with the pair reflected at each step k across the line
-    # y = 0.2 k, their velocities by its linear part: a start with the pair
-    # on the mirror of the hinges' line
+    # y = 0.2 k, their velocities those of the reflected positions (the
+    # line moves by 0.2 a step: v_y -> 0.4 - v_y, not -v_y): a start with
+    # the pair on the mirror of the hinges' line
     start = data.states.double().clone()
     line = VELOCITY[1] * torch.arange(STEPS, dtype=torch.float64)
     start[:2, :, 1] = 2 * line - start[:2, :, 1]
-    start[:2, :, 3] = -start[:2, :, 3]
+    start[:2, :, 3] = 2 * VELOCITY[1] - start[:2, :, 3]
     return start
 
 
@@ -158,8 +159,12 @@ def test_the_reflection_is_across_the_hinges_line_at_each_step():
 def test_a_step_without_outside_links_takes_the_nearest_steps():
     # the pair (0, 1) ranges to agents 2 and 3 at steps 0 and 3 only: at
     # steps 1 and 2 their hyperplane is that of agents 2 and 3, at those
-    # steps' positions (the line y = k at step k)
-    smoother = CentralizedSmoother(None)
+    # steps' positions (the line y = k at step k). The velocities: those
+    # of the constant-velocity model (dt = 1) that carry each reflected
+    # position to the next as the original's was carried, reflected:
+    # v' = R v + (b_{k+1} - b_k) for p' = R p + b_k, R = diag(1, -1),
+    # b_k = (0, 2 k)
+    smoother = CentralizedSmoother(None, motion=ConstantVelocity())
     slots = link_slots([[(2, 0), (3, 1)], [(0, 1)], [(0, 1)],
                         [(2, 0), (3, 0)]])
     points, expected = [], []
@@ -172,11 +177,23 @@ def test_a_step_without_outside_links_takes_the_nearest_steps():
         points.append(here)
         mirror = here.clone()
         mirror[:2, 1] = 2 * k - here[:2, 1]
-        mirror[:2, 3] = -here[:2, 3]
+        mirror[:2, 3] = 2.0 - here[:2, 3]
         expected.append(mirror)
     torch.testing.assert_close(torch.stack(GroupFlip().reflected(
         smoother, slots, points, torch.tensor([0, 1]))), torch.stack(
         expected), rtol=0, atol=1e-9)
+    # any motion model (here with drag): its mean carries each reflected
+    # state off the next step's reflected position by the original's miss,
+    # reflected
+    drag = CentralizedSmoother(None)
+    reflected = GroupFlip().reflected(drag, slots, points,
+                                      torch.tensor([0, 1]))
+    flip = torch.diag(torch.tensor([1.0, -1.0], dtype=torch.float64))
+    for k in range(3):
+        torch.testing.assert_close(
+            reflected[k + 1][:2, :2] - drag.motion.mean(reflected[k][:2])[
+                :, :2], (points[k + 1][:2, :2] - drag.motion.mean(
+                    points[k][:2])[:, :2]) @ flip, rtol=0, atol=1e-9)
     # a solution that is not finite has no hyperplane: nothing is tried,
     # and the flip hands it back as it is
     points[1] = points[1].clone()

@@ -99,7 +99,10 @@ class CentralizedSmoother(CentralizedIEKF):
     f(\mathbf{x}_{k-1}) + \mathbf{L}_k \mathbf{w}_k`, :math:`\mathbf{Q}_k =
     \mathbf{L}_k \mathbf{L}_k^\top`, :math:`\mathbf{w}_k` white): a trial
     is rolled out through the motion model, so every iterate lies on the
-    model's own trajectories, where a singular noise keeps it.
+    model's own trajectories, where a singular noise keeps it. A start off
+    them (a filter's estimates, another method's) is first followed along
+    a trajectory: each transition's noise moves the state rolled out so
+    far as close to the start's next as the noise reaches.
     Each update is the centralized IEKF's
     (:class:`~tg_nebp.filters.CentralizedIEKF`: the measurement model's own
     likelihood, Woodbury on the entries the links inform). When the window
@@ -599,6 +602,26 @@ class CentralizedSmoother(CentralizedIEKF):
                           (root @ noise.unsqueeze(-1)).squeeze(-1))
         return states
 
+    def _followed(self, slots: List[_Slot], points: List[Tensor], factors
+                  ) -> Tuple[List[Tensor], List[Tensor]]:
+        # the motion model's trajectory that follows 'points' from their
+        # first step, and its driving noises: each transition's the part of
+        # the move from the state before, as rolled out, to the given state
+        # that the noise reaches. A given state off the model's
+        # trajectories (a filter's estimates, a reflected group) leaves an
+        # error that the next steps correct, where the noises of the given
+        # states' own moves, rolled out, would add the errors up (tens of
+        # metres over a long sequence); on a trajectory both are the given
+        # states
+        states, noises = [points[0]], []
+        for k, (_, root, inverse) in enumerate(factors, 1):
+            mean = self.motion.mean(states[-1], **inputs(slots[k].control))
+            noises.append((inverse @ (points[k] - mean).unsqueeze(-1)
+                           ).squeeze(-1))
+            states.append(mean + (root @ noises[-1].unsqueeze(-1)
+                                  ).squeeze(-1))
+        return states, noises
+
     def _window_cost(self, slots: List[_Slot], states: List[Tensor],
                      noises: List[Tensor], factor: Tensor,
                      prior: Tensor) -> Tensor:
@@ -638,8 +661,7 @@ class CentralizedSmoother(CentralizedIEKF):
         for _ in range(self.num_iterations if iterations is None
                        else iterations):
             factors = self._noise_factors(slots, points)
-            noises = self._noises(slots, points, factors)
-            points = self._rolled_out(slots, points[0], noises, factors)
+            points, noises = self._followed(slots, points, factors)
             cost = self._window_cost(slots, points, noises, factor, prior)
             step = [offset for offset, _ in
                     self._forward_backward(base, slots, points).smoothed]

@@ -13,8 +13,13 @@ from tg_nebp.data.validation import check_number
 from tg_nebp.filters.centralized.particle_trajectory_search import (
     connected_groups, linked_agents)
 from tg_nebp.filters.gaussian.trajectory_search import mirror_transforms
+from tg_nebp.models import inputs
 
 __all__ = ['GroupFlip']
+
+#: The most Gauss-Newton steps that set a reflected velocity (a linear
+#: motion model needs one; they stop at a change of 1e-9).
+_CARRIED_STEPS = 10
 
 
 class GroupFlip:
@@ -57,12 +62,14 @@ class GroupFlip:
        <tg_nebp.models.MotionModel.rigidly_moved>`: positions
        :math:`\mathbf{p} \mapsto \mathbf{R}_k \mathbf{p} + \mathbf{b}_k`,
        the velocity by :math:`\mathbf{R}_k`, a heading on the lift of the
-       step before), the others keeping theirs; the whole sequence's
-       Gauss-Newton iterations start from there (where the hyperplane
-       moves from step to step, the velocities so reflected do not carry
-       the positions along it, and the iterations' first roll-out through
-       the motion model moves the start off the reflection), and the
-       optimum they reach replaces the solution where its cost
+       step before), the others keeping theirs. Where the hyperplane moves
+       from step to step, a velocity so reflected does not carry the
+       reflected positions along, so each velocity is then set by the
+       motion model's own mean and Jacobian to carry its position to the
+       next step's as the original's carried it, reflected (exact for a
+       linear model). The whole sequence's Gauss-Newton iterations start
+       from there, and the optimum they reach replaces the solution where
+       its cost
        (:meth:`~tg_nebp.filters.CentralizedSmoother.sequence_cost`) is
        lower by more than :obj:`margin` nats (any finite cost where the
        solution's is NaN).
@@ -183,6 +190,69 @@ class GroupFlip:
                 # wraps each step's on its own
                 moved = layout.nearest(moved, flipped[-1][group])
             flipped.append(here.index_copy(0, group, moved))
+        return self._carried(smoother, slots, points, flipped, group,
+                             rotation, layout)
+
+    @staticmethod
+    def _carried(smoother, slots: List, points: List[Tensor],
+                 flipped: List[Tensor], group: Tensor, rotation: Tensor,
+                 layout) -> List[Tensor]:
+        # the reflected states with the rest of each (a velocity: not the
+        # position, nor an angle) set so that the motion model's mean
+        # carries the reflected position to the next step's reflected one
+        # as it carried the original, reflected: where the hyperplane
+        # moves between steps, a velocity reflected by its own step's
+        # rotation does not follow the reflected positions, and the
+        # iterations' roll-out through the model leaves the reflection.
+        # Gauss-Newton on the model's own mean and Jacobian (one step for
+        # a linear model such as the constant-velocity one, a few with
+        # drag); the last step's change as the step before's, the
+        # hyperplane moving on as it moved
+        dim = layout.position_dim
+        rest = [i for i in range(dim, points[0].size(1))
+                if i not in layout.angles]
+        if not rest:
+            return flipped
+        rest = torch.tensor(rest, device=group.device)
+        motion = smoother.motion
+        for k in range(len(points) - 1):
+            given = inputs(slots[k + 1].control)
+            # the original's move off the model's mean, reflected
+            wanted = (rotation[k] @ (points[k + 1][group, :dim] - motion.mean(
+                points[k][group], **given)[:, :dim]).unsqueeze(-1)
+                      ).squeeze(-1)
+            reflected = moved = flipped[k][group]
+            for _ in range(_CARRIED_STEPS):
+                missed = (flipped[k + 1][group, :dim] - motion.mean(
+                    moved, **given)[:, :dim] - wanted).unsqueeze(-1)
+                jacobian = motion.jacobian(moved, **given)[:, :dim][
+                    ..., rest]
+                change = (torch.linalg.pinv(jacobian) @ missed).squeeze(-1)
+                moved = moved.index_add(1, rest, change)
+                if not float(change.abs().amax()) > 1e-9:
+                    break
+            flipped[k] = flipped[k].index_copy(0, group, moved)
+        if len(points) > 1:
+            flipped[-1] = flipped[-1].index_copy(0, group, flipped[-1][
+                group] + moved - reflected)
+        return flipped
+        rest = torch.tensor(rest, device=group.device)
+        motion = smoother.motion
+        for k in range(len(points) - 1):
+            given = inputs(slots[k + 1].control)
+            original, moved = points[k][group], flipped[k][group]
+            # the original's move off the model's mean, reflected
+            wanted = (rotation[k] @ (points[k + 1][group, :dim] - motion.mean(
+                original, **given)[:, :dim]).unsqueeze(-1)).squeeze(-1)
+            missed = (flipped[k + 1][group, :dim] - motion.mean(
+                moved, **given)[:, :dim] - wanted).unsqueeze(-1)
+            jacobian = motion.jacobian(moved, **given)[:, :dim][..., rest]
+            change = (torch.linalg.pinv(jacobian) @ missed).squeeze(-1)
+            flipped[k] = flipped[k].index_copy(0, group, moved.index_add(
+                1, rest, change))
+        if len(points) > 1:
+            flipped[-1] = flipped[-1].index_copy(0, group, flipped[-1][
+                group].index_add(1, rest, change))
         return flipped
 
     def settings(self) -> dict:
