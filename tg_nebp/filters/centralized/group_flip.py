@@ -236,24 +236,6 @@ class GroupFlip:
             flipped[-1] = flipped[-1].index_copy(0, group, flipped[-1][
                 group] + moved - reflected)
         return flipped
-        rest = torch.tensor(rest, device=group.device)
-        motion = smoother.motion
-        for k in range(len(points) - 1):
-            given = inputs(slots[k + 1].control)
-            original, moved = points[k][group], flipped[k][group]
-            # the original's move off the model's mean, reflected
-            wanted = (rotation[k] @ (points[k + 1][group, :dim] - motion.mean(
-                original, **given)[:, :dim]).unsqueeze(-1)).squeeze(-1)
-            missed = (flipped[k + 1][group, :dim] - motion.mean(
-                moved, **given)[:, :dim] - wanted).unsqueeze(-1)
-            jacobian = motion.jacobian(moved, **given)[:, :dim][..., rest]
-            change = (torch.linalg.pinv(jacobian) @ missed).squeeze(-1)
-            flipped[k] = flipped[k].index_copy(0, group, moved.index_add(
-                1, rest, change))
-        if len(points) > 1:
-            flipped[-1] = flipped[-1].index_copy(0, group, flipped[-1][
-                group].index_add(1, rest, change))
-        return flipped
 
     def settings(self) -> dict:
         return dict(flip='group', spread=self.spread, margin=self.margin)
