@@ -216,21 +216,31 @@ class GroupFlip:
         rest = torch.tensor(rest, device=group.device)
         motion = smoother.motion
         for k in range(len(points) - 1):
-            given = inputs(slots[k + 1].control)
+            control = slots[k + 1].control  # the group's inputs only
+            given = inputs(None if control is None else control[group])
             # the original's move off the model's mean, reflected
             wanted = (rotation[k] @ (points[k + 1][group, :dim] - motion.mean(
                 points[k][group], **given)[:, :dim]).unsqueeze(-1)
                       ).squeeze(-1)
+
+            def missed(states):
+                return flipped[k + 1][group, :dim] - motion.mean(
+                    states, **given)[:, :dim] - wanted
+
             reflected = moved = flipped[k][group]
             for _ in range(_CARRIED_STEPS):
-                missed = (flipped[k + 1][group, :dim] - motion.mean(
-                    moved, **given)[:, :dim] - wanted).unsqueeze(-1)
                 jacobian = motion.jacobian(moved, **given)[:, :dim][
                     ..., rest]
-                change = (torch.linalg.pinv(jacobian) @ missed).squeeze(-1)
+                change = (torch.linalg.pinv(jacobian) @ missed(
+                    moved).unsqueeze(-1)).squeeze(-1)
                 moved = moved.index_add(1, rest, change)
                 if not float(change.abs().amax()) > 1e-9:
                     break
+            # kept only where it carries no worse (a Jacobian that nearly
+            # vanishes, as drag's at high speed, can throw it off)
+            if not float(missed(moved).norm()) <= float(
+                    missed(reflected).norm()):
+                moved = reflected
             flipped[k] = flipped[k].index_copy(0, group, moved)
         if len(points) > 1:
             flipped[-1] = flipped[-1].index_copy(0, group, flipped[-1][
