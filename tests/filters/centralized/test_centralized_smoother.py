@@ -107,8 +107,8 @@ def test_smoother_settings_and_errors():
 def test_the_whole_sequence_smoother_iterates_to_its_tolerance_by_default():
     # every step of a whole sequence moves at once: 3 Gauss-Newton
     # iterations leave this wide-prior sequence more than a millimetre
-    # from its optimum; the default (up to 50, stopping at a step of 1e-6) reaches
-    # it to the size of its last step
+    # from its optimum; the default (up to 50, stopping at a step of 1e-6)
+    # reaches it to the size of its last step
     data = tiny_scenario(steps=20).generate(gen(12))
     agents = ~data.anchor
     optimum = CentralizedSmoother(None, 200, tolerance=0.0)(data)
